@@ -1,0 +1,193 @@
+"""Tests of analytics.lti against analytic responses and scipy.signal."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+import scipy.signal
+
+from analytics.errors import ModelSpecError
+from analytics.lti import TransferFunction, discretise, simulate_open_loop
+
+G33 = TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, theta=1.0)
+
+
+def _step_samples(tf: TransferFunction, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    t = dt * np.arange(n)
+    return t, simulate_open_loop(tf, np.ones(n), dt)
+
+
+@pytest.mark.parametrize(
+    ("theta", "dt", "fractional"),
+    [(0.0, 0.1, False), (3.0, 0.5, False), (0.3, 0.1, False), (0.25, 0.1, True), (1.37, 0.2, True)],
+)
+def test_fopdt_step_is_exact(theta: float, dt: float, fractional: bool) -> None:
+    K, tau = 2.5, 1.7
+    tf = TransferFunction.fopdt(K, tau, theta)
+    assert discretise(tf, dt).fractional is fractional
+    t, y = _step_samples(tf, dt, 200)
+    expected = K * (1.0 - np.exp(-np.maximum(t - theta, 0.0) / tau))
+    np.testing.assert_allclose(y, expected, rtol=0, atol=1e-10)
+    assert np.all(y[t < theta - 1e-12] == 0.0)
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.6, 0.45])
+def test_integrating_ramp(theta: float) -> None:
+    K, dt = -0.8, 0.15
+    t, y = _step_samples(TransferFunction.integrating(K, theta), dt, 100)
+    np.testing.assert_allclose(y, K * np.maximum(t - theta, 0.0), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.diff(y[t > theta + dt]) / dt, K, rtol=1e-10)
+
+
+def test_second_order_step_analytic() -> None:
+    K, tau1, tau2, theta, dt = 1.3, 4.0, 1.5, 0.7, 0.2
+    t, y = _step_samples(TransferFunction.second_order(K, tau1, tau2, theta), dt, 300)
+    s = np.maximum(t - theta, 0.0)
+    expected = K * (1 - (tau1 * np.exp(-s / tau1) - tau2 * np.exp(-s / tau2)) / (tau1 - tau2))
+    np.testing.assert_allclose(y, expected, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "tf",
+    [
+        G33,
+        TransferFunction.underdamped(1.2, 0.9, 0.3, theta=0.55),
+        TransferFunction.second_order(-0.5, 2.0, 0.3, theta=2.0),
+    ],
+)
+@pytest.mark.parametrize("dt", [0.1, 0.3])
+def test_step_matches_scipy_step(tf: TransferFunction, dt: float) -> None:
+    # scipy's step starts at T[0] = 0 on a uniform grid: use a grid of h = 0.05 s,
+    # on which every delayed sampling instant t_k - theta of these cases lies.
+    t, y = _step_samples(tf, dt, 400)
+    after = t >= tf.delay
+    h = 0.05
+    idx = np.round((t[after] - tf.delay) / h).astype(int)
+    _, ref = scipy.signal.step((tf.num, tf.den), T=h * np.arange(idx[-1] + 1))
+    np.testing.assert_allclose(y[after], ref[idx], rtol=0, atol=1e-9)
+    assert np.all(y[~after] == 0.0)
+
+
+def test_biproper_output_is_left_limit() -> None:
+    # 2 (5 s + 1) / (s + 1): jumps to 10 at t = theta, then decays to 2.
+    K, lead, lag, dt = 2.0, 5.0, 1.0, 0.1
+    for theta, first in [(0.3, 4), (0.25, 3)]:
+        tf = TransferFunction.lead_lag(K, lead, lag, theta=theta)
+        assert math.isclose(discretise(tf, dt).D, K * lead / lag)
+        t, y = _step_samples(tf, dt, 80)
+        s = t - theta
+        expected = np.where(s > 1e-12, K * (1 - (1 - lead / lag) * np.exp(-s / lag)), 0.0)
+        np.testing.assert_allclose(y, expected, rtol=0, atol=1e-10)
+        assert y[first - 1] == 0.0 and y[first] > K
+
+
+def test_sinusoid_matches_fine_lsim() -> None:
+    # The ZOH staircase and the delay are exact on a 10x finer grid, so lsim
+    # with interp=False (itself exact for piecewise-constant input) is a reference.
+    tf = TransferFunction.underdamped(1.5, 1.1, 0.25, theta=0.37)
+    dt, sub, n = 0.1, 10, 400
+    u = np.sin(0.7 * dt * np.arange(n)) + 0.3 * np.cos(2.3 * dt * np.arange(n))
+    y = simulate_open_loop(tf, u, dt)
+
+    shift = round(tf.delay / (dt / sub))
+    j = np.arange(n * sub)
+    u_fine = np.where(j >= shift, u[np.maximum(j - shift, 0) // sub], 0.0)
+    _, y_fine, _ = scipy.signal.lsim((tf.num, tf.den), u_fine, j * (dt / sub), interp=False)
+    np.testing.assert_allclose(y, y_fine[::sub], rtol=0, atol=1e-9)
+
+
+def test_fopdt_frequency_response_analytic() -> None:
+    K, tau, theta = 3.0, 2.0, 0.8
+    w = np.logspace(-3, 2, 200)
+    g = TransferFunction.fopdt(K, tau, theta).frequency_response(w)
+    np.testing.assert_allclose(np.abs(g), K / np.sqrt(1 + (w * tau) ** 2), rtol=1e-12)
+    phase = -np.arctan(w * tau) - w * theta
+    np.testing.assert_allclose(g, np.abs(g) * np.exp(1j * phase), rtol=1e-12)
+
+
+@pytest.mark.parametrize("dt", [0.1, 0.3, 0.37])
+def test_discrete_frequency_response_low_frequency(dt: float) -> None:
+    # At low frequency the sampled model is G(jw) with the hold's half-sample lag.
+    w = np.array([1e-4, 1e-3, 1e-2]) / dt
+    h = discretise(G33, dt).frequency_response(w)
+    np.testing.assert_allclose(h, G33.frequency_response(w) * np.exp(-0.5j * w * dt), rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "tf",
+    [TransferFunction.fopdt(2.0, 0.5, 0.33), TransferFunction.lead_lag(2.0, 3.0, 0.5, theta=0.3)],
+)
+def test_discrete_frequency_response_is_steady_state_gain(tf: TransferFunction) -> None:
+    # A sampled sinusoid through the recursion settles to |H| and arg H.
+    dt, w = 0.1, 2.0
+    k = np.arange(3000)
+    y = simulate_open_loop(tf, np.sin(w * dt * k), dt)
+    h = discretise(tf, dt).frequency_response(w)
+    np.testing.assert_allclose(y[-500:], np.imag(h * np.exp(1j * w * dt * k[-500:])), atol=1e-9)
+
+
+def test_model_properties() -> None:
+    assert G33.dc_gain == pytest.approx(0.87)
+    assert G33.is_stable and not G33.is_integrating
+    integ = TransferFunction.integrating(-2.0, 1.0)
+    assert integ.is_integrating and not integ.is_stable and integ.dc_gain == -math.inf
+    assert sorted(G33.poles().real) == pytest.approx([-1 / 3.89, -1 / 18.8])
+    # A cancelled factor s is not an integrator.
+    assert not TransferFunction((1.0, 0.0), (1.0, 1.0, 0.0)).is_integrating
+    assert not TransferFunction.underdamped(1.0, 2.0, 0.0).is_stable
+    assert TransferFunction((1.0, 0.0), (1.0, 1.0)).dc_gain == 0.0
+    assert TransferFunction((0.0,), (1.0, 1.0)).dc_gain == 0.0
+
+
+def test_pure_gain_with_delay() -> None:
+    tf = TransferFunction((3.0,), (1.0,), delay=0.25)
+    np.testing.assert_array_equal(simulate_open_loop(tf, np.ones(5), 0.1), [0, 0, 0, 3, 3])
+    assert tf.dc_gain == 3.0 and tf.is_stable
+
+
+def test_dict_round_trip() -> None:
+    spec = {
+        "type": "lead_lag",
+        "K": 0.87,
+        "tau_lead": 11.61,
+        "tau_lag1": 3.89,
+        "tau_lag2": 18.8,
+        "theta": 1.0,
+    }
+    assert TransferFunction.from_dict(spec) == G33
+    assert TransferFunction.from_dict(G33.to_dict()) == G33
+    assert TransferFunction.from_dict({"type": "fopdt", "K": 1, "tau": 2}).delay == 0.0
+    assert TransferFunction.from_dict({"type": "integrating", "K": 2, "theta": 3}).den == (1, 0)
+
+
+@pytest.mark.parametrize(
+    ("build", "name"),
+    [
+        (lambda: TransferFunction.fopdt(1.0, 0.0), "tau"),
+        (lambda: TransferFunction.fopdt(1.0, -2.0), "tau"),
+        (lambda: TransferFunction.second_order(1.0, 1.0, -1.0), "tau2"),
+        (lambda: TransferFunction.fopdt(1.0, 1.0, theta=-0.1), "theta"),
+        (lambda: TransferFunction((1.0,), (1.0, math.nan)), "den"),
+        (lambda: TransferFunction((math.inf,), (1.0, 1.0)), "num"),
+        (lambda: TransferFunction((1.0, 2.0, 3.0), (1.0, 1.0)), "improper"),
+        (lambda: TransferFunction((1.0,), (0.0, 1.0)), "den"),
+        (lambda: TransferFunction((1.0,), ()), "den"),
+        (lambda: TransferFunction((1.0,), (1.0, 1.0), delay=-1.0), "delay"),
+        (lambda: discretise(TransferFunction.fopdt(1.0, 1.0), 0.0), "dt"),
+        (lambda: TransferFunction.from_dict({"type": "foo", "K": 1}), "foo"),
+        (lambda: TransferFunction.from_dict({"type": "fopdt", "K": 1}), "tau"),
+        (lambda: TransferFunction.from_dict({"num": [1]}), "den"),
+        (
+            lambda: TransferFunction.from_dict({"type": "fopdt", "K": 1, "tau": 1, "delay": 2}),
+            "delay",
+        ),
+        (lambda: TransferFunction.from_dict({"type": "fopdt", "K": "x", "tau": 1}), "K"),
+    ],
+)
+def test_validation_errors(build: Callable[[], Any], name: str) -> None:
+    with pytest.raises(ModelSpecError, match=name):
+        build()
