@@ -557,6 +557,7 @@ class ClosedLoopModel:
                 for row in proc["matrix"]
             )
             n = len(process)
+            _as_matrix(process, n)
         else:
             process = TransferFunction.from_dict(proc)
             n = 1

@@ -149,7 +149,10 @@ def _band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> fl
             threshold = J
         else:
             threshold = S
-        if travel > threshold:
+        # A slip never carries the valve against OP (Choudhury's moving stick
+        # point could otherwise throw it backwards after two OP reversals).
+        ahead = slope * (u - slope * 0.5 * (S - J) - state[POSITION]) > 0.0
+        if travel > threshold and ahead:
             state[STUCK] = 0.0
             state[MOTION] = slope
     if state[STUCK] == 0.0:
