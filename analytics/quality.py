@@ -11,8 +11,8 @@ window unusable for the downstream tests are *fatal* and switch
 The checks follow the data pre-processing recommendations of
 
 * M. Jelali and B. Huang (eds.), *Detection and Diagnosis of Stiction in
-  Control Loops*, Springer, 2010, ch. 2 ("Data pre-processing") and the
-  ISDB evaluation protocol;
+  Control Loops*, Springer, 2010 (the chapter on data pre-processing and
+  the International Stiction Data Base evaluation);
 * N. F. Thornhill and A. Horch, "Advances and new directions in plant-wide
   disturbance detection and diagnosis", *Control Engineering Practice* 15
   (2007) 1196-1206 (data problems that defeat nonlinearity tests);
@@ -154,8 +154,8 @@ class QualityLimits:
         A signal with at most this many distinct values is fatal.
     compression_factor : float
         Estimated historian compression factor above which a warning is given.
-        Thornhill, Choudhury & Shah (2004) found spectral, nonlinearity and
-        oscillation analyses degraded for compression factors above about 3.
+        Thornhill, Choudhury & Shah (2004) show spectral, nonlinearity and
+        oscillation analyses degrading as the compression factor grows.
     compression_fatal_factor : float
         Compression factor above which the window is fatal.
     """
@@ -224,8 +224,9 @@ def assess_quality(
     Checks and the ``value`` they report:
 
     ``nonfinite``
-        Count of NaN/inf samples (Jelali & Huang 2010, sec. 2.1 on
-        missing values); fatal above ``max_nonfinite_fraction``.
+        Count of NaN/inf samples; fatal above ``max_nonfinite_fraction``
+        (missing values must be handled before any spectral analysis, Jelali
+        & Huang 2010).
     ``too_few_samples``
         Number of finite samples, fatal below ``min_samples``.
     ``time_nonfinite`` / ``time_not_increasing`` / ``time_duplicate``
@@ -254,7 +255,7 @@ def assess_quality(
         swinging-door or dead-band criterion and is read back with linear
         (or repeated-value) interpolation produces straight-line segments,
         i.e. runs of constant first difference.  Thornhill, Choudhury & Shah
-        (2004), sec. 3, detect compression from these straight segments
+        (2004) detect compression from these straight segments
         and estimate the compression factor as the mean number of samples
         per segment.
     """
