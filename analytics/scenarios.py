@@ -71,7 +71,7 @@ def chapter4(*, sticky: bool = True) -> ClosedLoopModel:
         name="loop1",
     )
     return ClosedLoopModel(
-        process=TransferFunction.fopdt(0.66, 6.7, 2.6), loops=(loop,), dt=1.0, duration=3000.0
+        process=TransferFunction.fopdt(0.66, 6.7, 2.6), loops=(loop,), dt=1.0, duration=8000.0
     )
 
 
@@ -141,7 +141,7 @@ def temperature_loop(*, tuning: str = "oscillating", noise_std: float = 0.0) -> 
         name="TIC",
     )
     return ClosedLoopModel(
-        process=TransferFunction.fopdt(0.4346, 27.58, 6.0), loops=(loop,), dt=1.0, duration=3000.0
+        process=TransferFunction.fopdt(0.4346, 27.58, 6.0), loops=(loop,), dt=1.0, duration=8000.0
     )
 
 
