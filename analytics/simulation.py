@@ -36,7 +36,6 @@ from numpy.typing import NDArray
 from analytics.errors import ModelSpecError
 from analytics.lti import TransferFunction, discretise
 from analytics.valves import (
-    STATE_SIZE,
     IdealValve,
     ValveModel,
     valve_from_dict,
@@ -142,6 +141,13 @@ class PIDController:
         raise ModelSpecError(
             f"a controller needs 'Kc' (with 'Ti') or 'Kp' (with 'Ki'), got keys {sorted(spec)}"
         )
+
+    def derivative_filter_time(self, dt: float) -> float:
+        """Derivative filter time constant ``Td / N`` (``dt`` when ``kp = 0`` leaves
+        ``Td`` undefined; 0 without derivative action)."""
+        if self.kd == 0:
+            return 0.0
+        return abs(self.kd / self.kp) / self.derivative_filter if self.kp != 0 else dt
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form in parallel gains."""
@@ -451,25 +457,20 @@ def simulate(
         valve_params[i, : p.size] = p
     valve_state = np.array(
         [loop.valve.initial_state(loop.controller.op_bias) for loop in loop_list]
-    ).reshape(n, STATE_SIZE)
-    filter_time = np.array(
-        [
-            (abs(ct.kd / ct.kp) / ct.derivative_filter if ct.kp != 0 else dt) if ct.kd != 0 else 0.0
-            for ct in ctrl
-        ]
     )
+    sp = np.array([loop.setpoint_series(t) for loop in loop_list])
     op, mv, pv = _closed_loop(
         n_samples,
         float(dt),
         np.array([loop.pv_bias for loop in loop_list], dtype=np.float64),
-        np.array([loop.setpoint_series(t) for loop in loop_list]),
+        sp,
         loads["output"],
         loads["measurement"],
         loads["input"],
         np.array([ct.kp for ct in ctrl], dtype=np.float64),
         np.array([ct.ki for ct in ctrl], dtype=np.float64),
         np.array([ct.kd for ct in ctrl], dtype=np.float64),
-        filter_time,
+        np.array([ct.derivative_filter_time(dt) for ct in ctrl]),
         np.array([1.0 if ct.action == "reverse" else -1.0 for ct in ctrl]),
         np.array([ct.op_limits[0] for ct in ctrl], dtype=np.float64),
         np.array([ct.op_limits[1] for ct in ctrl], dtype=np.float64),
@@ -486,7 +487,6 @@ def simulate(
         entry_in,
         entry_out,
     )
-    sp = np.array([loop.setpoint_series(t) for loop in loop_list])
     names = tuple(loop.name or f"loop{i + 1}" for i, loop in enumerate(loop_list))
     return SimulationResult(t=t, sp=sp, op=op, mv=mv, pv=pv, names=names)
 
