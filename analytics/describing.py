@@ -35,10 +35,6 @@ from numpy.typing import ArrayLike, NDArray
 from analytics.errors import ValveModelError
 from analytics.valves import (
     ChoudhuryValve,
-    DeadbandValve,
-    HeValve,
-    KarnoppValve,
-    StenmanValve,
     ValveModel,
 )
 
@@ -201,19 +197,6 @@ def numerical_df(
     return N
 
 
-def _stick_band(valve: ValveModel) -> float:
-    """The band OP must cross to reverse the valve (S of the (S, J) models)."""
-    if isinstance(valve, ChoudhuryValve | HeValve):
-        return valve.S
-    if isinstance(valve, DeadbandValve):
-        return valve.deadband
-    if isinstance(valve, StenmanValve):
-        return valve.d
-    if isinstance(valve, KarnoppValve):
-        return valve.fs_force + valve.fc_force
-    return 0.0
-
-
 def df_curve(
     valve: ValveModel, amplitudes: ArrayLike | None = None, *, omega: float = 1.0
 ) -> tuple[FloatArray, ComplexArray]:
@@ -254,7 +237,7 @@ def df_curve(
         ``N(A)``.
     """
     if amplitudes is None:
-        S = _stick_band(valve) or 1.0
+        S = valve.stick_band or 1.0
         A = S / 2 * np.geomspace(1 + 1e-3, 100.0, 200)
     else:
         A = _amplitudes(amplitudes)

@@ -327,9 +327,7 @@ def _cycle_amplitude(y: FloatArray) -> float:
     return float(np.sqrt(2.0) * np.std(y))
 
 
-def _measure(
-    spec: _Spectrum, period: float, band_ratio: float, order: int
-) -> tuple[float, float]:
+def _measure(spec: _Spectrum, period: float, band_ratio: float, order: int) -> tuple[float, float]:
     """Amplitude and power fraction of the component at ``period`` (samples).
 
     The component is extracted with the zero-phase Butterworth band-pass of
@@ -562,8 +560,9 @@ def detect_oscillations(
                 best_prom, best_prom_period = float(prom[j]), 1.0 / fc
             if prom[j] < min_prominence:
                 continue
-            period, r, _ = _acf_regularity(spec, fc / acf_band_ratio, fc * acf_band_ratio,
-                                           n_intervals)
+            period, r, _ = _acf_regularity(
+                spec, fc / acf_band_ratio, fc * acf_band_ratio, n_intervals
+            )
             if not np.isfinite(period):
                 continue
             if not fc / band_ratio <= 1.0 / period <= fc * band_ratio:
@@ -601,15 +600,12 @@ def detect_oscillations(
         None if best_prom_period is None else best_prom_period * ts,
         best_prom,
         min_prominence,
-        f"largest peak-to-background density ratio {best_prom:.2f} "
-        f"(needs >= {min_prominence:g})",
+        f"largest peak-to-background density ratio {best_prom:.2f} (needs >= {min_prominence:g})",
     )
     if detected:
         acf_note = f"{len(oscillations)} regular oscillation(s), largest r = {best_r:.2f}"
     else:
-        acf_note = (
-            f"no prominent band with r > {regularity_threshold:g} (largest r = {best_r:.2f})"
-        )
+        acf_note = f"no prominent band with r > {regularity_threshold:g} (largest r = {best_r:.2f})"
     acf = MethodResult(
         "acf_regularity",
         detected,

@@ -334,6 +334,11 @@ class ValveModel(ABC):
             self.code, self.params_array(), self.initial_state(start), series, float(dt)
         )
 
+    @property
+    def stick_band(self) -> float:
+        """OP travel needed to reverse a stuck valve (S of the (S, J) models), % of travel."""
+        return 0.0
+
     def stepper(self, position: float, dt: float = 1.0) -> ValveStepper:
         """A :class:`ValveStepper` at rest at ``position``."""
         return ValveStepper(self, position, dt)
@@ -371,6 +376,10 @@ class StenmanValve(ValveModel):
     def __post_init__(self) -> None:
         _check_finite_nonnegative(d=self.d)
 
+    @property
+    def stick_band(self) -> float:
+        return self.d
+
     def params_array(self) -> NDArray[np.float64]:
         return np.array([self.d], dtype=np.float64)
 
@@ -394,6 +403,10 @@ class ChoudhuryValve(ValveModel):
 
     def __post_init__(self) -> None:
         _check_sj(self.S, self.J)
+
+    @property
+    def stick_band(self) -> float:
+        return self.S
 
     def params_array(self) -> NDArray[np.float64]:
         return np.array([self.S, self.J], dtype=np.float64)
@@ -427,6 +440,10 @@ class HeValve(ValveModel):
     def __post_init__(self) -> None:
         _check_fsfd(self.fs, self.fd)
 
+    @property
+    def stick_band(self) -> float:
+        return self.fs + self.fd
+
     def params_array(self) -> NDArray[np.float64]:
         return np.array([self.fs, self.fd], dtype=np.float64)
 
@@ -459,6 +476,10 @@ class DeadbandValve(ValveModel):
 
     def __post_init__(self) -> None:
         _check_finite_nonnegative(deadband=self.deadband)
+
+    @property
+    def stick_band(self) -> float:
+        return self.deadband
 
     def params_array(self) -> NDArray[np.float64]:
         return np.array([self.deadband / 2.0, self.deadband / 2.0], dtype=np.float64)
@@ -512,6 +533,10 @@ class KarnoppValve(ValveModel):
             )
         if self.natural_frequency == 0:
             raise ValveModelError("natural_frequency must be > 0 rad/s")
+
+    @property
+    def stick_band(self) -> float:
+        return self.fs_force + self.fc_force
 
     def params_array(self) -> NDArray[np.float64]:
         return np.array(
