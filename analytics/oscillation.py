@@ -56,6 +56,7 @@ __all__ = [
     "MethodResult",
     "Oscillation",
     "OscillationReport",
+    "bandpass",
     "detect_loop_oscillation",
     "detect_oscillations",
 ]
@@ -312,6 +313,29 @@ def _acf_regularity(
     sd = float(tp.std(ddof=1))
     r = REGULARITY_CAP if 3.0 * sd * REGULARITY_CAP <= mean else mean / (3.0 * sd)
     return mean, r, int(tp.size)
+
+
+def bandpass(
+    x: ArrayLike, period_samples: float, *, band_ratio: float = 1.5, order: int = 2
+) -> FloatArray:
+    """Zero-phase Butterworth band-pass of ``x`` around one period.
+
+    The mean and linear trend are removed, then the DFT is multiplied by the
+    squared magnitude of :func:`_bandpass_gain` (half-power edges at
+    ``fc / band_ratio`` and ``fc * band_ratio``, ``fc = 1 / period_samples``):
+    the forward-backward filter, with no phase shift, so that the shapes and
+    the OP-PV phase that stiction methods look at are kept.
+
+    Examples
+    --------
+    >>> k = np.arange(2000)
+    >>> y = bandpass(np.sin(2 * np.pi * k / 50) + 0.01 * k, 50)
+    >>> round(float(np.max(np.abs(y[200:-200]))), 2)
+    1.0
+    """
+    spec = _spectrum(_detrend(np.asarray(x, dtype=np.float64)))
+    gain = _bandpass_gain(spec.f, 1.0 / period_samples, band_ratio, order)
+    return np.asarray(sfft.irfft(spec.X * gain, spec.nfft)[: spec.n], dtype=np.float64)
 
 
 def _cycle_amplitude(y: FloatArray) -> float:
