@@ -136,7 +136,7 @@ def read_loop_csv(
         raise LoopCsvError(f"{path}: {len(body)} data rows, at least {min_samples} are needed")
     used = {name: i for name, i in index.items() if i is not None}
     values = {name: np.empty(len(body)) for name in used}
-    t = np.empty(len(body))
+    t: FloatArray = np.empty(len(body))
     for k, (number, row) in enumerate(body):
         if len(row) != len(header):
             raise LoopCsvError(
@@ -163,7 +163,7 @@ def read_loop_csv(
                 ) from None
     if time_index is None:
         assert ts is not None
-        t = np.arange(len(body)) * ts
+        t = np.arange(len(body), dtype=np.float64) * ts
     else:
         steps = np.diff(t)
         bad = np.flatnonzero(~(steps > 0))
