@@ -1,0 +1,252 @@
+"""The plant configuration file (YAML) and the service settings (environment).
+
+The plant file lists units and loops::
+
+    units:
+      - id: column
+        name: Distillation column
+    loops:
+      - id: FIC-101
+        name: Reflux flow
+        unit: column
+        tags: {op: FIC101.OP, pv: FIC101.PV, sp: FIC101.SP}
+        ranges: {op: [0, 100], pv: [0, 40]}
+        ts: 1.0
+        controller: {type: PI, Kc: 0.5, Ti: 8, action: reverse}
+        process_type: self-regulating
+        valve_asset: FV-101
+        importance: high
+
+Signals are converted to % of span with ``ranges`` before analysis, so S and J
+come out in % of valve travel.  An invalid file is refused at start with the
+key path (``loops[2].tags.pv``) and the reason.
+"""
+
+from __future__ import annotations
+
+import secrets
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = [
+    "ConfigError",
+    "ControllerConfig",
+    "LoopConfig",
+    "PlantConfig",
+    "Settings",
+    "UnitConfig",
+    "load_plant_config",
+]
+
+Importance = Literal["low", "medium", "high", "critical"]
+
+
+class ConfigError(ValueError):
+    """The plant configuration is invalid; the message names the key path."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ControllerConfig(_Strict):
+    """The loop's controller as tuned in the DCS (ideal PI/PID form)."""
+
+    type: Literal["P", "PI", "PID"] = "PI"
+    Kc: float = Field(gt=0, description="controller gain (OP % per PV % of span)")
+    Ti: float | None = Field(default=None, gt=0, description="integral time, s")
+    Td: float = Field(default=0.0, ge=0, description="derivative time, s")
+    action: Literal["reverse", "direct"] = "reverse"
+
+    @model_validator(mode="after")
+    def _integral_needs_ti(self) -> ControllerConfig:
+        if self.type in ("PI", "PID") and self.Ti is None:
+            raise ValueError(f"a {self.type} controller needs Ti")
+        return self
+
+
+class TagsConfig(_Strict):
+    """Historian / connector tag names of the loop's signals."""
+
+    op: str | None = None
+    pv: str | None = None
+    sp: str | None = None
+    mv: str | None = None
+
+    @model_validator(mode="after")
+    def _op_or_pv(self) -> TagsConfig:
+        if self.op is None and self.pv is None:
+            raise ValueError("a loop needs at least an op or a pv tag")
+        return self
+
+    def items(self) -> list[tuple[str, str]]:
+        """(signal, tag) pairs of the tags that are set."""
+        return [(s, t) for s in ("op", "pv", "sp", "mv") if (t := getattr(self, s)) is not None]
+
+
+class LoopConfig(_Strict):
+    """One control loop."""
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
+    name: str = ""
+    unit: str | None = None
+    tags: TagsConfig
+    ranges: dict[Literal["op", "pv", "sp", "mv"], tuple[float, float]] = Field(
+        default_factory=dict
+    )
+    ts: float = Field(gt=0, description="sampling interval, s")
+    controller: ControllerConfig | None = None
+    process_type: Literal["self-regulating", "integrating"] | None = None
+    process_model: dict[str, Any] | None = None
+    valve_asset: str | None = None
+    location: str | None = None
+    importance: Importance = "medium"
+
+    @field_validator("ranges")
+    @classmethod
+    def _increasing(
+        cls, ranges: dict[str, tuple[float, float]]
+    ) -> dict[str, tuple[float, float]]:
+        for signal, (low, high) in ranges.items():
+            if not high > low:
+                raise ValueError(f"range of {signal} must have high > low, got [{low}, {high}]")
+        return ranges
+
+
+class UnitConfig(_Strict):
+    """A process unit: loops that interact (a column, a reactor)."""
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
+    name: str = ""
+
+
+class PlantConfig(_Strict):
+    """The whole plant file."""
+
+    units: list[UnitConfig] = Field(default_factory=list)
+    loops: list[LoopConfig] = Field(default_factory=list)
+    connectors: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> PlantConfig:
+        unit_ids = [u.id for u in self.units]
+        _no_duplicates(unit_ids, "units")
+        _no_duplicates([loop.id for loop in self.loops], "loops")
+        tags = [tag for loop in self.loops for _, tag in loop.tags.items()]
+        _no_duplicates(tags, "tags (a tag belongs to one loop)")
+        for i, loop in enumerate(self.loops):
+            if loop.unit is not None and loop.unit not in unit_ids:
+                raise ValueError(
+                    f"loops[{i}].unit: unknown unit {loop.unit!r} (units: {', '.join(unit_ids)})"
+                )
+        return self
+
+    def loop(self, loop_id: str) -> LoopConfig:
+        """The loop with id ``loop_id`` (KeyError if absent)."""
+        for loop in self.loops:
+            if loop.id == loop_id:
+                return loop
+        raise KeyError(loop_id)
+
+
+def _no_duplicates(values: list[str], what: str) -> None:
+    seen: set[str] = set()
+    for v in values:
+        if v in seen:
+            raise ValueError(f"duplicate {what}: {v!r}")
+        seen.add(v)
+
+
+def _key_path(location: tuple[int | str, ...]) -> str:
+    path = ""
+    for part in location:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    return path or "(top level)"
+
+
+def parse_plant_config(data: Any, source: str = "configuration") -> PlantConfig:
+    """Validate already-parsed YAML/JSON data; errors name the key path."""
+    try:
+        return PlantConfig.model_validate(data)
+    except ValidationError as exc:
+        lines = [
+            f"{_key_path(tuple(e['loc']))}: {e['msg']}"
+            + (f" (got {e['input']!r})" if e["type"] != "missing" and _short(e["input"]) else "")
+            for e in exc.errors()
+        ]
+        details = "\n  ".join(lines)
+        raise ConfigError(f"{source}: invalid plant configuration:\n  {details}") from None
+
+
+def _short(value: Any) -> bool:
+    return isinstance(value, str | int | float | bool) and len(repr(value)) < 60
+
+
+def load_plant_config(path: str | Path) -> PlantConfig:
+    """Read and validate a plant YAML file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    return parse_plant_config(data if data is not None else {}, str(path))
+
+
+DEV_API_KEY = "dev-insecure-key"
+
+
+class Settings(BaseSettings):
+    """Service settings from the environment (prefix ``LOOPWATCH_``)."""
+
+    model_config = SettingsConfigDict(env_prefix="LOOPWATCH_", extra="ignore")
+
+    environment: Literal["development", "production"] = "development"
+    data_dir: Path = Path("data")
+    database_url: str | None = Field(
+        default=None, description="SQLAlchemy URL; default: SQLite file in data_dir"
+    )
+    api_key: str | None = Field(
+        default=None, description="bootstrap admin key; generated and printed when unset"
+    )
+    analysis_interval_s: float = Field(default=60.0, gt=0)
+    window_s: float = Field(default=3600.0, gt=0, description="analysis window length, s")
+    buffer_horizon_s: float = Field(default=4 * 3600.0, gt=0)
+    sample_retention_days: float = Field(default=30.0, gt=0)
+    ticket_confirmations: int = Field(
+        default=2, ge=1, description="consecutive stiction findings that open a ticket"
+    )
+    workers: int = Field(default=2, ge=1, description="analysis process-pool size")
+    analysis_timeout_s: float = Field(default=60.0, gt=0)
+    webhook_url: str | None = None
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, lt=65536)
+
+    @model_validator(mode="after")
+    def _no_unsafe_defaults(self) -> Settings:
+        if self.environment == "production" and (
+            self.api_key is None or self.api_key == DEV_API_KEY or len(self.api_key) < 16
+        ):
+            raise ValueError(
+                "LOOPWATCH_API_KEY must be set to a secret of at least 16 characters "
+                "in production"
+            )
+        if self.buffer_horizon_s < self.window_s:
+            raise ValueError("LOOPWATCH_BUFFER_HORIZON_S must be at least LOOPWATCH_WINDOW_S")
+        return self
+
+    @property
+    def resolved_database_url(self) -> str:
+        """The database URL, defaulting to ``sqlite:///<data_dir>/loopwatch.db``."""
+        return self.database_url or f"sqlite:///{self.data_dir / 'loopwatch.db'}"
+
+    def bootstrap_key(self) -> tuple[str, bool]:
+        """The admin key and whether it was generated for this run."""
+        if self.api_key:
+            return self.api_key, False
+        return secrets.token_urlsafe(24), True

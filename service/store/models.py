@@ -1,0 +1,183 @@
+"""Tables of the store (SQLAlchemy 2 declarative models).
+
+Times are UNIX seconds (float, UTC) throughout: sample stamps come from
+historians and connectors in many formats, and one numeric time axis keeps
+the ring buffers, windows and SQL range queries simple and exact.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+class Base(DeclarativeBase):
+    """Declarative base of all loopwatch tables."""
+
+    type_annotation_map: ClassVar[dict[Any, Any]] = {dict[str, Any]: JSON}
+
+
+class Unit(Base):
+    """A process unit (loops that interact)."""
+
+    __tablename__ = "units"
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+
+
+class Loop(Base):
+    """A control loop; ``config`` is its validated plant-file entry."""
+
+    __tablename__ = "loops"
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    unit_id: Mapped[str | None] = mapped_column(ForeignKey("units.id"), index=True)
+    config: Mapped[dict[str, Any]]
+    created_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+    tags: Mapped[list[Tag]] = relationship(back_populates="loop", cascade="all, delete-orphan")
+
+
+class Tag(Base):
+    """A measured signal of a loop (OP, PV, SP or MV)."""
+
+    __tablename__ = "tags"
+    name: Mapped[str] = mapped_column(String(200), primary_key=True)
+    loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"), index=True)
+    signal: Mapped[str] = mapped_column(String(2))
+    loop: Mapped[Loop] = relationship(back_populates="tags")
+
+
+class Sample(Base):
+    """One value of one tag; the primary key makes every ingest idempotent."""
+
+    __tablename__ = "samples"
+    tag: Mapped[str] = mapped_column(
+        ForeignKey("tags.name", ondelete="CASCADE"), primary_key=True
+    )
+    time: Mapped[float] = mapped_column(Float, primary_key=True)
+    value: Mapped[float | None] = mapped_column(Float)
+    good: Mapped[bool] = mapped_column(Boolean, default=True)
+
+
+class AnalysisRun(Base):
+    """One run of the diagnosis pipeline on one loop window."""
+
+    __tablename__ = "analysis_runs"
+    __table_args__ = (Index("ix_analysis_runs_loop_started", "loop_id", "started_at"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"))
+    started_at: Mapped[float] = mapped_column(Float)
+    finished_at: Mapped[float | None] = mapped_column(Float)
+    window_start: Mapped[float | None] = mapped_column(Float)
+    window_end: Mapped[float | None] = mapped_column(Float)
+    status: Mapped[str] = mapped_column(String(16))  # ok | failed | timeout | no_data
+    usable: Mapped[bool | None] = mapped_column(Boolean)
+    oscillating: Mapped[bool | None] = mapped_column(Boolean)
+    period_s: Mapped[float | None] = mapped_column(Float)
+    verdict: Mapped[str | None] = mapped_column(String(16))
+    confidence: Mapped[float | None] = mapped_column(Float)
+    S: Mapped[float | None] = mapped_column(Float)
+    J: Mapped[float | None] = mapped_column(Float)
+    health: Mapped[float | None] = mapped_column(Float)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+
+
+class Alarm(Base):
+    """An operator alarm of one loop and kind, with its ISA-18.2 state."""
+
+    __tablename__ = "alarms"
+    __table_args__ = (UniqueConstraint("loop_id", "kind"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))  # oscillation | data_quality
+    priority: Mapped[str] = mapped_column(String(16))
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    condition_active: Mapped[bool] = mapped_column(Boolean)
+    shelved_until: Mapped[float | None] = mapped_column(Float)
+    message: Mapped[str] = mapped_column(Text, default="")
+    raised_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+    events: Mapped[list[AlarmEvent]] = relationship(
+        back_populates="alarm", cascade="all, delete-orphan", order_by="AlarmEvent.id"
+    )
+
+
+class AlarmEvent(Base):
+    """One transition of an alarm: who, when, from and to which state."""
+
+    __tablename__ = "alarm_events"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    alarm_id: Mapped[int] = mapped_column(
+        ForeignKey("alarms.id", ondelete="CASCADE"), index=True
+    )
+    at: Mapped[float] = mapped_column(Float)
+    event: Mapped[str] = mapped_column(String(32))
+    from_state: Mapped[str] = mapped_column(String(16))
+    to_state: Mapped[str] = mapped_column(String(16))
+    actor: Mapped[str] = mapped_column(String(100))
+    note: Mapped[str] = mapped_column(Text, default="")
+    alarm: Mapped[Alarm] = relationship(back_populates="events")
+
+
+class Ticket(Base):
+    """A valve-repair ticket; one open ticket per valve asset."""
+
+    __tablename__ = "tickets"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    valve_asset: Mapped[str] = mapped_column(String(100), index=True)
+    loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"), index=True)
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    priority: Mapped[int] = mapped_column(Integer)  # 1 (very high) .. 4 (low), SAP PM style
+    title: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str] = mapped_column(Text)
+    location: Mapped[str | None] = mapped_column(String(100))
+    malfunction_start: Mapped[float] = mapped_column(Float)
+    evidence: Mapped[dict[str, Any]]
+    created_at: Mapped[float] = mapped_column(Float)
+    updated_at: Mapped[float] = mapped_column(Float)
+    events: Mapped[list[TicketEvent]] = relationship(
+        back_populates="ticket", cascade="all, delete-orphan", order_by="TicketEvent.id"
+    )
+
+
+class TicketEvent(Base):
+    """One change of a ticket: state transitions and evidence updates."""
+
+    __tablename__ = "ticket_events"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    ticket_id: Mapped[int] = mapped_column(
+        ForeignKey("tickets.id", ondelete="CASCADE"), index=True
+    )
+    at: Mapped[float] = mapped_column(Float)
+    from_state: Mapped[str | None] = mapped_column(String(16))
+    to_state: Mapped[str] = mapped_column(String(16))
+    actor: Mapped[str] = mapped_column(String(100))
+    note: Mapped[str] = mapped_column(Text, default="")
+    ticket: Mapped[Ticket] = relationship(back_populates="events")
+
+
+class ApiKey(Base):
+    """An API key: only its SHA-256 hash is stored; the prefix identifies it in lists."""
+
+    __tablename__ = "api_keys"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    name: Mapped[str] = mapped_column(String(100))
+    role: Mapped[str] = mapped_column(String(16))
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    prefix: Mapped[str] = mapped_column(String(12))
+    created_at: Mapped[float] = mapped_column(Float)
+    revoked_at: Mapped[float | None] = mapped_column(Float)
