@@ -47,6 +47,11 @@ __all__ = [
 ]
 
 
+SET_POINT_SIGNALS = frozenset({"sp"})
+"""Signals that are constant or stepwise by design: only their missing values are
+checked (a constant set point is normal operation, not a frozen transmitter)."""
+
+
 @dataclass(frozen=True)
 class QualityIssue:
     """One finding of the data-quality screen.
@@ -476,6 +481,8 @@ def _check_signal(
                 float(x.size),
             )
         )
+    if name in SET_POINT_SIGNALS:
+        return  # constant or stepwise by design: only missing values matter
     lo, hi = float(x.min()), float(x.max())
     if lo == hi:
         issues.append(

@@ -1,0 +1,922 @@
+"""Valve stiction quantification by Hammerstein identification.
+
+A sticky valve followed by a linear process is a Hammerstein system: OP
+drives a stiction model whose output MV drives a linear model whose output is
+PV.  For each candidate stick band ``S`` and slip jump ``J`` the valve model
+turns the measured OP into MV, the linear part is fitted from MV to the
+measured PV by least squares, and the candidate is scored by the output
+error of the fitted model (the PV the model simulates from MV alone, not a
+one-step-ahead prediction).  A coarse grid over ``(S, J)`` spanning the OP
+travel per cycle, followed by shrinking pattern steps around the best point,
+finds the pair.  This is the separable least-squares and global-search scheme
+of Jelali (2008) [1]_ and of the PATS package of thesis Appendix A (search
+bounds, Hammerstein fits over the search space, best output MSE; Lee, Ren &
+Huang 2008 [2]_, thesis ref. [28]).
+
+Valve models: He's (thesis ref. [17], [4]_) and Kano's [5]_, both with the
+parameters ``(S, J)`` of thesis Eq. 1.2.  They agree on a clean limit cycle
+but not on a slow OP ramp, where He's valve climbs in slips of ``J`` and
+Kano's follows OP smoothly; both are tried and the better fit is kept.
+
+Linear part, first order with dead time, optionally with an integrator::
+
+    x_b = a x_{b-1} + (1 - a) MV_b                 (lag, a = exp(-h / tau))
+    PV_b = c + d b + K x_b                         self-regulating (FOPDT)
+    PV_b - PV_{b-1} = c + d b + K h x_b            integrating
+
+on block means of ``h / ts`` raw samples (``h`` about a 25th of the
+oscillation period), with MV delayed by a whole number of *raw* samples
+before the averaging.  The dead time needs that resolution: a later slip of
+a larger stick band and a longer dead time look alike, so a coarse delay
+would bias S by the OP travel in one block.  The offset ``c`` and ramp
+``d b`` take up the unknown operating point and a slow drift (for an
+integrating process, the unknown MV at which PV balances).  An integrating
+process is fitted on the PV increments: from MV to the rate of change of PV
+it is self-regulating, and model errors do not accumulate into a drift.  For
+given ``(a, delay)`` the model is linear in ``(c, d, K)``, so the inner
+problem is ordinary least squares whose residual is the output error; ``a``
+and the delay are searched on a grid.  The sign of ``K`` must give negative
+feedback with the controller (read from the same-sample correlation of the
+OP and PV increments, see :func:`_feedback_sign`); otherwise the inverse of
+the controller fits a healthy-valve model to a smooth PV.
+
+The valve's state at the start is unknown and matters for long: in a limit
+cycle OP swings barely more than S, so a model valve that starts in the
+wrong place, or misses one reversal, stays out of step for many cycles.  The
+model valve starts on the trailing edge of its band at an OP turning point
+(:func:`_first_turning_point`) and the score begins a period later.  The
+same sensitivity makes the search surface rough, with a narrow optimum
+close to the OP travel per cycle: the coarse S grid is dense there and
+several starting points are refined.
+
+References
+----------
+.. [1] M. Jelali (2008), "Estimation of valve stiction in control loops using
+   separable least-squares and global search algorithms", J. Process Control
+   18:632-642.
+.. [2] K. H. Lee, Z. Ren & B. Huang (2008), "Novel closed-loop stiction
+   detection and quantification method via system identification", ADCONIP,
+   Jasper (thesis ref. [28]; thesis Appendix A, steps 2-4).
+.. [3] M. A. A. S. Choudhury, M. Jain & S. L. Shah (2008), "Stiction -
+   definition, modelling, detection and quantification", J. Process Control
+   18:232-243 (Hammerstein quantification with a grid over S and J).
+.. [4] Q. P. He, J. Wang, M. Pottmann & S. J. Qin (2007), "A curve fitting
+   method for detecting valve stiction in oscillating control loops", Ind.
+   Eng. Chem. Res. 46:4549-4560.
+.. [5] M. Kano, H. Maruta, H. Kugemoto & K. Shimizu (2004), "Practical model
+   and detection algorithm for valve stiction", IFAC DYCOPS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize_scalar
+
+from analytics.errors import DataError
+from analytics.oscillation import bandpass, detect_loop_oscillation
+from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd
+
+__all__ = [
+    "MIN_FIT_R2",
+    "MIN_R2_GAIN",
+    "VALVE_MODELS",
+    "FitTrace",
+    "ProcessModel",
+    "ProcessType",
+    "SearchSummary",
+    "StictionEstimate",
+    "quantify_stiction",
+]
+
+FloatArray = NDArray[np.float64]
+ProcessType = Literal["self-regulating", "integrating"]
+
+VALVE_MODELS: dict[str, Callable[[float, float], ValveModel]] = {
+    "he": lambda S, J: HeValve(*sj_to_fsfd(S, J)),
+    "kano": KanoValve,
+}
+"""Stiction models the search can use, built from ``(S, J)``."""
+
+TAU_FRACTIONS = np.geomspace(0.02, 3.0, 7)
+"""Process time constants tried, as fractions of the oscillation period (and tau = 0)."""
+
+
+MIN_FIT_R2 = 0.6
+"""Output-error R^2 below which an estimate is flagged as a poor fit."""
+MIN_R2_GAIN = 0.02
+"""R^2 a stiction model must add over a healthy valve for ``stiction_found``
+(stiction cases of the synthetic library gain 0.05-0.3, linear loops at most 0.011)."""
+
+@dataclass(frozen=True)
+class ProcessModel:
+    """The identified linear part, from MV (% of travel) to PV (plant units).
+
+    Attributes
+    ----------
+    K : float
+        Gain: PV units per % (self-regulating) or PV units per % per second
+        (integrating).
+    tau : float
+        Time constant of the first-order lag, s (0: no lag).
+    theta : float
+        Dead time, s: the MV delay less the one sample of the hold (a PV
+        sample can answer the MV of the sample before at the earliest).
+    integrating : bool
+        True for ``K e^{-theta s} / (s (tau s + 1))``, False for FOPDT.
+    """
+
+    K: float
+    tau: float
+    theta: float
+    integrating: bool
+
+
+@dataclass(frozen=True)
+class SearchSummary:
+    """How the (S, J) search went and how sharply the data pin the answer.
+
+    Attributes
+    ----------
+    valve_model : str
+        The stiction model that fitted best (a key of :data:`VALVE_MODELS`).
+    s_max : float
+        Upper bound of the S search: the median peak-to-peak OP travel per
+        oscillation cycle, %.
+    evaluations : int
+        Stiction candidates scored (counted once per process type tried).
+    s_range, j_range : (float, float)
+        Smallest and largest S and J among the candidates whose output-error
+        variance is within ``near_optimal_tolerance`` of the best: a wide range
+        means the data do not determine that parameter.
+    r2_ideal_valve : float
+        Output-error R^2 of the best linear model with a healthy valve (S = 0).
+    samples_per_cycle : float
+        Oscillation period in block-averaged samples.
+    downsample_factor : int
+        Raw samples averaged into one sample of the fit.
+    cycles : float
+        Oscillation cycles in the analysed window.
+    mv_travel_fraction : float
+        Peak-to-peak travel of the model MV over that of OP (near 0: the
+        model valve hardly moves).
+    """
+
+    valve_model: str
+    s_max: float
+    evaluations: int
+    s_range: tuple[float, float]
+    j_range: tuple[float, float]
+    r2_ideal_valve: float
+    samples_per_cycle: float
+    downsample_factor: int
+    cycles: float
+    mv_travel_fraction: float
+
+
+@dataclass(frozen=True)
+class FitTrace:
+    """Block-averaged signals of the scored window, for plotting the fit.
+
+    Attributes
+    ----------
+    t_s : ndarray
+        Block centre times from the start of the window, s.
+    op, mv : ndarray
+        Measured OP and the MV of the identified valve model.
+    pv, pv_fit : ndarray
+        The fitted quantity, measured and simulated by the identified
+        Hammerstein model: PV, or for an integrating process the PV increment
+        per block (see ``quantity``).
+    quantity : {"pv", "pv_increment"}
+        What ``pv`` and ``pv_fit`` hold.
+    """
+
+    t_s: FloatArray
+    op: FloatArray
+    mv: FloatArray
+    pv: FloatArray
+    pv_fit: FloatArray
+    quantity: Literal["pv", "pv_increment"]
+
+
+@dataclass(frozen=True)
+class StictionEstimate:
+    """Result of :func:`quantify_stiction`.
+
+    Attributes
+    ----------
+    S, J : float or None
+        Stick band plus deadband and slip jump, in OP units (% of span when
+        OP is); None when the method could not run (see ``issues``).
+    fs, fd : float or None
+        The same in He's parametrisation, ``S = fs + fd``, ``J = fs - fd``
+        (thesis Eq. 1.2).
+    fit_r2 : float or None
+        Output-error R^2 of the simulated PV over the scored window.
+    model : ProcessModel or None
+        The identified linear part.
+    search : SearchSummary or None
+        Search bound, chosen valve model and the near-optimal region.
+    trace : FitTrace or None
+        The fitted signals.
+    period_s : float or None
+        Oscillation period used, s.
+    stiction_found : bool
+        True when the best model has a stick band that matters: ``S`` at least
+        ``min_stick_band`` of the OP travel per cycle, explaining at least
+        ``min_r2_gain`` more of the variance than a healthy valve.
+    trustworthy : bool
+        True when an estimate exists and none of ``issues`` applies.
+    issues : tuple of str
+        Why the estimate is missing or not to be trusted: no oscillation, too
+        few cycles, a poor fit, S at the search bound, a model valve that
+        hardly moves, J undetermined.
+    """
+
+    S: float | None
+    J: float | None
+    fs: float | None
+    fd: float | None
+    fit_r2: float | None
+    model: ProcessModel | None
+    search: SearchSummary | None
+    trace: FitTrace | None
+    period_s: float | None
+    stiction_found: bool
+    trustworthy: bool
+    issues: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any] | None:
+        """JSON form ``{S, J, fs, fd, fit_r2, ...}``; None when nothing was estimated."""
+        if self.S is None or self.model is None or self.search is None:
+            return None
+        return {
+            "S": self.S,
+            "J": self.J,
+            "fs": self.fs,
+            "fd": self.fd,
+            "fit_r2": self.fit_r2,
+            "stiction_found": self.stiction_found,
+            "trustworthy": self.trustworthy,
+            "issues": list(self.issues),
+            "valve_model": self.search.valve_model,
+            "process": {
+                "K": self.model.K,
+                "tau": self.model.tau,
+                "theta": self.model.theta,
+                "integrating": self.model.integrating,
+            },
+        }
+
+
+# ----------------------------------------------------------------------------
+# compiled kernels
+
+
+@njit(cache=True)
+def _delayed_block_means(cm: FloatArray, factor: int, delay: int, n_blocks: int) -> FloatArray:
+    """Block means of MV delayed by ``delay`` raw samples, from its cumulative sum ``cm``.
+
+    ``cm[k]`` is the sum of the first ``k`` raw MV samples.  Blocks reaching
+    before the first sample average what exists (they lie in the unscored
+    start).
+    """
+    out = np.empty(n_blocks)
+    for b in range(n_blocks):
+        lo = max(b * factor - delay, 0)
+        hi = max((b + 1) * factor - delay, 0)
+        out[b] = (cm[hi] - cm[lo]) / (hi - lo) if hi > lo else cm[1]
+    return out
+
+
+@njit(cache=True)
+def _lag_response(u: FloatArray, a: float) -> FloatArray:
+    """``x_b = a x_{b-1} + (1 - a) u_b``, starting at rest at ``u_0``."""
+    x = np.empty(u.shape[0])
+    state = u[0]
+    for b in range(u.shape[0]):
+        state = a * state + (1.0 - a) * u[b]
+        x[b] = state
+    return x
+
+
+@njit(cache=True)
+def _residual(
+    s_r: float, s_rr: float, s_tr: float, s_ry: float, s_yy: float, m: int, sign: float
+) -> tuple[float, float]:
+    """Residual and gain of ``y ~ c + d i + K r`` from the sums over ``i < m``.
+
+    A gain of the sign opposite to ``sign`` (when not 0) is no fit.
+
+    ``y`` has been detrended (its own line removed), so by the
+    Frisch-Waugh-Lovell theorem only ``r`` needs its line removed:
+    ``var_r = s_rr - s_r^2 / m - s_tr^2 / s_tt`` with ``s_tr`` taken about the
+    mean index.
+    """
+    s_tt = m * (m * m - 1.0) / 12.0
+    var_r = s_rr - s_r * s_r / m - s_tr * s_tr / s_tt
+    if not var_r > 1e-12 * s_rr:
+        return s_yy, 0.0
+    gain = s_ry / var_r
+    if gain * sign < 0.0:
+        return s_yy, 0.0
+    return max(s_yy - s_ry * gain, 0.0), gain
+
+
+@njit(cache=True)
+def _fit_at_shift(
+    x: FloatArray, shift: int, y: FloatArray, start: int, sign: float
+) -> tuple[float, float]:
+    """Residual and gain of ``y_i ~ c + d i + K x_{start + i - shift}`` (``y`` detrended)."""
+    m = y.shape[0]
+    t_mean = 0.5 * (m - 1)
+    s_r = s_rr = s_tr = s_ry = s_yy = 0.0
+    for i in range(m):
+        v = x[start + i - shift]
+        s_r += v
+        s_rr += v * v
+        s_tr += (i - t_mean) * v
+        s_ry += v * y[i]
+        s_yy += y[i] * y[i]
+    return _residual(s_r, s_rr, s_tr, s_ry, s_yy, m, sign)
+
+
+@njit(cache=True)
+def _best_linear_fits(
+    cm: FloatArray,
+    factor: int,
+    targets: FloatArray,
+    start: int,
+    poles: FloatArray,
+    limits: NDArray[np.int64],
+    sign: float,
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64]]:
+    """Best output-error fit of each target row over poles and delays.
+
+    Delays of ``1 + j factor`` raw samples (``j`` from ``limits[2]`` to
+    ``limits[3]``) are tried with every pole ``limits[0]..limits[1]``, using
+    running sums so that a delay costs one pass of ``r y`` products; for each
+    target's best pole the raw delay is then refined by halving steps.
+    Returns the residual, pole index and raw delay per target.
+    """
+    n_t, m = targets.shape
+    n_blocks = start + m
+    t_mean = 0.5 * (m - 1)
+    s_yy = np.array([np.sum(targets[t] ** 2) for t in range(n_t)])
+    best = np.full(n_t, np.inf)
+    best_pole = np.full(n_t, limits[0])
+    best_delay = np.ones(n_t, dtype=np.int64)
+    base = _delayed_block_means(cm, factor, 1, n_blocks)
+    p1 = np.empty(n_blocks + 1)
+    p2 = np.empty(n_blocks + 1)
+    pk = np.empty(n_blocks + 1)
+    for ip in range(limits[0], limits[1] + 1):
+        x = _lag_response(base, poles[ip])
+        p1[0] = p2[0] = pk[0] = 0.0
+        for k in range(n_blocks):
+            p1[k + 1] = p1[k] + x[k]
+            p2[k + 1] = p2[k] + x[k] * x[k]
+            pk[k + 1] = pk[k] + k * x[k]
+        for j in range(limits[2], limits[3] + 1):
+            lo = start - j
+            s_r = p1[lo + m] - p1[lo]
+            s_rr = p2[lo + m] - p2[lo]
+            s_tr = pk[lo + m] - pk[lo] - (lo + t_mean) * s_r
+            for t in range(n_t):
+                s_ry = 0.0
+                for i in range(m):
+                    s_ry += x[lo + i] * targets[t, i]
+                sse = _residual(s_r, s_rr, s_tr, s_ry, s_yy[t], m, sign)[0]
+                if sse < best[t]:
+                    best[t] = sse
+                    best_pole[t] = ip
+                    best_delay[t] = 1 + j * factor
+    max_delay = 1 + limits[3] * factor
+    for t in range(n_t):
+        step = factor // 2
+        while step >= 1:
+            centre = best_delay[t]
+            for delay in (centre - step, centre + step):
+                if 1 <= delay <= max_delay:
+                    u = _delayed_block_means(cm, factor, delay, n_blocks)
+                    x = _lag_response(u, poles[best_pole[t]])
+                    sse = _fit_at_shift(x, 0, targets[t], start, sign)[0]
+                    if sse < best[t]:
+                        best[t] = sse
+                        best_delay[t] = delay
+            step //= 2
+    return best, best_pole, best_delay
+
+
+# ----------------------------------------------------------------------------
+# search
+
+Score = tuple[float, int, int]
+"""Output-error residual, pole index and raw MV delay of one candidate's best fit."""
+
+
+@dataclass(frozen=True)
+class _Window:
+    """The analysed data and the linear-model grid (built by :meth:`build`).
+
+    ``targets`` holds one detrended row per process type: PV for a
+    self-regulating process, the PV increment per block for an integrating
+    one (a process with an integrator is self-regulating from MV to the rate
+    of change of PV, and fitting that rate keeps model errors from
+    accumulating into a drift).  ``signals`` holds the same rows before
+    detrending.
+    """
+
+    op: FloatArray
+    op_blocks: FloatArray
+    signals: FloatArray
+    targets: FloatArray
+    first: int
+    start: int
+    factor: int
+    ts: float
+    period_blocks: float
+    poles: FloatArray
+    max_block_delay: int
+    s_max: float
+    valve_input: FloatArray
+    first_turn: int
+    gain_sign: float
+
+    @classmethod
+    def build(
+        cls,
+        op: FloatArray,
+        pv: FloatArray,
+        ts: float,
+        period: float,
+        samples_per_cycle: int,
+        max_samples: int,
+        max_delay_fraction: float,
+    ) -> _Window:
+        """Average the most recent ``max_samples`` blocks of about a
+        ``samples_per_cycle``-th of the period (``factor`` raw samples each)."""
+        factor = max(1, int(period // samples_per_cycle))
+        n_blocks = min(op.size // factor, max_samples)
+        first = op.size - n_blocks * factor
+        op_w = np.ascontiguousarray(op[first:])
+        op_blocks = op_w.reshape(n_blocks, factor).mean(axis=1)
+        pv_blocks = pv[first:].reshape(n_blocks, factor).mean(axis=1)
+        period_blocks = period / factor
+        max_block_delay = max(1, int(max_delay_fraction * period_blocks))
+        s_max = _op_travel_per_cycle(op_w, period)
+        first_turn, direction = _first_turning_point(op_w, op_blocks, factor, period_blocks)
+        # Score once the delayed model MV no longer reaches back before the start.
+        start = max(math.ceil(period_blocks), first_turn // factor) + max_block_delay + 1
+        signals = np.array([pv_blocks[start:], pv_blocks[start:] - pv_blocks[start - 1 : -1]])
+        # Steps of 2 s_max >= 2 S: every model moves at each and arrives moving.
+        lead_in = op_w[first_turn] - direction * s_max * np.array([6.0, 4.0, 2.0])
+        return cls(
+            op=op_w,
+            op_blocks=op_blocks,
+            signals=signals,
+            targets=np.array([_detrend_line(row) for row in signals]),
+            first=first,
+            start=start,
+            factor=factor,
+            ts=float(ts),
+            period_blocks=period_blocks,
+            poles=np.concatenate([[0.0], np.exp(-1.0 / (TAU_FRACTIONS * period_blocks))]),
+            max_block_delay=max_block_delay,
+            s_max=s_max,
+            valve_input=np.concatenate([lead_in, op_w[first_turn:]]),
+            first_turn=first_turn,
+            gain_sign=_feedback_sign(op_w, pv[first:]),
+        )
+
+    def evaluate(
+        self,
+        valve_model: str,
+        candidates: Sequence[tuple[float, float]],
+        rows: Sequence[int],
+        limits: tuple[int, int, int, int],
+    ) -> list[list[Score]]:
+        """Scores of each ``(S, J)`` candidate for each target row in ``rows``."""
+        targets = np.ascontiguousarray(self.targets[list(rows)])
+        limit_array = np.array(limits, dtype=np.int64)
+        scores = []
+        for S, J in candidates:
+            sse, pole, delay = _best_linear_fits(
+                self.valve_cumsum(valve_model, S, J), self.factor, targets, self.start,
+                self.poles, limit_array, self.gain_sign,
+            )
+            scores.append([(float(sse[t]), int(pole[t]), int(delay[t])) for t in range(len(rows))])
+        return scores
+
+    def valve_cumsum(self, valve_model: str, S: float, J: float) -> FloatArray:
+        """Cumulative sum (leading 0) of the model MV, relative to the first OP sample.
+
+        The valve starts at the first OP turning point, brought there by a
+        lead-in (see :func:`_first_turning_point`); before it MV is held
+        (those samples are not scored).
+        """
+        run = VALVE_MODELS[valve_model](S, J).simulate(self.valve_input, dt=self.ts)
+        mv = np.concatenate([np.full(self.first_turn, run[3]), run[3:]])
+        return np.concatenate([[0.0], np.cumsum(mv - self.op[0])])
+
+
+def _detrend_line(y: FloatArray) -> FloatArray:
+    t = np.arange(y.size, dtype=np.float64)
+    slope, intercept = np.polyfit(t, y, 1)
+    return np.asarray(y - (slope * t + intercept), dtype=np.float64)
+
+
+def _op_travel_per_cycle(op: FloatArray, period: float) -> float:
+    """Median peak-to-peak OP over the cycles, after removing a one-period moving average."""
+    p = max(round(period), 2)
+    csum = np.concatenate([[0.0], np.cumsum(op)])
+    moving = (csum[p:] - csum[:-p]) / p
+    fast = op[p // 2 : p // 2 + moving.size] - moving
+    n_cycles = fast.size // p
+    if n_cycles == 0:
+        return float(np.ptp(op))
+    return float(np.median(np.ptp(fast[: n_cycles * p].reshape(n_cycles, p), axis=1)))
+
+
+def _feedback_sign(op: FloatArray, pv: FloatArray, min_correlation: float = 0.2) -> float:
+    """Sign the process gain must have for negative feedback, or 0 when unclear.
+
+    OP at a sample is computed from PV at the same sample, while the valve
+    acts on PV one sample later at the earliest, so the same-sample
+    correlation of the increments of OP and PV is the controller's
+    proportional action: negative for a reverse-acting controller, which
+    needs a positive process gain.  Without this constraint the inverse of
+    the controller (PV proportional to minus OP, through a healthy valve)
+    fits a loop whose PV is smooth almost as well as the process does.
+    """
+    d_op, d_pv = np.diff(op), np.diff(pv)
+    norm = math.sqrt(float(np.dot(d_op, d_op)) * float(np.dot(d_pv, d_pv)))
+    correlation = float(np.dot(d_op, d_pv)) / norm if norm > 0 else 0.0
+    return -float(np.sign(correlation)) if abs(correlation) >= min_correlation else 0.0
+
+
+def _first_turning_point(
+    op: FloatArray, op_blocks: FloatArray, factor: int, period_blocks: float
+) -> tuple[int, float]:
+    """Index of the OP extreme where the model valve starts, and its kind (+1 max, -1 min).
+
+    The valve's state at the first sample is unknown, and with OP swinging
+    barely more than the stick band (as in a limit cycle) a model valve
+    started in the wrong place stays stuck, or out of step, for many cycles:
+    started at the first OP sample, halfway through its band, it never moves
+    if OP swings less than the band about that point.  At a turning point of
+    a limit cycle the state is known: the valve has followed OP (or slipped
+    just before the turn) and rests on the trailing edge of its band.  Of the
+    extremes of the band-passed block means in the first three periods (with
+    a quarter period on either side), the least pronounced is taken, so that
+    an unusually large swing (a start-up transient) does not leave the model
+    valve beyond the reach of the later ones; it is then located on the
+    samples of ``op`` within that reach.
+    """
+    smooth = bandpass(op_blocks, period_blocks)
+    slope = np.sign(np.diff(smooth))
+    reach = max(1, round(0.25 * period_blocks))
+    turns = np.flatnonzero(slope[1:] * slope[:-1] < 0) + 1
+    turns = turns[(turns >= reach) & (turns < op_blocks.size - reach)]
+    if turns.size == 0:
+        return 0, 1.0
+    turns = turns[turns < turns[0] + 3.0 * period_blocks]
+    turn = int(turns[np.argmin(np.abs(smooth[turns]))])
+    kind = -float(slope[turn])  # +1 where the slope turns from rising to falling
+    lo = (turn - reach) * factor
+    return lo + int(np.argmax(kind * op[lo : (turn + reach + 1) * factor])), kind
+
+
+def _coarse_grid(s_max: float, n_s: int, n_j: int) -> list[tuple[float, float]]:
+    """``(0, 0)`` and ``n_s`` values of S, each with ``n_j`` values of J/S (cell centres).
+
+    In a stiction limit cycle OP reverses soon after the valve slips, so S is
+    usually a large fraction of the OP travel per cycle ``s_max``, and the
+    optimum there is narrow; the S values are spaced evenly in
+    ``log(s_max - S)``, from ``0.003 s_max`` to ``0.8 s_max`` below the bound.
+    """
+    grid = [(0.0, 0.0)]
+    ratios = (np.arange(n_j) + 0.5) / n_j
+    for margin in np.geomspace(0.8, 0.003, n_s):
+        S = s_max * (1.0 - float(margin))
+        grid.extend((S, S * float(f)) for f in ratios)
+    return grid
+
+
+def _refine(
+    window: _Window,
+    valve_model: str,
+    row: int,
+    table: dict[tuple[float, float], Score],
+    point: tuple[float, float],
+    step: float,
+    rounds: int,
+) -> None:
+    """Pattern search in (S, J) from ``point``: 3 x 3 steps, halving the step each round.
+
+    Scores go into ``table``; the linear-model grid is narrowed to the
+    neighbours of the current point's pole and delay block.
+    """
+    n_poles = window.poles.size
+    for _ in range(rounds):
+        S, J = point
+        _, pole, delay = table[point]
+        around: list[tuple[float, float]] = []
+        for i in (-1, 0, 1):
+            for j in (-1, 0, 1):
+                s_new = min(max(S + i * step, 0.0), window.s_max)
+                candidate = (s_new, min(max(J + j * step, 0.0), s_new))
+                if candidate not in table and candidate not in around:
+                    around.append(candidate)
+        block = (delay - 1) // window.factor
+        limits = (
+            max(pole - 1, 0),
+            min(pole + 1, n_poles - 1),
+            max(block - 1, 0),
+            min(block + 1, window.max_block_delay),
+        )
+        scores = window.evaluate(valve_model, around, [row], limits)
+        table.update((c, s[0]) for c, s in zip(around, scores, strict=True))
+        point = min([point, *around], key=lambda c: table[c][0])
+        step /= 2.0
+
+
+def _final_fit(
+    window: _Window, cm: FloatArray, row: int, pole: int, delay: int
+) -> tuple[float, float, FloatArray]:
+    """Refine the lag continuously at the best delay: pole, gain and the fitted target."""
+    u = _delayed_block_means(cm, window.factor, delay, window.start + window.targets.shape[1])
+    target = window.targets[row]
+
+    def residual(a: float) -> float:
+        x = _lag_response(u, a)
+        return float(_fit_at_shift(x, 0, target, window.start, window.gain_sign)[0])
+
+    a = float(window.poles[pole])
+    lo = float(window.poles[max(pole - 1, 0)])
+    hi = float(window.poles[min(pole + 1, window.poles.size - 1)])
+    found = minimize_scalar(residual, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+    if float(found.fun) < residual(a):
+        a = float(found.x)
+    x = _lag_response(u, a)[window.start :]
+    m = x.size
+    regressors = np.column_stack([np.ones(m), np.arange(m, dtype=np.float64), x])
+    coef = np.linalg.lstsq(regressors, target, rcond=None)[0]
+    return a, float(coef[2]), np.asarray(regressors @ coef, dtype=np.float64)
+
+
+def _not_quantified(reason: str, period_s: float | None) -> StictionEstimate:
+    return StictionEstimate(
+        None, None, None, None, None, None, None, None, period_s, False, False, (reason,)
+    )
+
+
+def quantify_stiction(
+    op: ArrayLike,
+    pv: ArrayLike,
+    ts: float,
+    *,
+    process_type: ProcessType | None = None,
+    period_s: float | None = None,
+    valve_models: Sequence[str] = ("he", "kano"),
+    samples_per_cycle: int = 25,
+    max_samples: int = 1000,
+    max_delay_fraction: float = 0.5,
+    grid: tuple[int, int] = (30, 3),
+    starts: int = 3,
+    step: float = 0.04,
+    refine_rounds: int = 4,
+    min_cycles: float = 3.0,
+    min_fit_r2: float = MIN_FIT_R2,
+    min_stick_band: float = 0.1,
+    min_r2_gain: float = MIN_R2_GAIN,
+    near_optimal_tolerance: float = 0.05,
+) -> StictionEstimate:
+    """Estimate valve stiction (S, J) of one loop by Hammerstein identification.
+
+    Parameters
+    ----------
+    op, pv : array_like
+        Controller output (% of span) and process variable, equally long.
+    ts : float
+        Sampling interval, s.
+    process_type : {"self-regulating", "integrating"} or None
+        Structure of the linear part; None fits both and keeps the larger R^2.
+    period_s : float, optional
+        Oscillation period; detected with
+        :func:`analytics.oscillation.detect_loop_oscillation` when omitted.
+    valve_models : sequence of str
+        Stiction models tried (keys of :data:`VALVE_MODELS`); each is refined
+        and the better fit is reported.
+    samples_per_cycle : int, optional
+        Raw samples are averaged in blocks to about this many per period.
+    max_samples : int, optional
+        At most this many blocks are fitted (the most recent ones).
+    max_delay_fraction : float, optional
+        Longest dead time searched, as a fraction of the period.
+    grid : (int, int), optional
+        Coarse grid: ``grid[0]`` values of S below the OP travel per cycle
+        (the bound of the search space, thesis Appendix A step 2), dense
+        near it, each with ``grid[1]`` values of ``J / S`` (see
+        :func:`_coarse_grid`).
+    starts : int, optional
+        Best coarse points of each valve model refined by pattern search.
+    step : float, optional
+        First pattern step in S and J, as a fraction of the OP travel per cycle.
+    refine_rounds : int, optional
+        3 x 3 pattern steps from each start, each halving the step.
+    min_cycles : float, optional
+        Fewest oscillation cycles the window must hold.
+    min_fit_r2 : float, optional
+        Output-error R^2 below which the fit is flagged as poor.
+    min_stick_band : float, optional
+        ``S`` below this fraction of the OP travel per cycle is no stiction.
+    min_r2_gain : float, optional
+        Fraction of the variance the stiction model must explain beyond the
+        healthy-valve fit (``fit_r2 - search.r2_ideal_valve``) to count as
+        stiction.
+    near_optimal_tolerance : float, optional
+        Candidates within this relative excess residual of the best define
+        ``search.s_range`` and ``search.j_range``.
+
+    Returns
+    -------
+    StictionEstimate
+        With ``S = J = None`` when the loop does not oscillate, holds fewer
+        than ``min_cycles`` cycles, or OP does not move.
+
+    Raises
+    ------
+    DataError
+        If the signals are not 1-D, differ in length or hold NaN/inf, ``ts``
+        is not positive, or ``process_type`` or ``valve_models`` is unknown.
+
+    Notes
+    -----
+    Identifiability.  S shows in the OP travel between an OP reversal and the
+    PV reversal, J in the size of the PV step after each reversal.  A slip
+    jump that moves PV less than its noise over a few samples cannot be told
+    from ``J = 0``, and a process lag much longer than the period filters the
+    jump away: ``search.j_range`` then spans much of ``0..S`` and the estimate
+    is flagged.  A limit cycle needs OP to cross the whole stick band, so the
+    S search ends at the OP travel per cycle; an S at that bound means the
+    model valve hardly moves and the data do not support the model.  The
+    healthy valve (S = 0) is one of the candidates, and a linear loop fits it
+    as well as any stiction model.
+
+    References
+    ----------
+    Jelali (2008); Lee, Ren & Huang (2008), thesis ref. [28] and Appendix A;
+    Choudhury, Jain & Shah (2008); He et al. (2007) and Kano et al. (2004) for
+    the valve models; thesis Eq. 1.2 for ``fs = (S + J) / 2``,
+    ``fd = (S - J) / 2``.  See the module docstring.
+
+    Examples
+    --------
+    A level loop (integrating process) with a Kano valve of S = 3, J = 1:
+
+    >>> from analytics.scenarios import level_loop
+    >>> res = level_loop().run()
+    >>> est = quantify_stiction(res.op[0], res.pv[0], res.dt, process_type="integrating")
+    >>> round(est.S, 1), est.stiction_found, est.model.integrating
+    (3.0, True, True)
+    >>> est.fs == (est.S + est.J) / 2
+    True
+    """
+    op_a = np.ascontiguousarray(op, dtype=np.float64)
+    pv_a = np.ascontiguousarray(pv, dtype=np.float64)
+    if op_a.ndim != 1 or op_a.shape != pv_a.shape:
+        raise DataError(
+            f"op and pv must be 1-D and equally long, got shapes {op_a.shape} and {pv_a.shape}"
+        )
+    if not (math.isfinite(ts) and ts > 0):
+        raise DataError(f"sampling time ts must be positive and finite, got {ts!r}")
+    if not (np.all(np.isfinite(op_a)) and np.all(np.isfinite(pv_a))):
+        raise DataError("op and pv must be finite; screen them with analytics.quality")
+    if process_type not in (None, "self-regulating", "integrating"):
+        raise DataError(
+            f"process_type must be 'self-regulating', 'integrating' or None, got {process_type!r}"
+        )
+    unknown = [m for m in valve_models if m not in VALVE_MODELS]
+    if unknown or not valve_models:
+        raise DataError(f"valve_models must be among {sorted(VALVE_MODELS)}, got {valve_models}")
+
+    if period_s is None:
+        period_s = detect_loop_oscillation(op_a, pv_a, ts).period_s
+        if period_s is None:
+            return _not_quantified("the loop does not oscillate", None)
+    period = period_s / ts
+    if op_a.size < min_cycles * period:
+        return _not_quantified(
+            f"only {op_a.size / period:.1f} oscillation cycles in the window "
+            f"(need {min_cycles:g})",
+            period_s,
+        )
+
+    window = _Window.build(
+        op_a, pv_a, ts, period, samples_per_cycle, max_samples, max_delay_fraction
+    )
+    s_max = window.s_max
+    if not s_max > 0:
+        return _not_quantified("OP does not move", period_s)
+    signals = window.signals
+    sst = np.sum((signals - signals.mean(axis=1, keepdims=True)) ** 2, axis=1)
+    sst = np.where(sst > 0, sst, np.inf)
+
+    rows = [0, 1] if process_type is None else [int(process_type == "integrating")]
+    coarse = _coarse_grid(s_max, *grid)
+    full = (0, window.poles.size - 1, 0, window.max_block_delay)
+    tables: dict[tuple[str, int], dict[tuple[float, float], Score]] = {}
+    for valve_model in valve_models:
+        scores = window.evaluate(valve_model, coarse, rows, full)
+        for t, row in enumerate(rows):
+            tables[valve_model, row] = {c: s[t] for c, s in zip(coarse, scores, strict=True)}
+
+    def unexplained(key: tuple[str, int]) -> float:
+        return min(s[0] for s in tables[key].values()) / float(sst[key[1]])
+
+    # Refine the better process type of each valve model from its best coarse
+    # points (the surface is rough: a model valve that misses one reversal
+    # stays out of step), then keep the better model.
+    chosen = [min((k for k in tables if k[0] == v), key=unexplained) for v in valve_models]
+    for valve_model, row in chosen:
+        table = tables[valve_model, row]
+        for point in sorted(coarse, key=lambda c: table[c][0])[:starts]:
+            _refine(window, valve_model, row, table, point, step * s_max, refine_rounds)
+    valve_model, row = min(chosen, key=unexplained)
+    table = tables[valve_model, row]
+    (S, J), (sse, pole, delay) = min(table.items(), key=lambda item: item[1][0])
+
+    cm = window.valve_cumsum(valve_model, S, J)
+    a, gain, fitted_detrended = _final_fit(window, cm, row, pole, delay)
+    target = signals[row]
+    fitted = target - (window.targets[row] - fitted_detrended)
+    sse_final = float(np.sum((target - fitted) ** 2))
+    fit_r2 = 1.0 - sse_final / float(sst[row])
+    sse_ideal = table[0.0, 0.0][0]
+    h = ts * window.factor
+    integrating = row == 1
+    model = ProcessModel(
+        K=gain / h if integrating else gain,
+        tau=0.0 if a <= 0.0 else -h / math.log(a),
+        theta=(delay - 1) * ts,
+        integrating=integrating,
+    )
+
+    near = [c for c, s in table.items() if s[0] <= sse * (1.0 + near_optimal_tolerance)]
+    start, n_blocks = window.start, window.op_blocks.size
+    mv_b = _delayed_block_means(cm, window.factor, 0, n_blocks)[start:] + window.op[0]
+    op_b = window.op_blocks[start:]
+    op_travel = float(np.ptp(op_b))
+    mv_travel = float(np.ptp(mv_b)) / op_travel if op_travel > 0 else 0.0
+    search = SearchSummary(
+        valve_model=valve_model,
+        s_max=s_max,
+        evaluations=sum(len(t) for t in tables.values()) // len(rows),
+        s_range=(min(c[0] for c in near), max(c[0] for c in near)),
+        j_range=(min(c[1] for c in near), max(c[1] for c in near)),
+        r2_ideal_valve=1.0 - sse_ideal / float(sst[row]),
+        samples_per_cycle=window.period_blocks,
+        downsample_factor=window.factor,
+        cycles=n_blocks / window.period_blocks,
+        mv_travel_fraction=mv_travel,
+    )
+    t_s = np.asarray((window.first + (np.arange(start, n_blocks) + 0.5) * window.factor) * ts)
+    trace = FitTrace(t_s, op_b, mv_b, target, fitted, "pv_increment" if integrating else "pv")
+
+    issues = []
+    if fit_r2 < min_fit_r2:
+        issues.append(f"poor fit: output-error R^2 {fit_r2:.2f} < {min_fit_r2:g}")
+    if s_max <= S:
+        issues.append(f"S = {S:.3g} lies at the search bound (OP travel per cycle {s_max:.3g})")
+    if mv_travel < 0.05:
+        issues.append(f"the model valve hardly moves (MV travel {mv_travel:.1%} of OP travel)")
+    if S > 0 and search.j_range[1] - search.j_range[0] > 0.5 * S:
+        issues.append(
+            f"J is poorly determined: {search.j_range[0]:.3g} to {search.j_range[1]:.3g} "
+            "fit almost equally well"
+        )
+    fs, fd = sj_to_fsfd(S, J)
+    return StictionEstimate(
+        S=S,
+        J=J,
+        fs=fs,
+        fd=fd,
+        fit_r2=fit_r2,
+        model=model,
+        search=search,
+        trace=trace,
+        period_s=period_s,
+        stiction_found=bool(
+            min_stick_band * s_max <= S and fit_r2 - search.r2_ideal_valve >= min_r2_gain
+        ),
+        trustworthy=not issues,
+        issues=tuple(issues),
+    )

@@ -1,0 +1,185 @@
+"""Stiction quantification by Hammerstein identification (analytics.quantification).
+
+Ground truth comes from closed-loop simulations with a known valve
+(analytics.simulation, analytics.scenarios, analytics.synthetic_cases); the
+ISDB loops (Jelali & Huang 2010) have no published S/J we rely on, so they
+are checked for consistency only.
+"""
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from analytics.errors import DataError
+from analytics.quantification import ProcessType, StictionEstimate, quantify_stiction
+from analytics.scenarios import chapter4, level_loop
+from analytics.synthetic_cases import synthetic_library
+from analytics.valves import fsfd_to_sj
+from tests.shared_data import isdb_labels, load_isdb_loop
+
+
+def case_signals(name: str) -> tuple[NDArray[np.float64], NDArray[np.float64], float, ProcessType]:
+    case = next(c for c in synthetic_library() if c.name == name)
+    res = case.simulate()
+    return res.op[0], res.pv[0], case.ts, case.process_type
+
+
+def sj(est: StictionEstimate) -> tuple[float, float]:
+    """(S, J) of an estimate that exists."""
+    assert est.S is not None and est.J is not None
+    return est.S, est.J
+
+
+def assert_consistent(est: StictionEstimate) -> None:
+    """Thesis Eq. 1.2 and the search bounds hold for any estimate."""
+    stick, slip = sj(est)
+    assert est.search is not None and est.fs is not None and est.fd is not None
+    assert 0.0 <= slip <= stick <= est.search.s_max
+    assert fsfd_to_sj(est.fs, est.fd) == pytest.approx((stick, slip))
+    assert est.fit_r2 is not None and est.fit_r2 <= 1.0
+    assert est.search.s_range[0] <= stick <= est.search.s_range[1]
+    assert est.to_dict() is not None
+
+
+class TestKnownValves:
+    def test_thesis_chapter4_loop(self) -> None:
+        # Thesis ch. 4: G = 0.66 e^-2.6s/(6.7s+1), PI 0.1 + 0.09/s, He fs=3, fd=2 (S=5, J=1).
+        res = chapter4().run()
+        est = quantify_stiction(res.op[0], res.pv[0], res.dt, process_type="self-regulating")
+        assert_consistent(est)
+        stick, slip = sj(est)
+        assert est.stiction_found
+        assert stick == pytest.approx(5.0, rel=0.05)
+        # OP reverses right after each slip here, so MV is nearly a square wave whose
+        # height (about J) trades against the process gain: J is the weaker estimate.
+        assert slip == pytest.approx(1.0, rel=0.3)
+        assert est.fit_r2 is not None and est.fit_r2 > 0.95
+        assert est.model is not None and not est.model.integrating
+
+    def test_integrating_level_loop(self) -> None:
+        # scenarios.level_loop: K = 0.02 %/s per %, 3 s dead time, Kano S=3, J=1, sensor noise.
+        res = level_loop().run()
+        est = quantify_stiction(res.op[0], res.pv[0], res.dt, process_type="integrating")
+        assert_consistent(est)
+        stick, slip = sj(est)
+        assert est.stiction_found and est.trustworthy
+        assert stick == pytest.approx(3.0, rel=0.05)
+        assert 0.0 < slip < stick
+        assert est.model is not None and est.model.integrating
+        assert est.model.K > 0  # reverse-acting PI: negative feedback needs a positive gain
+
+    def test_unknown_process_type_finds_the_integrator(self) -> None:
+        res = level_loop().run()
+        est = quantify_stiction(res.op[0], res.pv[0], res.dt)
+        assert est.model is not None and est.model.integrating
+        assert sj(est)[0] == pytest.approx(3.0, rel=0.05)
+
+    @pytest.mark.parametrize(
+        ("name", "S", "J"),
+        [
+            ("flow-kano-S4-J2-ts1", 4.0, 2.0),
+            ("flow-kano-S2-J1-ts0.5", 2.0, 1.0),
+            ("flow-kano-S8-J4-ts0.5", 8.0, 4.0),
+            ("temp-kano-S2-J1-ts2", 2.0, 1.0),
+            ("level-kano-S8-J4-ts1", 8.0, 4.0),
+            ("flow-he-S8-J2-ts0.5", 8.0, 2.0),
+        ],
+    )
+    def test_synthetic_stiction_cases(self, name: str, S: float, J: float) -> None:
+        op, pv, ts, kind = case_signals(name)
+        est = quantify_stiction(op, pv, ts, process_type=kind)
+        assert_consistent(est)
+        assert est.stiction_found
+        stick, slip = sj(est)
+        assert stick == pytest.approx(S, rel=0.1)
+        assert slip == pytest.approx(J, rel=0.3)
+
+    def test_fit_trace_reproduces_fit_r2(self) -> None:
+        res = level_loop().run()
+        est = quantify_stiction(res.op[0], res.pv[0], res.dt, process_type="integrating")
+        trace = est.trace
+        assert trace is not None and trace.quantity == "pv_increment"
+        residual = np.sum((trace.pv - trace.pv_fit) ** 2)
+        total = np.sum((trace.pv - trace.pv.mean()) ** 2)
+        assert 1.0 - residual / total == pytest.approx(est.fit_r2)
+        assert np.all(np.diff(trace.t_s) > 0)
+
+
+class TestRejects:
+    @pytest.mark.parametrize(
+        "name",
+        [
+            "flow-sine60s-ts1",  # healthy valve, external sinusoidal load
+            "temp-sine500s-ts2",
+            "level-sine300s-ts1",
+            "flow-aggressive-ts1",  # healthy valve, lightly damped linear loop
+            "temp-aggressive-ts4",
+        ],
+    )
+    def test_linear_loops_give_no_stiction(self, name: str) -> None:
+        op, pv, ts, kind = case_signals(name)
+        est = quantify_stiction(op, pv, ts, process_type=kind)
+        assert est.fit_r2 is not None and est.search is not None
+        assert not est.stiction_found
+        # The healthy valve (S = 0) is a candidate and fits as well as any stiction model.
+        assert est.fit_r2 - est.search.r2_ideal_valve < 0.02
+
+    def test_ideal_valve_gives_a_small_stick_band(self) -> None:
+        op, pv, ts, kind = case_signals("flow-sine150s-ts1")
+        est = quantify_stiction(op, pv, ts, process_type=kind)
+        assert est.search is not None
+        assert sj(est)[0] < 0.1 * est.search.s_max
+
+
+class TestUndecided:
+    def test_no_oscillation(self) -> None:
+        op, pv, ts, kind = case_signals("flow-noise-ts1")
+        est = quantify_stiction(op, pv, ts, process_type=kind)
+        assert est.S is None and est.to_dict() is None
+        assert not est.stiction_found and not est.trustworthy
+        assert est.issues == ("the loop does not oscillate",)
+
+    def test_too_few_cycles(self) -> None:
+        res = chapter4().run()
+        est = quantify_stiction(res.op[0][:1000], res.pv[0][:1000], res.dt, period_s=400.0)
+        assert est.S is None
+        assert "cycles" in est.issues[0]
+
+    def test_op_that_does_not_move(self) -> None:
+        t = np.arange(2000.0)
+        est = quantify_stiction(np.full(t.size, 40.0), np.sin(2 * np.pi * t / 100), 1.0,
+                                period_s=100.0)
+        assert est.S is None and est.issues == ("OP does not move",)
+
+    @pytest.mark.parametrize(
+        ("op", "pv", "ts", "kwargs"),
+        [
+            (np.zeros(10), np.zeros(11), 1.0, {}),
+            (np.zeros((2, 5)), np.zeros((2, 5)), 1.0, {}),
+            (np.zeros(10), np.zeros(10), 0.0, {}),
+            (np.array([0.0, math.nan]), np.zeros(2), 1.0, {}),
+            (np.zeros(10), np.zeros(10), 1.0, {"process_type": "tank"}),
+            (np.zeros(10), np.zeros(10), 1.0, {"valve_models": ("stenman",)}),
+        ],
+    )
+    def test_bad_input_raises(
+        self, op: NDArray[np.float64], pv: NDArray[np.float64], ts: float,
+        kwargs: dict[str, Any],
+    ) -> None:
+        with pytest.raises(DataError):
+            quantify_stiction(op, pv, ts, **kwargs)
+
+
+STICTION_LOOPS = [row["loop"] for row in isdb_labels() if row["label"] == "stiction"]
+
+
+@pytest.mark.parametrize("loop", STICTION_LOOPS)
+def test_isdb_stiction_loops_give_consistent_estimates(loop: str) -> None:
+    ts = next(float(r["ts_s"]) for r in isdb_labels() if r["loop"] == loop)
+    _, op, pv = load_isdb_loop(loop)
+    est = quantify_stiction(op, pv, ts)
+    assert_consistent(est)
+    assert est.period_s is not None
