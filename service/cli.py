@@ -6,6 +6,13 @@ Commands that exist so far:
     Simulate a named scenario (``--list`` shows them) or a JSON model file
     (format: :class:`analytics.simulation.ClosedLoopModel`) and write the
     time series as CSV.
+``loopwatch analyze FILE.csv [--ts S] [--time/--op/--pv/--sp/--mv COL]
+[--process-type auto|self-regulating|integrating] [--json]``
+    Diagnose one loop from measured data: data quality, oscillation,
+    stiction verdict with the evidence of every method, and S/J estimates.
+``loopwatch serve [--config PLANT.yaml] [--host H] [--port P]``
+    Run the service: REST API, analyses, alarms and tickets.  Without a plant
+    file it runs the simulated demo plant.
 ``loopwatch demo``
     Simulate the thesis scenarios and print what a control engineer would
     check first: does each loop oscillate, at what period, how big.
@@ -23,10 +30,13 @@ from typing import TextIO
 
 import numpy as np
 
+from analytics.diagnosis import LoopDiagnosis, diagnose_loop
 from analytics.errors import AnalyticsError
 from analytics.oscillation import detect_oscillations
+from analytics.quality import QualityLimits
 from analytics.scenarios import SCENARIOS, build_scenario
 from analytics.simulation import ClosedLoopModel, SimulationResult
+from service.loop_csv import LoopCsvError, read_loop_csv
 
 
 class CliError(Exception):
@@ -88,6 +98,86 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fmt(value: float | None, spec: str = ".3g") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
+    """The readable report of ``loopwatch analyze``."""
+    d = diagnosis
+    print(f"{source}: {d.samples} samples at {d.ts:g} s", file=out)
+    print(f"process type: {d.process_type or 'unknown'}", file=out)
+    quality = "usable" if d.quality.usable else "UNUSABLE"
+    print(f"data quality: {quality}", file=out)
+    for issue in d.quality.issues:
+        print(f"  [{issue.severity}] {issue.message}", file=out)
+    osc = d.oscillation
+    if osc is not None and osc.detected:
+        print(
+            f"oscillation: period {_fmt(osc.period_s, '.4g')} s, regularity "
+            f"{_fmt(osc.regularity, '.3g')}, amplitude OP {_fmt(osc.amplitude_op)}, "
+            f"PV {_fmt(osc.amplitude_pv)}",
+            file=out,
+        )
+    elif osc is not None:
+        print("oscillation: none found", file=out)
+    v = d.stiction
+    print(f"stiction: {v.verdict.upper()} (confidence {v.confidence:.2f}): {v.reason}", file=out)
+    for name, e in v.methods.items():
+        print(f"  {name:18s} {e.decision:12s} index {_fmt(e.index, '.3g'):>8s}  {e.note}", file=out)
+    q = d.quantification
+    if q is not None and q.S is not None:
+        caveats = "" if q.trustworthy else f"  [not trustworthy: {'; '.join(q.issues)}]"
+        print(
+            f"stiction size (Hammerstein): S = {q.S:.2f}, J = {q.J:.2f}, fs = {q.fs:.2f}, "
+            f"fd = {q.fd:.2f} (OP units), fit R2 = {q.fit_r2:.2f}{caveats}",
+            file=out,
+        )
+    if d.ellipse is not None:
+        print(
+            f"apparent stiction (ellipse fit): {d.ellipse.apparent_stiction:.2f} (OP units)",
+            file=out,
+        )
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    try:
+        data = read_loop_csv(
+            args.file, ts=args.ts, time=args.time, op=args.op, pv=args.pv, sp=args.sp,
+            mv=args.mv, min_samples=QualityLimits().min_samples,
+        )
+    except LoopCsvError as exc:
+        raise CliError(str(exc)) from None
+    process_type = None if args.process_type == "auto" else args.process_type
+    try:
+        diagnosis = diagnose_loop(
+            ts=data.ts, op=data.op, pv=data.pv, sp=data.sp, mv=data.mv, t=data.t,
+            process_type=process_type,
+        )
+    except AnalyticsError as exc:
+        raise CliError(f"{args.file}: {exc}") from None
+    if args.json:
+        print(json.dumps(diagnosis.to_dict(), indent=2, default=float))
+    else:
+        print_diagnosis(diagnosis, args.file, sys.stdout)
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from service.config import ConfigError
+    from service.server import serve
+
+    try:
+        serve(args.config, host=args.host, port=args.port)
+    except ConfigError as exc:
+        raise CliError(str(exc)) from None
+    except ValidationError as exc:
+        raise CliError(f"invalid LOOPWATCH_* settings: {exc}") from None
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     print("loopwatch demo: simulated loops and what the oscillation detector sees in PV")
     print("(second half of each run; alarms and tickets come with the service)\n")
@@ -118,6 +208,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--duration", type=float, help="simulated time in seconds")
     sim.add_argument("--list", action="store_true", help="list the named scenarios")
     sim.set_defaults(handler=_cmd_simulate)
+    analyze = commands.add_parser("analyze", help="diagnose one loop from a CSV file")
+    analyze.add_argument("file", help="CSV with a header: time, op, pv (sp, mv optional)")
+    analyze.add_argument("--ts", type=float, help="sampling interval in seconds")
+    for column in ("time", "op", "pv", "sp", "mv"):
+        analyze.add_argument(f"--{column}", help=f"name of the {column.upper()} column")
+    analyze.add_argument(
+        "--process-type",
+        choices=("auto", "self-regulating", "integrating"),
+        default="auto",
+        help="process type (auto: unknown unless it can be inferred)",
+    )
+    analyze.add_argument("--json", action="store_true", help="print one JSON object")
+    analyze.set_defaults(handler=_cmd_analyze)
+    serve = commands.add_parser("serve", help="run the monitoring service (REST API)")
+    serve.add_argument("--config", type=Path, help="plant YAML file (default: the demo plant)")
+    serve.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port to listen on (default 8000)")
+    serve.set_defaults(handler=_cmd_serve)
     demo = commands.add_parser("demo", help="simulate the thesis scenarios and summarise them")
     demo.set_defaults(handler=_cmd_demo)
     return parser

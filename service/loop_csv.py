@@ -3,10 +3,11 @@
 The file has a header row; columns are found by name, case-insensitively:
 time (``time``, ``t``, ``t_s``, ``timestamp``), ``op``, ``pv``, ``sp`` and
 ``mv``; any of them can be named explicitly instead.  Time is either seconds
-(any numeric column) or ISO 8601 timestamps; without a time column the
-sampling interval must be given.  Empty cells and ``nan`` are kept as missing
-values (NaN) for the data-quality screen to report; anything else that is not
-a number is refused with the row and column.
+(any numeric column) or ISO 8601 timestamps (UTC unless an offset is
+given); without a time column the sampling interval must be given.  Empty
+cells and ``nan`` are kept as missing values (NaN) for the data-quality
+screen to report; anything else that is not a number is refused with the
+row and column.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +72,8 @@ def _parse_time(cell: str) -> float:
         return float(cell)
     except ValueError:
         stamp = datetime.fromisoformat(cell.strip().replace("Z", "+00:00"))
+        if stamp.tzinfo is None:
+            stamp = stamp.replace(tzinfo=UTC)  # as the historian ingest reads them
         return stamp.timestamp()
 
 
@@ -132,8 +135,8 @@ def read_loop_csv(
             f"{path}: no time column (time, t, t_s, timestamp); give --time or --ts"
         )
     body = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(row)]
-    if len(body) < min_samples:
-        raise LoopCsvError(f"{path}: {len(body)} data rows, at least {min_samples} are needed")
+    if not body:
+        raise LoopCsvError(f"{path}: no data rows below the header")
     used = {name: i for name, i in index.items() if i is not None}
     values = {name: np.empty(len(body)) for name in used}
     t: FloatArray = np.empty(len(body))
@@ -174,8 +177,12 @@ def read_loop_csv(
                 f"(previous row {body[k][0]} has {t[k]:g}); sort the file and remove duplicates"
             )
         t = t - t[0]
-        if ts is None:
-            ts = float(np.median(steps))
+    if len(body) < max(min_samples, 2):
+        raise LoopCsvError(
+            f"{path}: {len(body)} data rows, at least {max(min_samples, 2)} are needed"
+        )
+    if ts is None:
+        ts = float(np.median(np.diff(t)))
     return LoopData(
         t=t,
         ts=float(ts),

@@ -67,3 +67,61 @@ def test_bad_model_files_say_what_is_wrong(tmp_path, capsys, content, message):
 def test_unknown_scenario(capsys):
     assert main(["simulate", "nonsense"]) == 2
     assert "neither a scenario name" in capsys.readouterr().err
+
+
+def _write_loop(tmp_path, case_name, samples=3000):
+    from analytics.synthetic_cases import synthetic_library
+
+    case = next(c for c in synthetic_library(samples) if c.name == case_name)
+    result = case.simulate()
+    path = tmp_path / f"{case_name}.csv"
+    with path.open("w") as handle:
+        handle.write("Time,OP,PV,SP\n")
+        for row in zip(result.t, result.op[0], result.pv[0], result.sp[0], strict=True):
+            handle.write(",".join(f"{v:.6g}" for v in row) + "\n")
+    return path
+
+
+def test_analyze_json_contract_on_a_sticky_loop(tmp_path, capsys):
+    path = _write_loop(tmp_path, "flow-kano-S4-J2-ts1")
+    assert main(["analyze", str(path), "--process-type", "self-regulating", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["samples"] == 3000 and report["ts"] == 1.0
+    assert report["quality"]["usable"] is True
+    osc = report["oscillation"]
+    assert osc["detected"] is True and 80 < osc["period_s"] < 130
+    assert {"regularity", "amplitude_op", "amplitude_pv"} <= osc.keys()
+    stiction = report["stiction"]
+    assert stiction["verdict"] == "stiction" and 0 < stiction["confidence"] <= 1
+    assert set(stiction["methods"]) >= {"cross_correlation", "bicoherence", "surrogate"}
+    assert all({"index", "decision"} <= m.keys() for m in stiction["methods"].values())
+    q = report["quantification"]
+    assert {"S", "J", "fs", "fd", "fit_r2"} <= q.keys()
+    assert abs(q["S"] - 4.0) < 1.5  # the simulated valve: Kano S = 4 %, J = 2 %
+
+
+def test_analyze_readable_report_of_a_healthy_loop(tmp_path, capsys):
+    path = _write_loop(tmp_path, "flow-noise-ts1")
+    assert main(["analyze", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "oscillation: none found" in out
+    assert "stiction: NO_STICTION" in out
+
+
+@pytest.mark.parametrize(
+    ("text", "args", "message"),
+    [
+        ("t,op,pv\n0,1,2\n1,x,3\n", [], "row 3, column 'op': 'x' is not a number"),
+        ("t,flow\n0,1\n1,2\n", [], "needs an 'op' or a 'pv' column"),
+        ("op,pv\n1,2\n2,3\n", [], "no time column"),
+        ("t,op,pv\n0,1,2\n5,1,2\n3,1,2\n", [], "row 4: time 3 does not increase"),
+        ("t,op,pv\n" + "".join(f"{k},{k % 7},{k % 5}\n" for k in range(20)), [],
+         "20 data rows, at least 100 are needed"),
+    ],
+)
+def test_analyze_refuses_bad_input_with_file_row_and_column(tmp_path, capsys, text, args, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    assert main(["analyze", str(path), *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "bad.csv" in err
