@@ -19,7 +19,7 @@ $(VENV)/.installed-test: pyproject.toml | $(PY)
 	touch $@ $(VENV)/.installed-run
 
 run: $(VENV)/.installed-run
-	$(VENV)/bin/loopwatch demo
+	$(VENV)/bin/loopwatch serve
 
 lint: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check .

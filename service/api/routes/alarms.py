@@ -1,0 +1,166 @@
+"""Operator alarms: list, detail with history, acknowledge, shelve, unshelve, service."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException, Query
+from pydantic import BaseModel, Field
+
+from service.alarms import (
+    ALARM_STATES,
+    AlarmNotFoundError,
+    acknowledge,
+    get_alarm,
+    list_alarms,
+    remove_from_service,
+    return_to_service,
+    shelve,
+    unshelve,
+)
+from service.api.deps import Principal, SessionDep, StateDep, require
+from service.store.models import Alarm
+
+router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"])
+Reader = Annotated[Principal, Depends(require("read"))]
+Operator = Annotated[Principal, Depends(require("alarms"))]
+Admin = Annotated[Principal, Depends(require("admin"))]
+
+
+class AlarmEventPublic(BaseModel):
+    """One recorded transition."""
+
+    at: float
+    event: str
+    from_state: str
+    to_state: str
+    actor: str
+    note: str
+
+
+class AlarmPublic(BaseModel):
+    """An alarm and its current state."""
+
+    id: int
+    loop_id: str
+    kind: str
+    priority: str
+    state: str
+    condition_active: bool
+    shelved_until: float | None
+    message: str
+    raised_at: float
+    updated_at: float
+
+
+class AlarmDetail(AlarmPublic):
+    """An alarm with its full history."""
+
+    events: list[AlarmEventPublic]
+
+
+class AlarmsPublic(BaseModel):
+    """A page of alarms."""
+
+    data: list[AlarmPublic]
+    count: int
+
+
+class OperatorNote(BaseModel):
+    """An optional note for the alarm's history."""
+
+    note: str = Field(default="", max_length=500)
+
+
+class ShelveRequest(OperatorNote):
+    """How long to shelve (at most 24 h)."""
+
+    duration_s: float = Field(gt=0, le=24 * 3600)
+
+
+def _detail(alarm: Alarm) -> AlarmDetail:
+    return AlarmDetail.model_validate(alarm, from_attributes=True)
+
+
+def _actor(key: Principal) -> str:
+    return f"{key.name} ({key.role})"
+
+
+@router.get("", response_model=AlarmsPublic)
+def list_all(
+    session: SessionDep,
+    _: Reader,
+    loop_id: str | None = None,
+    unit: str | None = None,
+    state: Annotated[str | None, Query(description=f"one of {', '.join(ALARM_STATES)}")] = None,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> AlarmsPublic:
+    """Alarms, highest priority and newest first: without ``state`` every alarm that is
+    not normal (the operator's list), with it exactly the alarms in that state."""
+    if state is not None and state not in ALARM_STATES:
+        raise HTTPException(422, f"state must be one of {', '.join(ALARM_STATES)}")
+    alarms, count = list_alarms(session, loop_id=loop_id, unit_id=unit,
+                                state=state,
+                                limit=limit, offset=offset)
+    return AlarmsPublic(
+        data=[AlarmPublic.model_validate(a, from_attributes=True) for a in alarms], count=count
+    )
+
+
+def _get(session: SessionDep, alarm_id: int) -> Alarm:
+    try:
+        return get_alarm(session, alarm_id)
+    except AlarmNotFoundError:
+        raise HTTPException(404, "Alarm not found") from None
+
+
+@router.get("/{alarm_id}", response_model=AlarmDetail)
+def detail(alarm_id: int, session: SessionDep, _: Reader) -> AlarmDetail:
+    """One alarm with every transition it went through."""
+    return _detail(_get(session, alarm_id))
+
+
+@router.post("/{alarm_id}/acknowledge", response_model=AlarmDetail)
+def ack(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+        key: Operator) -> AlarmDetail:
+    """Acknowledge (operator); 409 if the alarm is not waiting for it."""
+    _get(session, alarm_id)
+    return _detail(acknowledge(session, alarm_id, actor=_actor(key), now=state.clock(),
+                               note=body.note))
+
+
+@router.post("/{alarm_id}/shelve", response_model=AlarmDetail)
+def shelve_alarm(alarm_id: int, body: ShelveRequest, session: SessionDep, state: StateDep,
+                 key: Operator) -> AlarmDetail:
+    """Shelve for ``duration_s`` (operator); it comes back by itself."""
+    _get(session, alarm_id)
+    return _detail(shelve(session, alarm_id, duration_s=body.duration_s, actor=_actor(key),
+                          now=state.clock(), note=body.note))
+
+
+@router.post("/{alarm_id}/unshelve", response_model=AlarmDetail)
+def unshelve_alarm(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+                   key: Operator) -> AlarmDetail:
+    """End a shelve early (operator)."""
+    _get(session, alarm_id)
+    return _detail(unshelve(session, alarm_id, actor=_actor(key), now=state.clock(),
+                            note=body.note))
+
+
+@router.post("/{alarm_id}/out-of-service", response_model=AlarmDetail)
+def out_of_service(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+                   key: Admin) -> AlarmDetail:
+    """Remove from service (admin), e.g. while the loop is in manual for maintenance."""
+    _get(session, alarm_id)
+    return _detail(remove_from_service(session, alarm_id, actor=_actor(key),
+                                       now=state.clock(), note=body.note))
+
+
+@router.post("/{alarm_id}/in-service", response_model=AlarmDetail)
+def in_service(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+               key: Admin) -> AlarmDetail:
+    """Return to service (admin)."""
+    _get(session, alarm_id)
+    return _detail(return_to_service(session, alarm_id, actor=_actor(key),
+                                     now=state.clock(), note=body.note))

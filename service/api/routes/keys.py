@@ -1,0 +1,73 @@
+"""API keys (admin): create (the key is shown once), list, revoke."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException
+from pydantic import BaseModel, Field
+
+from service.api.deps import Principal, SessionDep, StateDep, require
+from service.auth import AuthError, Role, create_key, list_keys, revoke_key
+from service.store.models import ApiKey
+
+router = APIRouter(prefix="/api/v1/keys", tags=["keys"])
+Admin = Annotated[Principal, Depends(require("admin"))]
+
+
+class KeyCreate(BaseModel):
+    """A new key's name and role."""
+
+    name: str = Field(min_length=1, max_length=100)
+    role: Role
+
+
+class KeyPublic(BaseModel):
+    """A key as listed: never the key itself, only its first characters."""
+
+    id: int
+    name: str
+    role: str
+    prefix: str
+    created_at: float
+    revoked_at: float | None
+
+
+class KeyCreated(KeyPublic):
+    """The response to creating a key: the only time the key is shown."""
+
+    key: str
+
+
+class KeysPublic(BaseModel):
+    """All keys."""
+
+    data: list[KeyPublic]
+    count: int
+
+
+def _public(row: ApiKey) -> KeyPublic:
+    return KeyPublic.model_validate(row, from_attributes=True)
+
+
+@router.post("", response_model=KeyCreated, status_code=201)
+def create(body: KeyCreate, session: SessionDep, state: StateDep, _: Admin) -> KeyCreated:
+    """Create a key; store the returned ``key`` now, it cannot be shown again."""
+    key, row = create_key(session, body.name, body.role, state.clock())
+    return KeyCreated(**_public(row).model_dump(), key=key)
+
+
+@router.get("", response_model=KeysPublic)
+def list_all(session: SessionDep, _: Admin) -> KeysPublic:
+    """All keys, newest first."""
+    rows = list_keys(session)
+    return KeysPublic(data=[_public(r) for r in rows], count=len(rows))
+
+
+@router.delete("/{key_id}", response_model=KeyPublic)
+def revoke(key_id: int, session: SessionDep, state: StateDep, _: Admin) -> KeyPublic:
+    """Revoke a key; requests with it get 401 from now on."""
+    try:
+        return _public(revoke_key(session, key_id, state.clock()))
+    except AuthError:
+        raise HTTPException(404, "API key not found") from None

@@ -1,0 +1,341 @@
+"""Loops, units, the bad-actor ranking and loop data."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query
+from pydantic import BaseModel, ValidationError
+from sqlalchemy import func, select
+
+from service.api.deps import Principal, SessionDep, StateDep, require
+from service.config import LoopConfig
+from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
+
+router = APIRouter(prefix="/api/v1", tags=["loops"])
+Reader = Annotated[Principal, Depends(require("read"))]
+Admin = Annotated[Principal, Depends(require("admin"))]
+
+
+class LoopPublic(BaseModel):
+    """A loop in lists: identity and its latest state."""
+
+    id: str
+    name: str
+    unit: str | None
+    valve_asset: str | None
+    importance: str
+    health: float | None
+    oscillating: bool | None
+    period_s: float | None
+    verdict: str | None
+    confidence: float | None
+    S: float | None
+    J: float | None
+    analysed_at: float | None
+    active_alarms: int
+
+
+class LoopsPublic(BaseModel):
+    """A page of loops."""
+
+    data: list[LoopPublic]
+    count: int
+
+
+class RunPublic(BaseModel):
+    """One analysis run (the full diagnosis only in the loop's health view)."""
+
+    id: int
+    started_at: float
+    window_start: float | None
+    window_end: float | None
+    status: str
+    usable: bool | None
+    oscillating: bool | None
+    period_s: float | None
+    verdict: str | None
+    confidence: float | None
+    S: float | None
+    J: float | None
+    health: float | None
+    error: str | None
+
+
+class RunsPublic(BaseModel):
+    """A page of analysis runs, newest first."""
+
+    data: list[RunPublic]
+    count: int
+
+
+class HealthPublic(BaseModel):
+    """The latest diagnosis of a loop and the trend of its health."""
+
+    loop_id: str
+    health: float | None
+    latest: RunPublic | None
+    diagnosis: dict[str, Any] | None
+    trend: list[tuple[float, float | None]]
+
+
+class UnitPublic(BaseModel):
+    """A process unit and its loops."""
+
+    id: str
+    name: str
+    loops: list[str]
+
+
+class UnitsPublic(BaseModel):
+    """All units."""
+
+    data: list[UnitPublic]
+    count: int
+
+
+class SeriesPublic(BaseModel):
+    """One tag's samples over a time range (downsampled to at most max_points)."""
+
+    tag: str
+    signal: str
+    t: list[float]
+    value: list[float | None]
+
+
+class LoopDataPublic(BaseModel):
+    """Samples of every tag of a loop."""
+
+    loop_id: str
+    start: float
+    end: float
+    series: list[SeriesPublic]
+
+
+def _latest_runs(session: SessionDep) -> dict[str, AnalysisRun]:
+    newest = (
+        select(AnalysisRun.loop_id, func.max(AnalysisRun.id).label("id"))
+        .where(AnalysisRun.status == "ok")
+        .group_by(AnalysisRun.loop_id)
+        .subquery()
+    )
+    rows = session.scalars(select(AnalysisRun).join(newest, AnalysisRun.id == newest.c.id))
+    return {r.loop_id: r for r in rows}
+
+
+def _public(loop: Loop, run: AnalysisRun | None, alarms: int) -> LoopPublic:
+    config = loop.config
+    return LoopPublic(
+        id=loop.id, name=loop.name, unit=loop.unit_id, valve_asset=config.get("valve_asset"),
+        importance=config.get("importance", "medium"),
+        health=run.health if run else None, oscillating=run.oscillating if run else None,
+        period_s=run.period_s if run else None, verdict=run.verdict if run else None,
+        confidence=run.confidence if run else None, S=run.S if run else None,
+        J=run.J if run else None, analysed_at=run.started_at if run else None,
+        active_alarms=alarms,
+    )
+
+
+def _all_loops(session: SessionDep, unit: str | None) -> list[LoopPublic]:
+    query = select(Loop).order_by(Loop.id)
+    if unit is not None:
+        query = query.where(Loop.unit_id == unit)
+    runs = _latest_runs(session)
+    alarm_counts: dict[str, int] = {
+        loop_id: n for loop_id, n in session.execute(
+            select(Alarm.loop_id, func.count()).where(Alarm.state != "normal")
+            .group_by(Alarm.loop_id)
+        )
+    }
+    return [_public(loop, runs.get(loop.id), alarm_counts.get(loop.id, 0))
+            for loop in session.scalars(query)]
+
+
+@router.get("/loops", response_model=LoopsPublic)
+def list_loops(
+    session: SessionDep,
+    _: Reader,
+    unit: str | None = None,
+    state: Annotated[str | None, Query(pattern="^(oscillating|stiction|healthy|unknown)$")] = None,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> LoopsPublic:
+    """Loops with their latest state; filter by unit and state, page with offset/limit."""
+    loops = _all_loops(session, unit)
+    if state == "oscillating":
+        loops = [x for x in loops if x.oscillating]
+    elif state == "stiction":
+        loops = [x for x in loops if x.verdict == "stiction"]
+    elif state == "healthy":
+        loops = [x for x in loops if x.oscillating is False]
+    elif state == "unknown":
+        loops = [x for x in loops if x.health is None]
+    return LoopsPublic(data=loops[offset: offset + limit], count=len(loops))
+
+
+@router.get("/plant/bad-actors", response_model=LoopsPublic)
+def bad_actors(
+    session: SessionDep, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 20
+) -> LoopsPublic:
+    """Loops ranked by health, worst first; loops not yet analysed come last."""
+    loops = sorted(_all_loops(session, None),
+                   key=lambda x: (x.health is None, x.health if x.health is not None else 0))
+    return LoopsPublic(data=loops[:limit], count=len(loops))
+
+
+def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
+    loop = session.get(Loop, loop_id)
+    if loop is None:
+        raise HTTPException(404, "Loop not found")
+    return loop
+
+
+@router.get("/loops/{loop_id}", response_model=LoopPublic)
+def get_loop(loop_id: str, session: SessionDep, _: Reader) -> LoopPublic:
+    """One loop with its latest state."""
+    loop = _loop_or_404(session, loop_id)
+    found = [x for x in _all_loops(session, loop.unit_id) if x.id == loop_id]
+    return found[0]
+
+
+@router.get("/loops/{loop_id}/config")
+def get_loop_config(loop_id: str, session: SessionDep, _: Reader) -> dict[str, Any]:
+    """The loop's configuration as in the plant file."""
+    return _loop_or_404(session, loop_id).config
+
+
+@router.put("/loops/{loop_id}", response_model=LoopPublic, status_code=200)
+def put_loop(
+    loop_id: str, body: dict[str, Any], session: SessionDep, state: StateDep, _: Admin
+) -> LoopPublic:
+    """Create or replace a loop from its configuration (admin)."""
+    try:
+        loop = LoopConfig.model_validate({**body, "id": loop_id})
+        state.registry.upsert_loop(session, loop, state.clock())
+    except ValidationError as exc:
+        raise HTTPException(
+            422, exc.errors(include_url=False, include_context=False, include_input=False)
+        ) from None
+    session.flush()
+    state.buffers.add_loop(loop)
+    return get_loop(loop_id, session, _)
+
+
+def _run_public(run: AnalysisRun) -> RunPublic:
+    return RunPublic.model_validate(run, from_attributes=True)
+
+
+@router.get("/loops/{loop_id}/analyses", response_model=RunsPublic)
+def list_analyses(
+    loop_id: str,
+    session: SessionDep,
+    _: Reader,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+) -> RunsPublic:
+    """Analysis runs of a loop, newest first."""
+    _loop_or_404(session, loop_id)
+    count = session.scalar(select(func.count()).where(AnalysisRun.loop_id == loop_id)) or 0
+    runs = session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id)
+        .order_by(AnalysisRun.id.desc()).offset(offset).limit(limit)
+    )
+    return RunsPublic(data=[_run_public(r) for r in runs], count=count)
+
+
+@router.get("/loops/{loop_id}/health", response_model=HealthPublic)
+def loop_health(
+    loop_id: str, session: SessionDep, _: Reader,
+    trend: Annotated[int, Query(ge=1, le=1000)] = 50,
+) -> HealthPublic:
+    """The latest diagnosis (every method's evidence included) and the health trend."""
+    _loop_or_404(session, loop_id)
+    runs = list(session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(trend)
+    ))
+    latest = runs[0] if runs else None
+    return HealthPublic(
+        loop_id=loop_id,
+        health=latest.health if latest else None,
+        latest=_run_public(latest) if latest else None,
+        diagnosis=latest.result if latest else None,
+        trend=[(r.started_at, r.health) for r in reversed(runs)],
+    )
+
+
+def _downsample(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the min and max of equal buckets so oscillations survive downsampling."""
+    if t.size <= max_points:
+        return t, v
+    buckets = max_points // 2
+    edges = np.linspace(0, t.size, buckets + 1).astype(int)
+    keep: list[int] = []
+    for lo, hi in pairwise(edges):
+        segment = v[lo:hi]
+        finite = np.isfinite(segment)
+        if not finite.any():
+            keep.append(lo)
+            continue
+        idx = np.flatnonzero(finite)
+        a = lo + idx[np.argmin(segment[finite])]
+        b = lo + idx[np.argmax(segment[finite])]
+        keep.extend(sorted({int(a), int(b)}))
+    index = np.asarray(keep)
+    return t[index], v[index]
+
+
+@router.get("/loops/{loop_id}/data", response_model=LoopDataPublic)
+def loop_data(
+    loop_id: str,
+    session: SessionDep,
+    state: StateDep,
+    _: Reader,
+    start: float | None = None,
+    end: float | None = None,
+    max_points: Annotated[int, Query(ge=10, le=100_000)] = 2000,
+) -> LoopDataPublic:
+    """Samples of the loop's tags between start and end (UNIX s; default: the last hour)."""
+    _loop_or_404(session, loop_id)
+    end = state.clock() if end is None else end
+    start = end - 3600.0 if start is None else start
+    if not end > start:
+        raise HTTPException(422, "end must be after start")
+    series = []
+    for tag in session.scalars(select(Tag).where(Tag.loop_id == loop_id).order_by(Tag.signal)):
+        rows = session.execute(
+            select(Sample.time, Sample.value, Sample.good)
+            .where(Sample.tag == tag.name, Sample.time >= start, Sample.time <= end)
+            .order_by(Sample.time)
+        ).all()
+        t = np.array([r[0] for r in rows], dtype=float)
+        v = np.array([r[1] if r[2] and r[1] is not None else np.nan for r in rows], dtype=float)
+        t, v = _downsample(t, v, max_points)
+        series.append(SeriesPublic(
+            tag=tag.name, signal=tag.signal, t=t.tolist(),
+            value=[None if not np.isfinite(x) else float(x) for x in v],
+        ))
+    return LoopDataPublic(loop_id=loop_id, start=start, end=end, series=series)
+
+
+@router.get("/units", response_model=UnitsPublic)
+def list_units(session: SessionDep, _: Reader) -> UnitsPublic:
+    """Process units with their loops."""
+    units = list(session.scalars(select(Unit).order_by(Unit.id)))
+    members: dict[str, list[str]] = {}
+    for loop_id, unit_id in session.execute(select(Loop.id, Loop.unit_id).order_by(Loop.id)):
+        if unit_id is not None:
+            members.setdefault(unit_id, []).append(loop_id)
+    data = [UnitPublic(id=u.id, name=u.name, loops=members.get(u.id, [])) for u in units]
+    return UnitsPublic(data=data, count=len(data))
+
+
+@router.get("/units/{unit_id}", response_model=LoopsPublic)
+def unit_loops(unit_id: str, session: SessionDep, _: Reader) -> LoopsPublic:
+    """The loops of one unit with their latest state."""
+    if session.get(Unit, unit_id) is None:
+        raise HTTPException(404, "Unit not found")
+    loops = _all_loops(session, unit_id)
+    return LoopsPublic(data=loops, count=len(loops))

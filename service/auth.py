@@ -1,0 +1,107 @@
+"""API keys and roles.
+
+A key is shown once, when it is created; the store keeps only its SHA-256
+hash and an 8-character prefix to tell keys apart in lists.  Roles grant
+permissions:
+
+==========  ====  ======  =======  ======  =====
+role        read  alarms  tickets  ingest  admin
+==========  ====  ======  =======  ======  =====
+viewer       x
+operator     x      x
+maintenance  x              x
+historian                           x
+admin        x      x       x       x       x
+==========  ====  ======  =======  ======  =====
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from typing import Literal
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from service.store.models import ApiKey
+
+__all__ = [
+    "PERMISSIONS",
+    "ROLES",
+    "AuthError",
+    "Permission",
+    "Role",
+    "authenticate",
+    "create_key",
+    "ensure_bootstrap_key",
+    "hash_key",
+    "list_keys",
+    "revoke_key",
+]
+
+Role = Literal["viewer", "operator", "maintenance", "historian", "admin"]
+Permission = Literal["read", "alarms", "tickets", "ingest", "admin"]
+ROLES: tuple[Role, ...] = ("viewer", "operator", "maintenance", "historian", "admin")
+PERMISSIONS: dict[Role, frozenset[Permission]] = {
+    "viewer": frozenset({"read"}),
+    "operator": frozenset({"read", "alarms"}),
+    "maintenance": frozenset({"read", "tickets"}),
+    "historian": frozenset({"ingest"}),
+    "admin": frozenset({"read", "alarms", "tickets", "ingest", "admin"}),
+}
+
+
+class AuthError(ValueError):
+    """A key operation was refused (unknown role, unknown key)."""
+
+
+def hash_key(key: str) -> str:
+    """SHA-256 hex digest of a key (keys are random, so no salt is needed)."""
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
+def _insert(session: Session, key: str, name: str, role: Role, now: float) -> ApiKey:
+    row = ApiKey(name=name, role=role, key_hash=hash_key(key), prefix=key[:8], created_at=now)
+    session.add(row)
+    session.flush()
+    return row
+
+
+def create_key(session: Session, name: str, role: str, now: float) -> tuple[str, ApiKey]:
+    """A new random key for ``role``: the plain key (shown once) and its row."""
+    if role not in ROLES:
+        raise AuthError(f"unknown role {role!r}; roles are {', '.join(ROLES)}")
+    key = "lw_" + secrets.token_urlsafe(30)
+    return key, _insert(session, key, name, role, now)
+
+
+def ensure_bootstrap_key(session: Session, key: str, now: float) -> None:
+    """Store the bootstrap admin key (from the settings) unless it is already there."""
+    if session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key))) is None:
+        _insert(session, key, "bootstrap", "admin", now)
+
+
+def authenticate(session: Session, key: str) -> ApiKey | None:
+    """The active key row matching ``key``, or None."""
+    digest = hash_key(key)
+    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == digest))
+    if row is None or row.revoked_at is not None:
+        return None
+    return row if hmac.compare_digest(row.key_hash, digest) else None
+
+
+def list_keys(session: Session) -> list[ApiKey]:
+    """All keys, newest first (hashes are never returned by the API)."""
+    return list(session.scalars(select(ApiKey).order_by(ApiKey.id.desc())))
+
+
+def revoke_key(session: Session, key_id: int, now: float) -> ApiKey:
+    """Revoke key ``key_id``; revoking twice keeps the first time."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise AuthError(f"no API key with id {key_id}")
+    if row.revoked_at is None:
+        row.revoked_at = now
+    return row

@@ -1,0 +1,496 @@
+"""Historian push: batches of samples for many tags, stored idempotently.
+
+A batch has the shape of the PI Web API ``streamsets/recorded`` answer::
+
+    [{"tag": "FIC101.PV", "items": [{"timestamp": "2024-05-01T12:00:00Z",
+                                      "value": 12.5, "good": true}, ...]}, ...]
+
+Every item is accounted for, per tag, so that ``received = stored +
+already_stored + sum(refused)``:
+
+``stored``
+    Written now.  A NaN, infinite or null value, or ``good: false``, is stored
+    as a *bad* sample (value NULL, good False) so analyses see the hole; those
+    are also counted in ``bad``.
+``already_stored``
+    The store already holds the same sample (same value and quality): sending
+    a batch twice stores nothing twice.
+``refused``, by reason
+    ``unknown_tag`` (the tag is not configured), ``bad_timestamp`` (neither
+    UNIX seconds nor ISO 8601, not finite, or before 1970),
+    ``future_timestamp`` (later than ``now + max_future_s``: a clock error or
+    milliseconds sent as seconds), ``duplicate_in_batch`` (the first item of a
+    time stamp is kept) and ``conflict`` (the store holds a different value or
+    quality for that time; stored samples are never changed).
+
+Items of a tag that arrive out of time order are stored all the same and
+counted in ``out_of_order``.  ISO time stamps without an offset are UTC.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections import Counter
+from collections.abc import Collection, Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from typing import Any, cast
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from sqlalchemy import CursorResult, delete, select
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.orm import Session
+
+from service.loop_csv import MISSING, TIME_NAMES
+from service.store.models import Sample
+
+__all__ = [
+    "REFUSAL_REASONS",
+    "IngestError",
+    "IngestItem",
+    "IngestReport",
+    "NewSample",
+    "TagItems",
+    "TagReport",
+    "ingest_batch",
+    "ingest_csv",
+    "parse_timestamp",
+    "purge_samples",
+]
+
+REFUSAL_REASONS = (
+    "unknown_tag",
+    "bad_timestamp",
+    "future_timestamp",
+    "duplicate_in_batch",
+    "conflict",
+)
+INSERT_CHUNK = 1000  # rows per INSERT: 4,000 parameters, well inside both databases' limits
+
+NewSample = tuple[float, float | None, bool]
+"""A sample as stored: (time, value or None when bad, good)."""
+
+
+class IngestError(ValueError):
+    """A batch or CSV upload that cannot be read at all; the message says where."""
+
+
+class IngestItem(BaseModel):
+    """One recorded value; strict, so a ``true`` is never taken for a time or a number."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+    timestamp: str | float = Field(description="ISO 8601 (UTC without offset) or UNIX seconds")
+    value: float | None = Field(description="null, NaN or infinite: stored as a bad sample")
+    good: bool = True
+
+
+class TagItems(BaseModel):
+    """The recorded values of one tag."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+    tag: str = Field(min_length=1)
+    items: list[IngestItem]
+
+
+_BATCH = TypeAdapter(list[TagItems])
+
+
+@dataclass(frozen=True)
+class TagReport:
+    """What happened to the items of one tag.
+
+    ``first_timestamp`` and ``last_timestamp`` bound the tag's items that are
+    in the store after the call (stored or already stored); None if none are.
+    """
+
+    tag: str
+    received: int
+    stored: int
+    already_stored: int
+    bad: int
+    out_of_order: int
+    refused: dict[str, int]
+    first_timestamp: float | None
+    last_timestamp: float | None
+
+
+@dataclass(frozen=True)
+class IngestReport:
+    """Per-tag reports, their totals, and the samples written (for the rolling buffers)."""
+
+    tags: tuple[TagReport, ...]
+    new_samples: dict[str, list[NewSample]] = field(repr=False)
+    """Samples written by this call, per tag, in time order."""
+
+    def _total(self, name: str) -> int:
+        return sum(getattr(report, name) for report in self.tags)
+
+    @property
+    def received(self) -> int:
+        """Items received, all tags."""
+        return self._total("received")
+
+    @property
+    def stored(self) -> int:
+        """Samples written, all tags."""
+        return self._total("stored")
+
+    @property
+    def already_stored(self) -> int:
+        """Items the store already held, all tags."""
+        return self._total("already_stored")
+
+    @property
+    def bad(self) -> int:
+        """Bad samples written, all tags."""
+        return self._total("bad")
+
+    @property
+    def out_of_order(self) -> int:
+        """Items that came after a later one of the same tag, all tags."""
+        return self._total("out_of_order")
+
+    @property
+    def refused(self) -> dict[str, int]:
+        """Refused items by reason, all tags."""
+        total: Counter[str] = Counter()
+        for report in self.tags:
+            total.update(report.refused)
+        return {reason: total[reason] for reason in REFUSAL_REASONS if total[reason]}
+
+    @property
+    def partial(self) -> bool:
+        """True when any item was refused (the API answers 207)."""
+        return any(report.refused for report in self.tags)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The JSON body of the ingest response: totals, then the per-tag reports."""
+        return {
+            "partial": self.partial,
+            "received": self.received,
+            "stored": self.stored,
+            "already_stored": self.already_stored,
+            "bad": self.bad,
+            "out_of_order": self.out_of_order,
+            "refused": self.refused,
+            "tags": [asdict(report) for report in self.tags],
+        }
+
+
+def parse_timestamp(raw: str | float) -> float | None:
+    """UNIX seconds from UNIX seconds or an ISO 8601 string; None if not a valid time.
+
+    >>> parse_timestamp("2024-05-01T12:00:00Z"), parse_timestamp("1714564800.5")
+    (1714564800.0, 1714564800.5)
+    >>> parse_timestamp("2024-05-01 14:00:00+02:00"), parse_timestamp("yesterday")
+    (1714564800.0, None)
+    """
+    if isinstance(raw, str):
+        text = raw.strip()
+        try:
+            seconds = float(text)
+        except ValueError:
+            try:
+                stamp = datetime.fromisoformat(text)
+            except ValueError:
+                return None
+            if stamp.tzinfo is None:
+                stamp = stamp.replace(tzinfo=UTC)
+            seconds = stamp.timestamp()
+    else:
+        seconds = float(raw)
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None
+
+
+class _TagIngest:
+    """The accounting of one tag's items while a batch is ingested."""
+
+    def __init__(self, tag: str) -> None:
+        self.tag = tag
+        self.received = 0
+        self.already_stored = 0
+        self.out_of_order = 0
+        self.newest = -math.inf  # latest valid time stamp so far, to count out-of-order items
+        self.refused: Counter[str] = Counter()
+        self.in_store: list[float] = []  # times stored or already stored
+        self.new: dict[float, tuple[float | None, bool]] = {}  # time -> (value, good) to write
+        self.written: list[NewSample] = []
+
+    def take(self, items: Sequence[IngestItem], *, known: bool, latest: float) -> None:
+        """Screen the items; keep the first one of each valid time stamp in arrival order."""
+        self.received += len(items)
+        if not known:
+            self.refused["unknown_tag"] += len(items)
+            return
+        for item in items:
+            time = parse_timestamp(item.timestamp)
+            if time is None:
+                self.refused["bad_timestamp"] += 1
+            elif time > latest:
+                self.refused["future_timestamp"] += 1
+            elif time in self.new:
+                self.refused["duplicate_in_batch"] += 1
+            else:
+                if time < self.newest:
+                    self.out_of_order += 1
+                self.newest = max(self.newest, time)
+                good = item.good and item.value is not None and math.isfinite(item.value)
+                self.new[time] = (item.value if good else None, good)
+
+    def compare_with_store(self, session: Session, times: Collection[float]) -> None:
+        """Move ``times`` the store already holds out of ``new``: same sample or conflict."""
+        if not times:
+            return
+        stored = {
+            time: (value, good)
+            for time, value, good in session.execute(
+                select(Sample.time, Sample.value, Sample.good).where(
+                    Sample.tag == self.tag, Sample.time >= min(times), Sample.time <= max(times)
+                )
+            )
+        }
+        for time in [t for t in times if t in stored]:
+            if self.new.pop(time) == stored[time]:
+                self.already_stored += 1
+                self.in_store.append(time)
+            else:
+                self.refused["conflict"] += 1
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The rows to insert."""
+        return [
+            {"tag": self.tag, "time": time, "value": value, "good": good}
+            for time, (value, good) in self.new.items()
+        ]
+
+    def settle(self, session: Session, inserted: set[tuple[str, float]]) -> None:
+        """Account for the insert: rows another writer stored first are compared again."""
+        lost = [time for time in self.new if (self.tag, time) not in inserted]
+        self.compare_with_store(session, lost)
+        self.written = sorted((time, value, good) for time, (value, good) in self.new.items())
+        self.in_store.extend(self.new)
+
+    def report(self) -> TagReport:
+        """The frozen report of this tag."""
+        return TagReport(
+            tag=self.tag,
+            received=self.received,
+            stored=len(self.written),
+            already_stored=self.already_stored,
+            bad=sum(1 for _, _, good in self.written if not good),
+            out_of_order=self.out_of_order,
+            refused={reason: n for reason in REFUSAL_REASONS if (n := self.refused[reason])},
+            first_timestamp=min(self.in_store, default=None),
+            last_timestamp=max(self.in_store, default=None),
+        )
+
+
+def _validate(batch: Iterable[TagItems | dict[str, Any]]) -> list[TagItems]:
+    try:
+        return _BATCH.validate_python(list(batch))
+    except ValidationError as exc:
+        problems = "; ".join(
+            "batch" + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
+            + f": {e['msg']}"
+            for e in exc.errors()[:5]
+        )
+        more = exc.error_count() - 5
+        raise IngestError(
+            f"invalid batch: {problems}" + (f" (and {more} more)" if more > 0 else "")
+        ) from None
+    except TypeError:
+        raise IngestError("invalid batch: expected a list of {tag, items} objects") from None
+
+
+def _insert(session: Session, rows: list[dict[str, Any]]) -> set[tuple[str, float]]:
+    """Insert ``rows``, skipping keys that exist; the (tag, time) keys actually inserted."""
+    if not rows:
+        return set()
+    dialect = {"postgresql": postgresql, "sqlite": sqlite}[session.get_bind().dialect.name]
+    table = Sample.__table__
+    statement = (
+        dialect.insert(table).on_conflict_do_nothing().returning(table.c.tag, table.c.time)
+    )
+    # SQLAlchemy's "insertmanyvalues" sends the rows as multi-row INSERTs of INSERT_CHUNK rows
+    result = session.execute(
+        statement, rows, execution_options={"insertmanyvalues_page_size": INSERT_CHUNK}
+    )
+    return {(tag, time) for tag, time in result}
+
+
+def ingest_batch(
+    session: Session,
+    batch: Iterable[TagItems | dict[str, Any]],
+    *,
+    known_tags: Collection[str],
+    now: float,
+    max_future_s: float = 300.0,
+) -> IngestReport:
+    """Store a batch of samples of many tags (see the module docstring for the rules).
+
+    Parameters
+    ----------
+    session : Session
+        The transaction to write in; the caller commits.  Append
+        ``report.new_samples`` to the rolling buffers only after the commit.
+    batch : list of TagItems or of dicts of that shape
+        A tag may appear more than once; its items are then taken in order.
+    known_tags : collection of str
+        Tags the store has (rows of ``tags``); items of others are refused.
+    now : float
+        Current UNIX time, s; items later than ``now + max_future_s`` are refused.
+
+    Raises
+    ------
+    IngestError
+        The batch does not have the expected shape (a missing ``tag``, a value
+        that is not a number...); nothing is stored.
+    """
+    tags: dict[str, _TagIngest] = {}
+    for entry in _validate(batch):
+        tag = tags.setdefault(entry.tag, _TagIngest(entry.tag))
+        tag.take(entry.items, known=entry.tag in known_tags, latest=now + max_future_s)
+    for tag in tags.values():
+        tag.compare_with_store(session, list(tag.new))
+    inserted = _insert(session, [row for tag in tags.values() for row in tag.rows()])
+    for tag in tags.values():
+        tag.settle(session, inserted)
+    return IngestReport(
+        tags=tuple(tag.report() for tag in tags.values()),
+        new_samples={tag.tag: tag.written for tag in tags.values() if tag.written},
+    )
+
+
+_GOOD = {"": True, "1": True, "true": True, "good": True, "0": False, "false": False, "bad": False}
+
+
+def _number(cell: str, where: str) -> float | None:
+    text = cell.strip()
+    if text in MISSING:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise IngestError(f"{where}: {cell!r} is not a number") from None
+
+
+def _csv_rows(text: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """The header and the non-blank data rows with their row numbers (header = row 1)."""
+    reader = csv.reader(io.StringIO(text.removeprefix("\ufeff")), strict=True)
+    try:
+        rows = list(reader)
+    except csv.Error as exc:
+        raise IngestError(f"CSV line {reader.line_num}: not valid CSV: {exc}") from None
+    if not rows:
+        raise IngestError("CSV: the upload is empty")
+    header = [name.strip() for name in rows[0]]
+    body = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(row)]
+    for number, row in body:
+        if len(row) != len(header):
+            raise IngestError(f"CSV row {number}: {len(row)} cells, the header has {len(header)}")
+    for i, name in enumerate(header, start=1):
+        if not name:
+            raise IngestError(f"CSV row 1, column {i}: empty column name")
+        if name in header[: i - 1]:
+            raise IngestError(f"CSV row 1, column {i}: duplicate column {name!r}")
+    return header, body
+
+
+def _long_batch(header: list[str], body: list[tuple[int, list[str]]]) -> list[dict[str, Any]]:
+    col: dict[str, int] = {}
+    for i, name in enumerate(header):
+        key = "timestamp" if name.lower() in TIME_NAMES else name.lower()
+        if key not in ("tag", "timestamp", "value", "good"):
+            raise IngestError(
+                f"CSV row 1, column {i + 1}: unexpected column {name!r}; the long format has "
+                "tag, timestamp (or time), value and optionally good"
+            )
+        if key in col:
+            raise IngestError(f"CSV row 1, column {i + 1}: a second {key} column ({name!r})")
+        col[key] = i
+    missing = [key for key in ("timestamp", "value") if key not in col]
+    if missing:
+        raise IngestError(f"CSV row 1: the long format needs a {' and a '.join(missing)} column")
+    items: dict[str, list[dict[str, Any]]] = {}
+    for number, row in body:
+        tag = row[col["tag"]].strip()
+        if not tag:
+            raise IngestError(f"CSV row {number}, column {header[col['tag']]!r}: empty tag")
+        good = _GOOD.get(row[col["good"]].strip().lower()) if "good" in col else True
+        if good is None:
+            raise IngestError(
+                f"CSV row {number}, column {header[col['good']]!r}: "
+                f"{row[col['good']]!r} is not true/false, 1/0 or good/bad"
+            )
+        value = _number(row[col["value"]], f"CSV row {number}, column {header[col['value']]!r}")
+        items.setdefault(tag, []).append(
+            {"timestamp": row[col["timestamp"]], "value": value, "good": good}
+        )
+    return [{"tag": tag, "items": tag_items} for tag, tag_items in items.items()]
+
+
+def _wide_batch(header: list[str], body: list[tuple[int, list[str]]]) -> list[dict[str, Any]]:
+    if header[0].lower() not in TIME_NAMES:
+        raise IngestError(
+            f"CSV row 1, column 1: {header[0]!r} is not a time column; the wide format starts "
+            f"with {'/'.join(TIME_NAMES)}, the long format has a tag column"
+        )
+    if len(header) < 2:
+        raise IngestError("CSV row 1: the wide format needs at least one tag column")
+    batch = []
+    for i, tag in enumerate(header[1:], start=1):
+        items = [
+            {"timestamp": row[0], "value": _number(row[i], f"CSV row {number}, column {tag!r}")}
+            for number, row in body
+            if row[i].strip()
+        ]
+        batch.append({"tag": tag, "items": items})
+    return batch
+
+
+def ingest_csv(
+    session: Session,
+    text: str,
+    *,
+    known_tags: Collection[str],
+    now: float,
+    max_future_s: float = 300.0,
+) -> IngestReport:
+    """Store a CSV upload with the rules of :func:`ingest_batch`.
+
+    Two layouts, told apart by a ``tag`` column:
+
+    * long: columns ``tag``, ``timestamp`` (or ``time``), ``value`` and
+      optionally ``good`` (true/false, 1/0, good/bad; empty = true), any order;
+    * wide: a ``timestamp`` (or ``time``) column first, then one column per
+      tag.  An empty cell means the tag has no sample at that time.
+
+    A value of ``nan``, ``null`` or ``NA`` (and, in the long format, an empty
+    value) is a bad sample.  Time stamps that cannot be read are refused per
+    item (``bad_timestamp``) as in a JSON batch.
+
+    Raises
+    ------
+    IngestError
+        Malformed CSV: the message names the row (the header is row 1) and
+        the column.
+    """
+    header, body = _csv_rows(text)
+    batch = _long_batch(header, body) if "tag" in map(str.lower, header) else _wide_batch(
+        header, body
+    )
+    return ingest_batch(
+        session, batch, known_tags=known_tags, now=now, max_future_s=max_future_s
+    )
+
+
+def purge_samples(session: Session, older_than: float) -> int:
+    """Delete the samples stamped before ``older_than`` (UNIX s); the number deleted."""
+    if not math.isfinite(older_than):
+        raise ValueError(f"older_than must be a finite UNIX time, got {older_than}")
+    result = session.execute(delete(Sample).where(Sample.time < older_than))
+    return cast(CursorResult[Any], result).rowcount

@@ -1,0 +1,602 @@
+"""Valve-repair tickets: stiction confirmed by repeated analyses goes to maintenance.
+
+Opening.  The scheduler calls :func:`update_ticket_from_analysis` after each
+analysis run is stored.  A ticket is opened when the newest
+``confirmations_needed`` runs of the loop all have status ``ok`` and verdict
+``stiction`` (any other run, a failed one included, ends the streak).  There
+is at most one active ticket per valve asset: a further confirmation updates
+the evidence of that ticket and records an ``evidence updated`` event instead
+of opening another.  A ticket that is ``done`` or ``cancelled`` does not block
+a new one.  A verdict other than stiction never closes a ticket: maintenance
+does that.
+
+Lifecycle (:data:`TICKET_TRANSITIONS`)::
+
+    open -> acknowledged -> scheduled -> done
+      \\___________\\______________\\____> cancelled
+
+Every change is a :class:`~service.store.models.TicketEvent` with its actor.
+Invalid transitions raise :class:`TicketStateError` (HTTP 409 at the API edge).
+
+Priority, 1 (very high) .. 4 (low) as in SAP PM, see :func:`ticket_priority`.
+CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets can be
+posted to a URL by :class:`TicketWebhook`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import textwrap
+import threading
+import time
+import urllib.error
+import urllib.request
+import uuid
+from datetime import UTC, datetime
+from typing import Any, Literal, get_args
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, selectinload
+
+from analytics.valves import sj_to_fsfd
+from service.config import Importance
+from service.store.models import AnalysisRun, Ticket, TicketEvent
+
+__all__ = [
+    "ACTIVE_STATES",
+    "ANALYSIS_ACTOR",
+    "EVIDENCE_KEYS",
+    "PLOT_KINDS",
+    "TICKET_STATES",
+    "TICKET_TRANSITIONS",
+    "TicketNotFoundError",
+    "TicketState",
+    "TicketStateError",
+    "TicketWebhook",
+    "change_ticket_state",
+    "check_transition",
+    "evidence_from_run",
+    "get_ticket",
+    "list_tickets",
+    "ticket_payload",
+    "ticket_priority",
+    "ticket_to_dict",
+    "to_cmms_notification",
+    "update_ticket_from_analysis",
+]
+
+logger = logging.getLogger(__name__)
+
+TicketState = Literal["open", "acknowledged", "scheduled", "done", "cancelled"]
+TICKET_STATES: tuple[TicketState, ...] = get_args(TicketState)
+TICKET_TRANSITIONS: dict[str, tuple[TicketState, ...]] = {
+    "open": ("acknowledged", "cancelled"),
+    "acknowledged": ("scheduled", "cancelled"),
+    "scheduled": ("done", "cancelled"),
+    "done": (),
+    "cancelled": (),
+}
+"""The states each state may move to."""
+ACTIVE_STATES: tuple[TicketState, ...] = ("open", "acknowledged", "scheduled")
+"""States in which a ticket blocks a new one for the same valve."""
+
+ANALYSIS_ACTOR = "analysis"
+"""Actor of the ticket changes made by the scheduler's analyses."""
+PLOT_KINDS = ("trend", "signature", "spectrum")
+
+EVIDENCE_KEYS: dict[str, bool] = {
+    "run_id": True,
+    "window_start": True,
+    "window_end": True,
+    "confidence": True,
+    "S": False,
+    "J": False,
+    "period_s": False,
+    "amplitude_op": False,
+    "amplitude_pv": False,
+}
+"""Keys of the ``evidence`` argument; True for required, False for None-when-unknown.
+
+``run_id``: the analysis run; ``window_start``/``window_end``: its window
+(UNIX s); ``confidence``: of the stiction verdict (0..1); ``S``, ``J``:
+stiction in % of valve span; ``period_s``: oscillation period;
+``amplitude_op``, ``amplitude_pv``: oscillation amplitude (half peak-to-peak)
+in % of span.  The stored evidence adds ``loop_id``, ``valve_asset``, ``fs``,
+``fd`` (He's parameters, % of span), ``confirmations`` and ``plots``.
+"""
+
+SHORT_TEXT_CHARS = 40
+"""SAP PM notification short text (QMTXT) length."""
+LONG_TEXT_LINE_CHARS = 132
+"""SAP long-text line (TLINE) length."""
+
+# Severity classes: 0 minor, 1 moderate, 2 severe.  Either a badly sticking
+# valve or a large process cycle makes the repair urgent, so the larger class
+# of the two counts.  Thresholds are class lower bounds in % of span.
+_S_CLASSES = (2.0, 5.0)
+_AMPLITUDE_PV_CLASSES = (1.0, 3.0)
+_UNKNOWN_SEVERITY = 1
+_PRIORITY: dict[str, tuple[int, int, int]] = {
+    # severity: minor, moderate, severe
+    "low": (4, 4, 3),
+    "medium": (4, 3, 2),
+    "high": (3, 2, 1),
+    "critical": (2, 1, 1),
+}
+
+
+class TicketStateError(ValueError):
+    """The state change is not allowed from the ticket's current state."""
+
+
+class TicketNotFoundError(LookupError):
+    """No ticket with that id."""
+
+
+def _check_state(state: str) -> None:
+    if state not in TICKET_STATES:
+        raise ValueError(f"unknown ticket state {state!r} (expected {', '.join(TICKET_STATES)})")
+
+
+def check_transition(from_state: str, to_state: str) -> None:
+    """Raise :class:`TicketStateError` unless ``from_state -> to_state`` is allowed."""
+    _check_state(to_state)
+    allowed = TICKET_TRANSITIONS[from_state]
+    if to_state not in allowed:
+        raise TicketStateError(
+            f"cannot move a ticket that is {from_state} to {to_state} "
+            f"(possible: {', '.join(allowed) or 'none, the ticket is closed'})"
+        )
+
+
+def _severity_class(value: float, bounds: tuple[float, float]) -> int:
+    return sum(value >= bound for bound in bounds)
+
+
+def ticket_priority(*, S: float | None, amplitude_pv: float | None, importance: Importance) -> int:
+    """Repair priority, 1 (very high) .. 4 (low), from severity and loop importance.
+
+    Severity is the larger of the valve class (S < 2, 2..5, >= 5 % of span)
+    and the process class (PV amplitude < 1, 1..3, >= 3 % of span): minor,
+    moderate or severe.  Unknown values do not count; with neither known the
+    severity is moderate (stiction was confirmed, its size is not).
+
+    ==========  =====  ========  ======
+    importance  minor  moderate  severe
+    ==========  =====  ========  ======
+    low         4      4         3
+    medium      4      3         2
+    high        3      2         1
+    critical    2      1         1
+    ==========  =====  ========  ======
+
+    >>> ticket_priority(S=6.0, amplitude_pv=0.5, importance="high")
+    1
+    """
+    if importance not in _PRIORITY:
+        raise ValueError(
+            f"unknown loop importance {importance!r} (expected {', '.join(_PRIORITY)})"
+        )
+    classes = []
+    if S is not None:
+        classes.append(_severity_class(S, _S_CLASSES))
+    if amplitude_pv is not None:
+        classes.append(_severity_class(amplitude_pv, _AMPLITUDE_PV_CLASSES))
+    severity = max(classes) if classes else _UNKNOWN_SEVERITY
+    return _PRIORITY[importance][severity]
+
+
+def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
+    """The ``evidence`` argument of :func:`update_ticket_from_analysis` from a stored run.
+
+    Reads the run's columns and the oscillation amplitudes of its ``result``
+    (the :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` form).
+    """
+    oscillation = (run.result or {}).get("oscillation") or {}
+    return {
+        "run_id": run.id,
+        "window_start": run.window_start,
+        "window_end": run.window_end,
+        "confidence": run.confidence,
+        "S": run.S,
+        "J": run.J,
+        "period_s": run.period_s,
+        "amplitude_op": oscillation.get("amplitude_op"),
+        "amplitude_pv": oscillation.get("amplitude_pv"),
+    }
+
+
+def _checked_evidence(
+    loop_id: str, valve_asset: str, evidence: dict[str, Any], confirmations: int
+) -> dict[str, Any]:
+    """Validate the analysis evidence and complete it into the stored form."""
+    where = f"evidence of loop {loop_id!r}"
+    unknown = sorted(set(evidence) - set(EVIDENCE_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {unknown} (expected {', '.join(EVIDENCE_KEYS)})")
+    for key, required in EVIDENCE_KEYS.items():
+        value = evidence.get(key)
+        if value is None:
+            if required:
+                raise ValueError(f"{where}: {key!r} is required")
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value):
+            raise ValueError(f"{where}: {key!r} must be a finite number, got {value!r}")
+    S, J = evidence.get("S"), evidence.get("J")
+    fs = fd = None
+    if S is not None and J is not None:
+        try:
+            fs, fd = sj_to_fsfd(S, J)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+    return {
+        "loop_id": loop_id,
+        "valve_asset": valve_asset,
+        **{key: evidence.get(key) for key in EVIDENCE_KEYS},
+        "fs": fs,
+        "fd": fd,
+        "confirmations": confirmations,
+        "plots": {kind: f"/api/v1/loops/{loop_id}/plots/{kind}" for kind in PLOT_KINDS},
+    }
+
+
+def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[AnalysisRun]:
+    """The loop's newest runs that found stiction, newest first, up to the first that did not."""
+    newest = session.scalars(
+        select(AnalysisRun)
+        .where(AnalysisRun.loop_id == loop_id)
+        .order_by(AnalysisRun.started_at.desc(), AnalysisRun.id.desc())
+        .limit(needed)
+    ).all()
+    streak = []
+    for run in newest:
+        if run.status != "ok" or run.verdict != "stiction":
+            break
+        streak.append(run)
+    return streak
+
+
+def _utc(t: float) -> datetime:
+    return datetime.fromtimestamp(t, UTC)
+
+
+def _short_text(text: str) -> str:
+    return text if len(text) <= SHORT_TEXT_CHARS else text[: SHORT_TEXT_CHARS - 3] + "..."
+
+
+def _pct(value: float | None) -> str:
+    return "not quantified" if value is None else f"{value:.2f} %"
+
+
+def _describe(evidence: dict[str, Any]) -> str:
+    """The ticket's long text, one paragraph per line."""
+    e = evidence
+    period = "unknown" if e["period_s"] is None else f"{e['period_s']:.1f} s"
+    window = " to ".join(
+        _utc(t).isoformat(timespec="seconds") for t in (e["window_start"], e["window_end"])
+    )
+    return "\n".join([
+        f"Valve stiction confirmed by {e['confirmations']} consecutive analyses of loop "
+        f"{e['loop_id']} (valve {e['valve_asset']}).",
+        f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
+        f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])}).",
+        f"Oscillation: period {period}, amplitude OP {_pct(e['amplitude_op'])}, "
+        f"PV {_pct(e['amplitude_pv'])} of span.",
+        f"Confidence {e['confidence']:.2f}; analysis run {e['run_id']}, window {window}.",
+        "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e["plots"].items()),
+    ])
+
+
+def update_ticket_from_analysis(
+    session: Session,
+    loop_id: str,
+    *,
+    valve_asset: str | None,
+    location: str | None,
+    verdict: str,
+    evidence: dict[str, Any],
+    importance: Importance,
+    confirmations_needed: int,
+    now: float,
+) -> Ticket | None:
+    """Open or update the valve's ticket after an analysis; the ticket, or None if untouched.
+
+    Call it after the analysis run is stored.  ``evidence`` has the keys of
+    :data:`EVIDENCE_KEYS` (:func:`evidence_from_run` builds it).  A loop
+    without a valve asset is ticketed under its loop id.  The ticket's
+    ``malfunction_start`` is the window start of the oldest confirming run.
+    Calling twice for the same run changes nothing the second time.
+    """
+    if confirmations_needed < 1:
+        raise ValueError(f"confirmations_needed must be at least 1, got {confirmations_needed}")
+    if verdict != "stiction":
+        return None
+    streak = _confirming_runs(session, loop_id, confirmations_needed)
+    asset = valve_asset or loop_id
+    stored = _checked_evidence(loop_id, asset, evidence, len(streak))
+    if len(streak) < confirmations_needed:
+        return None
+    priority = ticket_priority(S=stored["S"], amplitude_pv=stored["amplitude_pv"],
+                               importance=importance)
+    ticket = session.scalars(
+        select(Ticket)
+        .where(Ticket.valve_asset == asset, Ticket.state.in_(ACTIVE_STATES))
+        .order_by(Ticket.id)
+        .with_for_update()
+    ).first()
+    if ticket is None:
+        oldest = streak[-1]
+        ticket = Ticket(
+            valve_asset=asset, loop_id=loop_id, state="open", priority=priority,
+            title=_short_text(f"Sticky valve {asset}, loop {loop_id}"),
+            description=_describe(stored), location=location,
+            malfunction_start=(
+                oldest.started_at if oldest.window_start is None else oldest.window_start
+            ),
+            evidence=stored, created_at=now, updated_at=now,
+        )
+        ticket.events.append(TicketEvent(
+            at=now, from_state=None, to_state="open", actor=ANALYSIS_ACTOR,
+            note=f"opened: stiction confirmed by {len(streak)} consecutive analyses "
+                 f"(run {stored['run_id']}, priority {priority})",
+        ))
+        session.add(ticket)
+    elif ticket.evidence.get("run_id") == stored["run_id"]:
+        return None
+    else:
+        note = f"evidence updated: run {stored['run_id']}"
+        if priority != ticket.priority:
+            note += f", priority {ticket.priority} -> {priority}"
+        ticket.events.append(TicketEvent(
+            at=now, from_state=ticket.state, to_state=ticket.state, actor=ANALYSIS_ACTOR, note=note
+        ))
+        ticket.evidence = stored
+        ticket.description = _describe(stored)
+        ticket.priority = priority
+        ticket.updated_at = now
+    session.flush()
+    return ticket
+
+
+def change_ticket_state(
+    session: Session, ticket_id: int, to_state: str, *, actor: str, now: float, note: str = ""
+) -> Ticket:
+    """Move a ticket along its lifecycle (maintenance), recording who did it."""
+    ticket = session.get(Ticket, ticket_id, with_for_update=True)
+    if ticket is None:
+        raise TicketNotFoundError(f"ticket {ticket_id} not found")
+    try:
+        check_transition(ticket.state, to_state)
+    except TicketStateError as exc:
+        raise TicketStateError(f"ticket {ticket.id} (valve {ticket.valve_asset}): {exc}") from None
+    ticket.events.append(TicketEvent(
+        at=now, from_state=ticket.state, to_state=to_state, actor=actor, note=note
+    ))
+    ticket.state = to_state
+    ticket.updated_at = now
+    session.flush()
+    return ticket
+
+
+def list_tickets(
+    session: Session,
+    *,
+    state: str | None = None,
+    loop_id: str | None = None,
+    valve_asset: str | None = None,
+    limit: int = 100,
+    offset: int = 0,
+) -> tuple[list[Ticket], int]:
+    """Tickets, most urgent and newest first, and their total count."""
+    query = select(Ticket)
+    if state is not None:
+        _check_state(state)
+        query = query.where(Ticket.state == state)
+    if loop_id is not None:
+        query = query.where(Ticket.loop_id == loop_id)
+    if valve_asset is not None:
+        query = query.where(Ticket.valve_asset == valve_asset)
+    count = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    page = session.scalars(
+        query.order_by(Ticket.priority, Ticket.created_at.desc(), Ticket.id.desc())
+        .limit(limit).offset(offset)
+    ).all()
+    return list(page), count
+
+
+def get_ticket(session: Session, ticket_id: int) -> Ticket:
+    """The ticket with its events loaded, oldest event first."""
+    ticket = session.get(Ticket, ticket_id, options=[selectinload(Ticket.events)])
+    if ticket is None:
+        raise TicketNotFoundError(f"ticket {ticket_id} not found")
+    return ticket
+
+
+def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
+    """The ticket as a SAP PM M2 notification and as a Maximo work order.
+
+    ``sap_pm``: the header fields of ``BAPI_ALM_NOTIF_CREATE`` (NOTIFHEADER)
+    with notification type ``M2`` (malfunction report): ``FUNCT_LOC`` the
+    loop's location, ``EQUIPMENT`` the valve asset, ``PRIORITY`` "1".."4",
+    ``SHORT_TEXT`` (at most 40 characters), ``STRMLFNDATE``/``STRMLFNTIME``
+    the malfunction start (YYYYMMDD/HHMMSS in UTC), ``BREAKDOWN`` empty (the
+    valve still works); ``LONG_TEXT`` the lines of the long text (at most 132
+    characters each, the LONGTEXTS table).
+
+    ``maximo``: the ``mxwo`` object structure of the Maximo REST API:
+    ``description`` (the short text), ``description_longdescription``,
+    ``assetnum``, ``location``, ``wopriority`` (1 = highest; Maximo's scale is
+    site-defined, map it there if it differs), ``worktype`` "CM"
+    (corrective), ``status`` "WAPPR", ``reportdate`` (ISO 8601), and
+    ``externalrefid``/``sourcesysid`` identifying the ticket here.  A work
+    order has no malfunction-start field: the long text carries it.
+    """
+    start = _utc(ticket.malfunction_start)
+    long_text = (
+        f"Malfunction start: {start.isoformat(timespec='seconds')}\n{ticket.description}"
+    )
+    lines = [
+        line
+        for paragraph in long_text.split("\n")
+        for line in textwrap.wrap(paragraph, LONG_TEXT_LINE_CHARS)
+    ]
+    return {
+        "sap_pm": {
+            "NOTIF_TYPE": "M2",
+            "SHORT_TEXT": _short_text(ticket.title),
+            "FUNCT_LOC": ticket.location,
+            "EQUIPMENT": ticket.valve_asset,
+            "PRIORITY": str(ticket.priority),
+            "STRMLFNDATE": start.strftime("%Y%m%d"),
+            "STRMLFNTIME": start.strftime("%H%M%S"),
+            "BREAKDOWN": "",
+            "LONG_TEXT": lines,
+        },
+        "maximo": {
+            "description": _short_text(ticket.title),
+            "description_longdescription": long_text,
+            "assetnum": ticket.valve_asset,
+            "location": ticket.location,
+            "wopriority": ticket.priority,
+            "worktype": "CM",
+            "status": "WAPPR",
+            "reportdate": _utc(ticket.created_at).isoformat(timespec="seconds"),
+            "externalrefid": f"loopwatch-ticket-{ticket.id}",
+            "sourcesysid": "LOOPWATCH",
+        },
+    }
+
+
+def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
+    """The ticket's fields, JSON-ready."""
+    return {
+        "id": ticket.id,
+        "valve_asset": ticket.valve_asset,
+        "loop_id": ticket.loop_id,
+        "state": ticket.state,
+        "priority": ticket.priority,
+        "title": ticket.title,
+        "description": ticket.description,
+        "location": ticket.location,
+        "malfunction_start": ticket.malfunction_start,
+        "evidence": ticket.evidence,
+        "created_at": ticket.created_at,
+        "updated_at": ticket.updated_at,
+    }
+
+
+def ticket_payload(ticket: Ticket) -> dict[str, Any]:
+    """What the webhook posts: the ticket, its latest change and its CMMS mapping."""
+    last = ticket.events[-1] if ticket.events else None
+    change = None if last is None else {
+        "at": last.at, "from_state": last.from_state, "to_state": last.to_state,
+        "actor": last.actor, "note": last.note,
+    }
+    return {
+        "ticket": ticket_to_dict(ticket),
+        "change": change,
+        "cmms": to_cmms_notification(ticket),
+    }
+
+
+class TicketWebhook:
+    """Posts new and changed tickets as JSON to ``url`` from a background thread.
+
+    :meth:`send` only queues the payload, so the analysis never waits.  A
+    delivery is tried ``1 + retries`` times, waiting ``backoff_s``, then
+    twice as long, and so on between attempts; every attempt carries the same
+    ``Idempotency-Key`` header so a receiver can drop repeats.  Failures are
+    logged and counted in :attr:`failed`, never raised.  :meth:`close` (or
+    leaving the ``with`` block) delivers what is queued, then stops.
+
+    Attributes
+    ----------
+    delivered : int
+        Payloads the receiver accepted (2xx).
+    failed : int
+        Payloads given up after the last retry, or sent after :meth:`close`.
+    """
+
+    def __init__(
+        self, url: str, *, retries: int = 3, backoff_s: float = 1.0, timeout_s: float = 10.0
+    ) -> None:
+        if not url.startswith(("http://", "https://")):
+            raise ValueError(f"webhook URL must start with http:// or https://, got {url!r}")
+        if retries < 0 or backoff_s < 0 or timeout_s <= 0:
+            raise ValueError(
+                "webhook needs retries >= 0, backoff_s >= 0 and timeout_s > 0, got "
+                f"retries={retries}, backoff_s={backoff_s}, timeout_s={timeout_s}"
+            )
+        self.url = url
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self.timeout_s = timeout_s
+        self.delivered = 0
+        self.failed = 0
+        self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="ticket-webhook", daemon=True)
+        self._thread.start()
+
+    def __enter__(self) -> TicketWebhook:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def send(self, ticket: Ticket) -> None:
+        """Queue the ticket for posting (reads the ticket now, posts later)."""
+        if self._closed:
+            self.failed += 1
+            logger.warning("ticket webhook closed: ticket %s not sent to %s", ticket.id, self.url)
+            return
+        body = json.dumps(ticket_payload(ticket)).encode()
+        self._queue.put((uuid.uuid4().hex, body))
+
+    def close(self, timeout_s: float | None = None) -> None:
+        """Deliver what is queued (waiting up to ``timeout_s``), then stop the thread."""
+        if not self._closed:
+            self._closed = True
+            self._queue.put(None)
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            self._deliver(*item)
+
+    def _deliver(self, key: str, body: bytes) -> None:
+        attempts = 1 + self.retries
+        error: Exception | None = None
+        for attempt in range(1, attempts + 1):
+            try:
+                self._post(key, body)
+            except Exception as exc:  # any failure is logged, never raised into the caller
+                error = exc
+                logger.info("ticket webhook: attempt %d/%d to %s failed: %s",
+                            attempt, attempts, self.url, exc)
+            else:
+                self.delivered += 1
+                return
+            if attempt < attempts:
+                time.sleep(self.backoff_s * 2 ** (attempt - 1))
+        self.failed += 1
+        logger.warning("ticket webhook: delivery to %s failed after %d attempts: %s",
+                       self.url, attempts, error)
+
+    def _post(self, key: str, body: bytes) -> None:
+        request = urllib.request.Request(
+            self.url,
+            data=body,
+            headers={"Content-Type": "application/json", "Idempotency-Key": key},
+            method="POST",
+        )
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
+                response.read()
+        except urllib.error.HTTPError as exc:
+            exc.close()
+            raise

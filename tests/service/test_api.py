@@ -1,0 +1,203 @@
+"""The REST API end to end on SQLite and PostgreSQL: ingest, analysis, alarms, tickets, keys.
+
+A small plant of two simulated loops (one sticky valve, one healthy loop) is
+pushed through ``POST /api/v1/ingest`` as a historian would, analysed by the
+scheduler (in a thread pool: the process pool is exercised by the demo test)
+and inspected through the API with keys of every role.
+"""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from analytics.synthetic_cases import synthetic_library
+from service.config import PlantConfig, Settings
+from service.server import build_service
+
+ADMIN = "test-admin-key-0123456789"
+T0 = 1_700_000_000.0  # window end used by the tests (UNIX s)
+
+
+def plant() -> PlantConfig:
+    loop = {"ts": 1.0, "ranges": {"op": [0, 100], "pv": [0, 100]},
+            "process_type": "self-regulating", "controller": {"Kc": 0.5, "Ti": 8}}
+    return PlantConfig.model_validate({
+        "units": [{"id": "u1", "name": "Unit 1"}],
+        "loops": [
+            {**loop, "id": "FIC-1", "unit": "u1", "valve_asset": "FV-1", "importance": "high",
+             "tags": {"op": "FIC-1.OP", "pv": "FIC-1.PV", "sp": "FIC-1.SP"}},
+            {**loop, "id": "FIC-2", "unit": "u1", "valve_asset": "FV-2",
+             "tags": {"op": "FIC-2.OP", "pv": "FIC-2.PV", "sp": "FIC-2.SP"}},
+        ],
+    })
+
+
+def simulated_batch(samples: int = 3600) -> list[dict]:
+    """One hour of FIC-1 (Kano valve S=4, J=2) and FIC-2 (healthy), ending at T0."""
+    cases = {c.name: c for c in synthetic_library(samples)}
+    batch = []
+    for loop_id, case in (("FIC-1", "flow-kano-S4-J2-ts1"), ("FIC-2", "flow-noise-ts1")):
+        result = cases[case].simulate()
+        t = T0 - samples + 1 + np.arange(samples)
+        for signal, values in (("OP", result.op[0]), ("PV", result.pv[0]), ("SP", result.sp[0])):
+            batch.append({"tag": f"{loop_id}.{signal}",
+                          "items": [{"timestamp": float(a), "value": float(b)}
+                                    for a, b in zip(t, values, strict=True)]})
+    return batch
+
+
+@pytest.fixture
+def service(store):
+    settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
+                        buffer_horizon_s=7200, ticket_confirmations=2)
+    svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    yield svc
+    svc.executor.shutdown()
+    svc.state.store.close()
+
+
+@pytest.fixture
+def client(service):
+    return TestClient(service.app)
+
+
+def key(client, role):
+    response = client.post("/api/v1/keys", json={"name": f"{role} key", "role": role},
+                           headers={"X-API-Key": ADMIN})
+    assert response.status_code == 201, response.text
+    return {"X-API-Key": response.json()["key"]}
+
+
+def test_missing_wrong_and_insufficient_keys(client):
+    assert client.get("/healthz").status_code == 200
+    assert client.get("/api/v1/loops").status_code == 401
+    assert client.get("/api/v1/loops", headers={"X-API-Key": "nope"}).json() == {
+        "detail": "Invalid or revoked API key"}
+    viewer, historian = key(client, "viewer"), key(client, "historian")
+    assert client.get("/api/v1/loops", headers=viewer).status_code == 200
+    assert client.get("/api/v1/loops", headers=historian).status_code == 403
+    assert client.post("/api/v1/ingest", json=[], headers=viewer).status_code == 403
+    assert client.post("/api/v1/keys", json={"name": "x", "role": "admin"},
+                       headers=viewer).status_code == 403
+
+
+def test_keys_are_shown_once_and_revocation_locks_out(client):
+    viewer = key(client, "viewer")
+    listed = client.get("/api/v1/keys", headers={"X-API-Key": ADMIN}).json()
+    assert listed["count"] == 2
+    assert all("key" not in k and "key_hash" not in k for k in listed["data"])
+    victim = next(k for k in listed["data"] if k["role"] == "viewer")
+    assert viewer["X-API-Key"].startswith(victim["prefix"])
+    assert client.delete(f"/api/v1/keys/{victim['id']}",
+                         headers={"X-API-Key": ADMIN}).status_code == 200
+    assert client.get("/api/v1/loops", headers=viewer).status_code == 401
+    assert client.delete("/api/v1/keys/999", headers={"X-API-Key": ADMIN}).status_code == 404
+
+
+def test_ingest_is_idempotent_and_reports_refusals(client):
+    historian = key(client, "historian")
+    batch = simulated_batch(200)
+    first = client.post("/api/v1/ingest", json=batch, headers=historian)
+    assert first.status_code == 200, first.text
+    assert first.json()["stored"] == 6 * 200
+    again = client.post("/api/v1/ingest", json=batch, headers=historian)
+    assert again.status_code == 200
+    assert again.json()["stored"] == 0 and again.json()["already_stored"] == 6 * 200
+    mixed = [{"tag": "NOPE", "items": [{"timestamp": T0, "value": 1.0}]},
+             {"tag": "FIC-1.OP", "items": [{"timestamp": T0 + 1, "value": 50.0}]}]
+    partial = client.post("/api/v1/ingest", json=mixed, headers=historian)
+    assert partial.status_code == 207
+    assert partial.json()["refused"] == {"unknown_tag": 1}
+    assert partial.json()["stored"] == 1
+    bad = client.post("/api/v1/ingest", json=[{"items": []}], headers=historian)
+    assert bad.status_code == 422
+
+
+def test_analysis_alarm_and_ticket_lifecycle(service, client):
+    historian, viewer = key(client, "historian"), key(client, "viewer")
+    operator, maintenance = key(client, "operator"), key(client, "maintenance")
+    assert client.post("/api/v1/ingest", json=simulated_batch(),
+                       headers=historian).status_code == 200
+    first = service.scheduler.run_once(T0)
+    assert {r.loop_id: r.status for r in first} == {"FIC-1": "ok", "FIC-2": "ok"}
+    loops = {x["id"]: x for x in client.get("/api/v1/loops", headers=viewer).json()["data"]}
+    assert loops["FIC-1"]["oscillating"] is True
+    assert loops["FIC-1"]["verdict"] == "stiction"
+    assert loops["FIC-2"]["oscillating"] is False
+    assert client.get("/api/v1/tickets", headers=viewer).json()["count"] == 0  # 1 of 2 runs
+
+    second = service.scheduler.run_once(T0)
+    ticket_id = next(r.ticket_id for r in second if r.loop_id == "FIC-1")
+    assert ticket_id is not None
+    ticket = client.get(f"/api/v1/tickets/{ticket_id}", headers=viewer).json()
+    assert ticket["valve_asset"] == "FV-1" and ticket["state"] == "open"
+    assert ticket["evidence"]["S"] is not None and ticket["evidence"]["period_s"] > 0
+    assert client.get(f"/api/v1/tickets/{ticket_id}/cmms",
+                      headers=viewer).json()["sap_pm"]["NOTIF_TYPE"] == "M2"
+    bad_actors = client.get("/api/v1/plant/bad-actors", headers=viewer).json()["data"]
+    assert bad_actors[0]["id"] == "FIC-1"
+
+    alarms = client.get("/api/v1/alarms", headers=viewer).json()["data"]
+    assert [(a["loop_id"], a["kind"], a["state"]) for a in alarms] == [
+        ("FIC-1", "oscillation", "unacknowledged")]
+    alarm_id = alarms[0]["id"]
+    url = f"/api/v1/alarms/{alarm_id}/acknowledge"
+    assert client.post(url, json={}, headers=viewer).status_code == 403
+    acked = client.post(url, json={"note": "seen"}, headers=operator)
+    assert acked.status_code == 200 and acked.json()["state"] == "acknowledged"
+    assert acked.json()["events"][-1]["actor"] == "operator key (operator)"
+    again = client.post(url, json={}, headers=operator)
+    assert again.status_code == 409
+    assert client.post("/api/v1/alarms/999/acknowledge", json={},
+                       headers=operator).status_code == 404
+
+    patch = f"/api/v1/tickets/{ticket_id}"
+    assert client.patch(patch, json={"state": "acknowledged"},
+                        headers=operator).status_code == 403
+    assert client.patch(patch, json={"state": "done"}, headers=maintenance).status_code == 409
+    moved = client.patch(patch, json={"state": "acknowledged"}, headers=maintenance)
+    assert moved.status_code == 200 and moved.json()["state"] == "acknowledged"
+
+    health = client.get("/api/v1/loops/FIC-1/health", headers=viewer).json()
+    assert health["diagnosis"]["stiction"]["verdict"] == "stiction"
+    assert len(health["trend"]) == 2
+    data = client.get("/api/v1/loops/FIC-1/data", params={"start": T0 - 600, "end": T0,
+                                                          "max_points": 100},
+                      headers=viewer).json()
+    assert {s["signal"] for s in data["series"]} == {"op", "pv", "sp"}
+    assert all(0 < len(s["t"]) <= 100 for s in data["series"])
+    metrics = client.get("/metrics", headers=viewer).text
+    assert 'loopwatch_analyses_total{status="ok"} 4' in metrics
+    assert "loopwatch_tickets_open 1" in metrics
+
+
+def test_restart_rebuilds_the_rolling_window_from_the_store(service, client, store):
+    historian = key(client, "historian")
+    client.post("/api/v1/ingest", json=simulated_batch(600), headers=historian)
+    before = service.state.buffers.window("FIC-1", 600, T0)
+    settings = service.state.settings
+    restarted = build_service(settings, plant(), executor=ThreadPoolExecutor(1),
+                              clock=lambda: T0)
+    after = restarted.state.buffers.window("FIC-1", 600, T0)
+    np.testing.assert_array_equal(before.op, after.op)
+    assert np.isfinite(after.pv).all()
+    restarted.executor.shutdown()
+    restarted.state.store.close()
+
+
+def test_loops_can_be_added_by_an_admin(client):
+    body = {"name": "New", "unit": "u1", "ts": 2.0, "tags": {"pv": "NEW.PV"}}
+    created = client.put("/api/v1/loops/NEW-1", json=body, headers={"X-API-Key": ADMIN})
+    assert created.status_code == 200, created.text
+    assert created.json()["id"] == "NEW-1"
+    wrong = client.put("/api/v1/loops/NEW-2",
+                       json={**body, "tags": {"pv": "NEW2.PV"}, "unit": "nowhere"},
+                       headers={"X-API-Key": ADMIN})
+    assert wrong.status_code == 422
+    assert "unknown unit 'nowhere'" in wrong.text
+    taken = client.put("/api/v1/loops/NEW-3", json=body, headers={"X-API-Key": ADMIN})
+    assert "duplicate tags (a tag belongs to one loop): 'NEW.PV'" in taken.text
+    assert client.get("/api/v1/loops/NEW-2",
+                      headers={"X-API-Key": ADMIN}).status_code == 404

@@ -1,0 +1,427 @@
+"""Valve-repair tickets: confirmation, deduplication, lifecycle, CMMS fields, webhook."""
+
+import json
+import logging
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+
+from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent
+from service.tickets import (
+    TicketNotFoundError,
+    TicketStateError,
+    TicketWebhook,
+    change_ticket_state,
+    check_transition,
+    evidence_from_run,
+    get_ticket,
+    list_tickets,
+    ticket_priority,
+    to_cmms_notification,
+    update_ticket_from_analysis,
+)
+from tests.servers import free_port
+
+T0 = 1_700_000_000.0  # 2023-11-14T22:13:20Z
+WINDOW_S = 600.0
+
+
+def add_loop(session, loop_id="FIC-101"):
+    session.add(Loop(id=loop_id, name=loop_id, unit_id=None, config={},
+                     created_at=T0, updated_at=T0))
+    session.flush()
+
+
+def add_run(session, *, at, loop_id="FIC-101", status="ok", verdict="stiction", S=4.0, J=1.0,
+            amplitude_pv=1.5):
+    run = AnalysisRun(
+        loop_id=loop_id, started_at=at, finished_at=at + 5, window_start=at - WINDOW_S,
+        window_end=at, status=status, usable=True, oscillating=True, period_s=48.0,
+        verdict=verdict, confidence=0.9, S=S, J=J, health=0.4,
+        result={"oscillation": {"detected": True, "period_s": 48.0, "amplitude_op": 3.0,
+                                "amplitude_pv": amplitude_pv}},
+        error=None,
+    )
+    session.add(run)
+    session.flush()
+    return run
+
+
+def analyse(session, run, *, loop_id="FIC-101", valve_asset="FV-101", importance="medium",
+            needed=3):
+    return update_ticket_from_analysis(
+        session, loop_id, valve_asset=valve_asset, location="PLANT1-COL-FIC101",
+        verdict=run.verdict or "undecided", evidence=evidence_from_run(run),
+        importance=importance, confirmations_needed=needed, now=run.started_at + 10,
+    )
+
+
+def opened_ticket(session, *, needed=1, **run_args):
+    """A loop FIC-101 with a ticket opened by one confirming run."""
+    add_loop(session)
+    return analyse(session, add_run(session, at=T0 + WINDOW_S, **run_args), needed=needed)
+
+
+def events(ticket):
+    return [(e.from_state, e.to_state, e.actor) for e in ticket.events]
+
+
+# --- opening and evidence --------------------------------------------------
+
+
+def test_ticket_opens_on_the_third_consecutive_confirmation(store):
+    with store.session() as s:
+        add_loop(s)
+        runs = []
+        for k in range(3):  # the scheduler stores each run, then calls
+            runs.append(add_run(s, at=T0 + WINDOW_S + 60 * k))
+            ticket = analyse(s, runs[-1])
+            assert (ticket is None) == (k < 2)
+        ticket_id = ticket.id
+    with store.session() as s:
+        ticket = get_ticket(s, ticket_id)
+        assert (ticket.state, ticket.valve_asset, ticket.loop_id, ticket.location) == (
+            "open", "FV-101", "FIC-101", "PLANT1-COL-FIC101"
+        )
+        assert ticket.title == "Sticky valve FV-101, loop FIC-101"
+        assert ticket.priority == 3  # moderate S and PV amplitude, medium loop
+        assert ticket.malfunction_start == T0  # window start of the oldest confirming run
+        assert ticket.evidence == {
+            "loop_id": "FIC-101", "valve_asset": "FV-101", "run_id": runs[2].id,
+            "window_start": T0 + 120, "window_end": T0 + WINDOW_S + 120, "confidence": 0.9,
+            "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
+            "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
+            "plots": {
+                "trend": "/api/v1/loops/FIC-101/plots/trend",
+                "signature": "/api/v1/loops/FIC-101/plots/signature",
+                "spectrum": "/api/v1/loops/FIC-101/plots/spectrum",
+            },
+        }
+        assert "S = 4.00 %, J = 1.00 % of valve span (fs = 2.50 %, fd = 1.50 %)" in (
+            ticket.description
+        )
+        assert events(ticket) == [(None, "open", "analysis")]
+        assert ticket.events[0].note.startswith("opened: stiction confirmed by 3 consecutive")
+
+
+@pytest.mark.parametrize("breaker", [{"status": "failed", "verdict": None},
+                                     {"status": "ok", "verdict": "no_stiction"},
+                                     {"status": "ok", "verdict": "undecided"}])
+def test_any_other_run_ends_the_streak(store, breaker):
+    with store.session() as s:
+        add_loop(s)
+        add_run(s, at=T0 + 600)
+        add_run(s, at=T0 + 660, **breaker)
+        add_run(s, at=T0 + 720)
+        assert analyse(s, add_run(s, at=T0 + 780)) is None
+        ticket = analyse(s, add_run(s, at=T0 + 840))
+        assert ticket.malfunction_start == T0 + 720 - WINDOW_S
+
+
+def test_a_verdict_other_than_stiction_changes_nothing(store):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+        run = add_run(s, at=T0 + 700, verdict="no_stiction")
+        assert analyse(s, run, needed=1) is None
+        assert ticket.state == "open"
+        assert len(ticket.events) == 1
+
+
+def test_confirmations_needed_must_be_positive(store):
+    with store.session() as s:
+        add_loop(s)
+        with pytest.raises(ValueError, match="confirmations_needed must be at least 1, got 0"):
+            analyse(s, add_run(s, at=T0 + 600), needed=0)
+
+
+def test_one_open_ticket_per_valve_updated_by_new_evidence(store):
+    with store.session() as s:
+        add_loop(s)
+        add_run(s, at=T0 + 600)
+        first = add_run(s, at=T0 + 660)
+        ticket = analyse(s, first, needed=2)
+        first_id = ticket.id
+        worse = add_run(s, at=T0 + 720, S=7.0, J=2.0)
+        assert analyse(s, worse, needed=2) is ticket
+        assert analyse(s, worse, needed=2) is None  # the same run twice: nothing new
+        # another loop driving the same valve asset adds to the same ticket
+        add_loop(s, "FIC-102")
+        add_run(s, at=T0 + 700, loop_id="FIC-102")
+        other = add_run(s, at=T0 + 760, loop_id="FIC-102")
+        assert analyse(s, other, loop_id="FIC-102", needed=2) is ticket
+    with store.session() as s:
+        (ticket,), count = list_tickets(s)
+        assert (ticket.id, count) == (first_id, 1)
+        assert ticket.evidence["run_id"] == other.id
+        assert [e.note for e in ticket.events] == [
+            f"opened: stiction confirmed by 2 consecutive analyses (run {first.id}, priority 3)",
+            f"evidence updated: run {worse.id}, priority 3 -> 2",
+            f"evidence updated: run {other.id}, priority 2 -> 3",
+        ]
+        assert events(ticket)[1:] == [("open", "open", "analysis")] * 2
+
+
+def test_a_closed_ticket_does_not_block_a_new_one(store):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+        for state, actor in [("acknowledged", "mike"), ("scheduled", "mike"), ("done", "tom")]:
+            change_ticket_state(s, ticket.id, state, actor=actor, now=T0 + 1000, note=state)
+        assert events(ticket) == [
+            (None, "open", "analysis"),
+            ("open", "acknowledged", "mike"),
+            ("acknowledged", "scheduled", "mike"),
+            ("scheduled", "done", "tom"),
+        ]
+        new = analyse(s, add_run(s, at=T0 + 2000), needed=1)
+        assert new.id != ticket.id
+        assert new.state == "open"
+        change_ticket_state(s, new.id, "cancelled", actor="mike", now=T0 + 2100)
+        third = analyse(s, add_run(s, at=T0 + 3000), needed=1)
+        assert {t.state for t in list_tickets(s)[0]} == {"done", "cancelled", "open"}
+        assert list_tickets(s, state="open") == ([third], 1)
+
+
+def test_invalid_transitions_are_refused_and_not_recorded(store):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+        ticket_id = ticket.id
+        with pytest.raises(TicketStateError) as info:
+            change_ticket_state(s, ticket_id, "done", actor="tom", now=T0 + 1000)
+        assert str(info.value) == (
+            f"ticket {ticket_id} (valve FV-101): cannot move a ticket that is open to done "
+            "(possible: acknowledged, cancelled)"
+        )
+        change_ticket_state(s, ticket_id, "cancelled", actor="tom", now=T0 + 1000)
+        with pytest.raises(TicketStateError, match=r"that is cancelled to open \(possible: none, "):
+            change_ticket_state(s, ticket_id, "open", actor="tom", now=T0 + 1001)
+        with pytest.raises(ValueError, match=r"unknown ticket state 'closed' \(expected open, ack"):
+            change_ticket_state(s, ticket_id, "closed", actor="tom", now=T0 + 1001)
+        with pytest.raises(TicketNotFoundError, match="ticket 999 not found"):
+            change_ticket_state(s, 999, "done", actor="tom", now=T0)
+    with store.session() as s:
+        assert s.query(TicketEvent).count() == 2
+
+
+@pytest.mark.parametrize(("from_state", "to_state"), [
+    ("open", "acknowledged"), ("acknowledged", "scheduled"), ("scheduled", "done"),
+    ("open", "cancelled"), ("acknowledged", "cancelled"), ("scheduled", "cancelled"),
+])
+def test_allowed_transitions(from_state, to_state):
+    check_transition(from_state, to_state)
+
+
+def test_loop_without_valve_asset_is_ticketed_under_its_id(store):
+    with store.session() as s:
+        add_loop(s)
+        ticket = analyse(s, add_run(s, at=T0 + 600), valve_asset=None, needed=1)
+        assert ticket.valve_asset == "FIC-101"
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"confidence": None}, "evidence of loop 'FIC-101': 'confidence' is required"),
+    ({"s": 4.0}, r"evidence of loop 'FIC-101': unknown keys \['s'\] \(expected run_id, "),
+    ({"S": float("nan")}, "evidence of loop 'FIC-101': 'S' must be a finite number, got nan"),
+    ({"period_s": "48"}, "'period_s' must be a finite number, got '48'"),
+    ({"S": 1.0, "J": 2.0}, "evidence of loop 'FIC-101': slip jump J=2.0 cannot exceed"),
+])
+def test_bad_evidence_is_refused_with_the_reason(store, change, message):
+    # refused on the first stiction finding, before the confirmations are complete
+    with store.session() as s:
+        add_loop(s)
+        run = add_run(s, at=T0 + 600)
+        evidence = evidence_from_run(run) | change
+        with pytest.raises(ValueError, match=message):
+            update_ticket_from_analysis(
+                s, "FIC-101", valve_asset="FV-101", location=None, verdict="stiction",
+                evidence=evidence, importance="medium", confirmations_needed=3, now=T0 + 700,
+            )
+        assert s.query(Ticket).count() == 0
+
+
+def test_unknown_values_are_reported_not_invented(store):
+    with store.session() as s:
+        ticket = opened_ticket(s, S=None, J=None, amplitude_pv=None)
+        assert (ticket.evidence["fs"], ticket.evidence["fd"]) == (None, None)
+        assert ticket.priority == 3  # unquantified stiction counts as moderate
+        assert "S = not quantified" in ticket.description
+
+
+@pytest.mark.parametrize(("S", "amplitude_pv", "importance", "priority"), [
+    (1.0, 0.5, "low", 4),
+    (1.0, 0.5, "critical", 2),
+    (3.0, 0.5, "medium", 3),
+    (6.0, 0.5, "medium", 2),     # a badly sticking valve alone is severe
+    (1.0, 4.0, "high", 1),       # so is a large process cycle
+    (None, None, "high", 2),
+    (5.0, None, "critical", 1),
+])
+def test_priority_from_severity_and_importance(S, amplitude_pv, importance, priority):
+    assert ticket_priority(S=S, amplitude_pv=amplitude_pv, importance=importance) == priority
+
+
+def test_unknown_importance_is_refused():
+    with pytest.raises(ValueError, match=r"unknown loop importance 'vital' \(expected low, "):
+        ticket_priority(S=1.0, amplitude_pv=None, importance="vital")
+
+
+def test_get_ticket_unknown(store):
+    with store.session() as s, pytest.raises(TicketNotFoundError, match="ticket 5 not found"):
+        get_ticket(s, 5)
+
+
+# --- CMMS ---------------------------------------------------------------------
+
+
+def test_cmms_notification_fields(store):
+    with store.session() as s:
+        add_loop(s, "FIC-101")
+        run = add_run(s, at=T0 + WINDOW_S, S=6.0)
+        ticket = analyse(s, run, valve_asset="FV-101-GLOBE-VALVE-UNIT-7", needed=1,
+                         importance="high")
+        cmms = to_cmms_notification(ticket)
+    sap = cmms["sap_pm"]
+    assert {k: v for k, v in sap.items() if k != "LONG_TEXT"} == {
+        "NOTIF_TYPE": "M2",
+        "SHORT_TEXT": "Sticky valve FV-101-GLOBE-VALVE-UNIT-...",
+        "FUNCT_LOC": "PLANT1-COL-FIC101",
+        "EQUIPMENT": "FV-101-GLOBE-VALVE-UNIT-7",
+        "PRIORITY": "1",
+        "STRMLFNDATE": "20231114",
+        "STRMLFNTIME": "221320",
+        "BREAKDOWN": "",
+    }
+    assert len(sap["SHORT_TEXT"]) == 40
+    assert sap["LONG_TEXT"][0] == "Malfunction start: 2023-11-14T22:13:20+00:00"
+    assert all(len(line) <= 132 for line in sap["LONG_TEXT"])
+    assert any("/api/v1/loops/FIC-101/plots/signature" in line for line in sap["LONG_TEXT"])
+    maximo = cmms["maximo"]
+    assert maximo == {
+        "description": sap["SHORT_TEXT"],
+        "description_longdescription": maximo["description_longdescription"],
+        "assetnum": "FV-101-GLOBE-VALVE-UNIT-7",
+        "location": "PLANT1-COL-FIC101",
+        "wopriority": 1,
+        "worktype": "CM",
+        "status": "WAPPR",
+        "reportdate": "2023-11-14T22:23:30+00:00",
+        "externalrefid": f"loopwatch-ticket-{ticket.id}",
+        "sourcesysid": "LOOPWATCH",
+    }
+    assert maximo["description_longdescription"].startswith("Malfunction start: 2023-11-14T22")
+
+
+# --- webhook ------------------------------------------------------------------
+
+
+class Receiver(ThreadingHTTPServer):
+    """A real HTTP endpoint: refuses the first ``failures`` posts with 503, then accepts."""
+
+    def __init__(self, failures: int) -> None:
+        super().__init__(("127.0.0.1", 0), ReceiverHandler)
+        self.failures = failures
+        self.keys: list[str] = []
+        self.received: list[dict] = []
+        self.gate = threading.Event()
+        self.gate.set()
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.server_address[1]}/tickets"
+
+
+class ReceiverHandler(BaseHTTPRequestHandler):
+    server: Receiver
+
+    def do_POST(self) -> None:
+        body = self.rfile.read(int(self.headers["Content-Length"]))
+        self.server.gate.wait(10)
+        self.server.keys.append(self.headers["Idempotency-Key"])
+        if len(self.server.keys) <= self.server.failures:
+            self.send_response(503)
+        else:
+            self.server.received.append(json.loads(body))
+            self.send_response(202)
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
+    def log_message(self, *args: object) -> None:
+        """Quiet."""
+
+
+@pytest.fixture
+def receiver(request) -> Iterator[Receiver]:
+    server = Receiver(getattr(request, "param", 0))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield server
+    server.gate.set()
+    server.shutdown()
+    server.server_close()
+    thread.join()
+
+
+@pytest.mark.parametrize("receiver", [1], indirect=True)
+def test_webhook_retries_and_delivers_once(store, receiver):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+    with TicketWebhook(receiver.url, retries=3, backoff_s=0.01) as webhook:
+        webhook.send(ticket)
+    assert (webhook.delivered, webhook.failed) == (1, 0)
+    assert len(receiver.keys) == 2 and receiver.keys[0] == receiver.keys[1]
+    (payload,) = receiver.received
+    assert payload["ticket"]["id"] == ticket.id
+    assert payload["ticket"]["evidence"]["valve_asset"] == "FV-101"
+    assert payload["change"]["to_state"] == "open"
+    assert payload["change"]["actor"] == "analysis"
+    assert payload["cmms"]["sap_pm"]["NOTIF_TYPE"] == "M2"
+
+
+def test_webhook_send_does_not_wait_for_the_receiver(store, receiver):
+    receiver.gate.clear()  # the receiver holds every request until the gate opens
+    webhook = TicketWebhook(receiver.url, retries=0, backoff_s=0)
+    with store.session() as s:
+        ticket = opened_ticket(s)
+        webhook.send(ticket)  # the payload is read now, posted later
+        change_ticket_state(s, ticket.id, "acknowledged", actor="mike", now=T0 + 900)
+        webhook.send(ticket)
+    assert receiver.received == []  # send() returned while the receiver was still holding
+    receiver.gate.set()
+    webhook.close()
+    assert [p["change"]["to_state"] for p in receiver.received] == ["open", "acknowledged"]
+    assert webhook.delivered == 2
+
+
+@pytest.mark.parametrize("receiver", [99], indirect=True)
+def test_webhook_failures_are_logged_and_counted_never_raised(store, receiver, caplog):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+    caplog.set_level(logging.INFO, logger="service.tickets")
+    with TicketWebhook(receiver.url, retries=2, backoff_s=0.001) as webhook:
+        webhook.send(ticket)
+    assert (webhook.delivered, webhook.failed) == (0, 1)
+    assert len(receiver.keys) == 3
+    assert caplog.records[-1].levelno == logging.WARNING
+    assert caplog.records[-1].getMessage() == (
+        f"ticket webhook: delivery to {receiver.url} failed after 3 attempts: "
+        "HTTP Error 503: Service Unavailable"
+    )
+    webhook.send(ticket)  # after close: counted and logged, not raised
+    assert webhook.failed == 2
+
+
+def test_webhook_to_a_closed_port(store):
+    with store.session() as s:
+        ticket = opened_ticket(s)
+    with TicketWebhook(f"http://127.0.0.1:{free_port()}/", retries=1, backoff_s=0) as webhook:
+        webhook.send(ticket)
+    assert (webhook.delivered, webhook.failed) == (0, 1)
+
+
+def test_webhook_settings_are_checked():
+    with pytest.raises(ValueError, match="must start with http:// or https://, got 'ftp://x'"):
+        TicketWebhook("ftp://x")
+    with pytest.raises(ValueError, match="retries >= 0, backoff_s >= 0 and timeout_s > 0, got "
+                                         "retries=-1"):
+        TicketWebhook("http://127.0.0.1:1/", retries=-1)
