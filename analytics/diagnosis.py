@@ -5,12 +5,15 @@ Steps, each feeding the next:
 1. Data quality (:func:`analytics.quality.assess_quality`).  An unusable
    window stops here with the verdict ``undecided`` and the reasons.
 2. Oscillation (:func:`analytics.oscillation.detect_loop_oscillation`) on OP
-   and/or PV.  A loop that does not oscillate gets ``no_stiction``: a valve
-   that sticks without causing a cycle is not visible in routine data, and
-   the note says so.
+   and/or PV.  A loop without a regular oscillation is still examined when
+   its spectrum shows a weaker cycle (:data:`IRREGULAR_MIN_PROMINENCE`):
+   noise makes a sticky valve slip at random moments.  Only a stiction
+   finding counts there; otherwise, and for a loop with no cycle at all, the
+   verdict is ``no_stiction`` with a note that a valve sticking without
+   causing a cycle is not visible in routine data.
 3. The stiction battery (:mod:`analytics.stiction.battery`) on the window,
-   with the process type given by the user (otherwise unknown; methods that
-   need it then abstain or use the rule that does not), plus the Hammerstein
+   with the process type given by the user (otherwise inferred, see
+   :func:`_infer_process_type`), plus the Hammerstein
    identification (:func:`analytics.quantification.quantify_stiction`) as
    one more method: whether a stiction model explains the data better than
    a healthy valve (:func:`hammerstein_evidence`).  Quantised or compressed
@@ -63,6 +66,19 @@ NO_OSCILLATION_CONFIDENCE = 0.6
 """Confidence of ``no_stiction`` for a loop that does not oscillate: a valve can
 stick without causing a cycle (e.g. with P-only control), so it is not 1."""
 
+NO_CYCLE_NOTE = (
+    "the loop does not oscillate; a valve that sticks without causing a limit cycle "
+    "cannot be seen in this window"
+)
+
+IRREGULAR_MIN_PROMINENCE = 1.5
+"""Spectral prominence (peak over its octave neighbours, see
+:mod:`analytics.oscillation`) from which a loop without a *regular* oscillation
+is still examined for an irregular stick-slip cycle.  Noise makes a sticky
+valve slip at random moments, so its cycle is real but too irregular for
+Thornhill's r > 1; on the synthetic library such cycles stand 1.9-2.7 above
+their neighbours, noise-driven healthy loops 1.2-1.7."""
+
 
 @dataclass(frozen=True)
 class LoopDiagnosis:
@@ -77,6 +93,10 @@ class LoopDiagnosis:
         None when the data were unusable.
     process_type : str or None
         The process type used ("self-regulating", "integrating" or None).
+    process_type_source : {"given", "inferred", "assumed", "unknown"}
+        Where it came from: the caller, the Hammerstein identification (an
+        integrating model fits clearly), the default assumption
+        (self-regulating, the common case) or nowhere (no analysis ran).
     stiction : StictionVerdict
         Verdict, confidence and the evidence of every method.
     quantification : StictionEstimate or None
@@ -91,6 +111,8 @@ class LoopDiagnosis:
     quality: QualityReport
     oscillation: LoopOscillation | None
     process_type: ProcessType | None
+    process_type_source: str
+    cycle_period_s: float | None
     stiction: StictionVerdict
     quantification: StictionEstimate | None
     ellipse: EllipseFit | None
@@ -102,6 +124,7 @@ class LoopDiagnosis:
             "samples": self.samples,
             "ts": self.ts,
             "process_type": self.process_type,
+            "process_type_source": self.process_type_source,
             "quality": {
                 "usable": self.quality.usable,
                 "issues": [
@@ -116,6 +139,7 @@ class LoopDiagnosis:
                 "regularity": osc.regularity if osc else None,
                 "amplitude_op": osc.amplitude_op if osc else None,
                 "amplitude_pv": osc.amplitude_pv if osc else None,
+                "analysed_period_s": self.cycle_period_s,
             },
             "stiction": {
                 "verdict": self.stiction.verdict,
@@ -195,6 +219,49 @@ def hammerstein_evidence(estimate: StictionEstimate) -> MethodEvidence:
     )
 
 
+def _irregular_cycle(oscillation: LoopOscillation) -> float | None:
+    """Period of the most prominent spectral candidate of OP or PV when no regular
+    oscillation was found and it stands out by :data:`IRREGULAR_MIN_PROMINENCE`."""
+    candidates = [
+        (method.statistic, method.period_s)
+        for report in (oscillation.op, oscillation.pv) if report is not None
+        for method in (report.methods.get("spectral_peak"),)
+        if method is not None and method.period_s is not None
+    ]
+    if not candidates:
+        return None
+    prominence, period = max(candidates)
+    return period if prominence >= IRREGULAR_MIN_PROMINENCE else None
+
+
+def _irregular_verdict(verdict: StictionVerdict, period_s: float) -> StictionVerdict:
+    """Only a stiction finding stands for an irregular cycle; anything else is the
+    no-oscillation verdict, with the evidence kept for inspection."""
+    if verdict.verdict == STICTION:
+        return StictionVerdict(
+            STICTION, verdict.confidence, verdict.score, verdict.methods,
+            f"irregular stick-slip cycle of about {period_s:.0f} s (no regular "
+            f"oscillation); {verdict.reason}",
+        )
+    return StictionVerdict(NO_STICTION, NO_OSCILLATION_CONFIDENCE, verdict.score,
+                           verdict.methods, NO_CYCLE_NOTE)
+
+
+def _infer_process_type(estimate: StictionEstimate | None) -> tuple[ProcessType, str]:
+    """Integrating if the Hammerstein identification chose an integrating model with a
+    good fit; otherwise self-regulating, the common case (flow, pressure, temperature).
+
+    On the synthetic library the identification never called a self-regulating
+    loop integrating, but recognised few integrating ones, so "assumed
+    self-regulating" is the honest default and the report says which it was.
+    """
+    model = None if estimate is None else estimate.model
+    if (model is not None and model.integrating and estimate is not None
+            and estimate.fit_r2 is not None and estimate.fit_r2 >= MIN_FIT_R2):
+        return "integrating", "inferred"
+    return "self-regulating", "assumed"
+
+
 def _set_aside(evidence: MethodEvidence, why: str) -> MethodEvidence:
     return MethodEvidence.undecided(evidence.method, why, evidence.index, evidence.details)
 
@@ -224,7 +291,8 @@ def diagnose_loop(
     t : array_like, optional
         Time stamps (s) for the quality screen; None for uniform sampling.
     process_type : {"self-regulating", "integrating"} or None
-        None when unknown.
+        None when unknown: then inferred from the Hammerstein identification
+        or assumed self-regulating (``LoopDiagnosis.process_type_source``).
     ranges : mapping, optional
         Engineering ranges per signal for the saturation check.
     battery : BatteryConfig, optional
@@ -242,34 +310,38 @@ def diagnose_loop(
     if "op" not in given and "pv" not in given:
         raise DataError("diagnose_loop needs at least one of op and pv")
     signals = {name: np.asarray(x, dtype=np.float64) for name, x in given.items()}
+    source = "given" if process_type is not None else "unknown"
     quality = assess_quality(t, signals, ts, ranges=ranges)
     samples = quality.samples
     if not quality.usable:
         verdict = StictionVerdict(
             UNDECIDED, 0.0, 0.0, {}, "data unusable: " + "; ".join(quality.reasons())
         )
-        return LoopDiagnosis(samples, ts, quality, None, process_type, verdict, None, None)
+        return LoopDiagnosis(samples, ts, quality, None, process_type, source, None, verdict,
+                             None, None)
 
     clean = {name: _fill_missing(x) for name, x in signals.items()}
-    oscillation = detect_loop_oscillation(clean.get("op"), clean.get("pv"), ts)
-    if not oscillation.detected:
-        verdict = StictionVerdict(
-            NO_STICTION, NO_OSCILLATION_CONFIDENCE, 0.0, {},
-            "the loop does not oscillate; a valve that sticks without causing a "
-            "limit cycle cannot be seen in this window",
-        )
-        return LoopDiagnosis(samples, ts, quality, oscillation, process_type, verdict, None, None)
+    op_clean, pv_clean = clean.get("op"), clean.get("pv")
+    oscillation = detect_loop_oscillation(op_clean, pv_clean, ts)
+    period_s = oscillation.period_s if oscillation.detected else _irregular_cycle(oscillation)
+    if period_s is None:
+        verdict = StictionVerdict(NO_STICTION, NO_OSCILLATION_CONFIDENCE, 0.0, {}, NO_CYCLE_NOTE)
+        return LoopDiagnosis(samples, ts, quality, oscillation, process_type, source, None,
+                             verdict, None, None)
 
+    estimate = None
+    if quantify and op_clean is not None and pv_clean is not None:
+        estimate = quantify_stiction(
+            op_clean, pv_clean, ts, process_type=process_type, period_s=period_s
+        )
+    if process_type is None:
+        process_type, source = _infer_process_type(estimate)
     window = LoopWindow(
-        ts=ts, op=clean.get("op"), pv=clean.get("pv"), sp=clean.get("sp"), mv=clean.get("mv"),
-        process_type=process_type, period_s=oscillation.period_s,
+        ts=ts, op=op_clean, pv=pv_clean, sp=clean.get("sp"), mv=clean.get("mv"),
+        process_type=process_type, period_s=period_s,
     )
     evidence = [d.detect(window) for d in DEFAULT_DETECTORS]
-    estimate = None
-    if quantify and window.op is not None and window.pv is not None:
-        estimate = quantify_stiction(
-            window.op, window.pv, ts, process_type=process_type, period_s=window.period_s
-        )
+    if estimate is not None:
         evidence.append(hammerstein_evidence(estimate))
     blinding = quality.codes() & {"quantisation", "compression"}
     if blinding:
@@ -281,15 +353,19 @@ def diagnose_loop(
             for e in evidence
         ]
     verdict = combine(evidence, battery)
+    if not oscillation.detected:
+        verdict = _irregular_verdict(verdict, period_s)
 
     ellipse = None
-    if verdict.verdict == STICTION and window.op is not None and window.pv is not None:
-        period_samples = window.period_samples
-        assert period_samples is not None
-        ellipse = fit_signature_ellipse(window.op, window.pv, period_samples)
+    if verdict.verdict == STICTION and op_clean is not None and pv_clean is not None:
+        try:
+            ellipse = fit_signature_ellipse(op_clean, pv_clean, period_s / ts)
+        except DataError:
+            ellipse = None  # too few cycles for a signature; the verdict stands
     else:
         estimate = None  # sizes are reported for sticky valves only
     return LoopDiagnosis(
-        samples, ts, quality, oscillation, process_type, verdict, estimate, ellipse
+        samples, ts, quality, oscillation, process_type, source, period_s, verdict, estimate,
+        ellipse,
     )
 

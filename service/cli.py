@@ -106,7 +106,7 @@ def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
     """The readable report of ``loopwatch analyze``."""
     d = diagnosis
     print(f"{source}: {d.samples} samples at {d.ts:g} s", file=out)
-    print(f"process type: {d.process_type or 'unknown'}", file=out)
+    print(f"process type: {d.process_type or 'unknown'} ({d.process_type_source})", file=out)
     quality = "usable" if d.quality.usable else "UNUSABLE"
     print(f"data quality: {quality}", file=out)
     for issue in d.quality.issues:
