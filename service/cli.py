@@ -36,11 +36,8 @@ from analytics.oscillation import detect_oscillations
 from analytics.quality import QualityLimits
 from analytics.scenarios import SCENARIOS, build_scenario
 from analytics.simulation import ClosedLoopModel, SimulationResult
+from service.commands import CliError, command_modules
 from service.loop_csv import LoopCsvError, read_loop_csv
-
-
-class CliError(Exception):
-    """A user error: printed without a traceback, exit status 2."""
 
 
 def _load_model(source: str) -> ClosedLoopModel:
@@ -228,6 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve.set_defaults(handler=_cmd_serve)
     demo = commands.add_parser("demo", help="simulate the thesis scenarios and summarise them")
     demo.set_defaults(handler=_cmd_demo)
+    for module in command_modules():
+        module.register(commands)
     return parser
 
 
