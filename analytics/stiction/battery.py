@@ -52,7 +52,7 @@ DEFAULT_DETECTORS: tuple[Detector, ...] = (
     CurveFitDetector(),
     ShapeRulesDetector(),
     BicoherenceDetector(),
-    SurrogateDetector(),
+    SurrogateDetector(include_op=False),  # PV decides (thesis Table 2.8); halves the cost
     EllipseDetector(),
     ParallelogramDetector(),
 )
