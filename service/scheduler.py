@@ -22,10 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from service.alarms import update_alarms_from_analysis
+from service.alarms import expire_shelves, update_alarms_from_analysis
 from service.analysis import analyse_window
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
+from service.ingest import purge_samples
 from service.metrics import Metrics
 from service.plant import PlantRegistry
 from service.store.db import Store
@@ -35,6 +36,9 @@ from service.tickets import evidence_from_run, update_ticket_from_analysis
 __all__ = ["AnalysisScheduler", "RunSummary"]
 
 log = logging.getLogger(__name__)
+
+PURGE_INTERVAL_S = 3600.0
+"""How often samples past the retention period are deleted."""
 
 
 @dataclass(frozen=True)
@@ -73,10 +77,25 @@ class AnalysisScheduler:
         self.on_ticket = on_ticket
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._last_purge = -float("inf")
+
+    def maintain(self, now: float) -> None:
+        """Housekeeping before each round: end shelves that ran out, and purge samples
+        older than the retention period (at most once an hour)."""
+        with self.store.session() as session:
+            expired = expire_shelves(session, now=now)
+            if now - self._last_purge >= PURGE_INTERVAL_S:
+                retention_s = self.settings.sample_retention_days * 86400.0
+                purged = purge_samples(session, now - retention_s)
+                self._last_purge = now
+                self.metrics.inc("loopwatch_samples_purged_total", purged)
+        if expired:
+            log.info("%d shelved alarm(s) returned after their shelve ran out", len(expired))
 
     def run_once(self, now: float | None = None) -> list[RunSummary]:
         """Analyse every loop once on the window ending at ``now``."""
         now = self.clock() if now is None else now
+        self.maintain(now)
         pending: list[tuple[LoopConfig, float, float, Future[dict[str, Any]] | None]] = []
         for loop in self.registry.plant.loops:
             window = self.buffers.window(loop.id, self.settings.window_s, now)

@@ -30,6 +30,7 @@ from service.plant import PlantRegistry, sync_plant
 from service.runtime import AppState
 from service.scheduler import AnalysisScheduler
 from service.store.db import Store
+from service.tickets import TicketWebhook, get_ticket
 
 __all__ = ["Service", "build_service", "serve"]
 
@@ -46,6 +47,7 @@ class Service:
     scheduler: AnalysisScheduler
     executor: Executor
     feeder: DemoFeeder | None
+    webhook: TicketWebhook | None
     admin_key: str
     key_generated: bool
     app: FastAPI
@@ -61,6 +63,8 @@ class Service:
         if self.feeder is not None:
             self.feeder.stop()
         self.scheduler.stop()
+        if self.webhook is not None:
+            self.webhook.close()
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.state.store.close()
 
@@ -92,12 +96,21 @@ def build_service(
     state = AppState(settings=settings, registry=PlantRegistry(plant), store=store,
                      buffers=buffers, metrics=metrics, clock=clock)
     executor = executor or ProcessPoolExecutor(max_workers=settings.workers)
+    webhook = TicketWebhook(settings.webhook_url) if settings.webhook_url else None
+
+    def post_ticket(ticket_id: int) -> None:
+        assert webhook is not None
+        with store.session() as session:
+            webhook.send(get_ticket(session, ticket_id))
+
     scheduler = AnalysisScheduler(
         store=store, registry=state.registry, buffers=buffers, settings=settings,
         executor=executor, metrics=metrics, clock=clock,
+        on_ticket=post_ticket if webhook is not None else None,
     )
     feeder = DemoFeeder(DemoPlant(start=now), state.ingest, clock=clock) if demo else None
-    return Service(state, scheduler, executor, feeder, admin_key, generated, create_app(state))
+    return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
+                   create_app(state))
 
 
 @contextmanager

@@ -1,0 +1,77 @@
+"""The scheduler: one loop's failure or hang never holds up the others; housekeeping."""
+
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import pytest
+from sqlalchemy import func, select
+
+from service.config import Settings
+from service.server import build_service
+from service.store.models import AnalysisRun, Sample
+from tests.service.test_api import ADMIN, T0, plant, simulated_batch
+
+
+class SabotagingExecutor(ThreadPoolExecutor):
+    """A real thread pool that makes the analysis of one loop fail or hang."""
+
+    def __init__(self, loop_id: str, mode: str) -> None:
+        super().__init__(2)
+        self.loop_id, self.mode = loop_id, mode
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        if args and args[0]["id"] == self.loop_id:
+            if self.mode == "fail":
+                def fail(*_a, **_k):
+                    raise RuntimeError("worker crashed")
+                return super().submit(fail)
+            return super().submit(time.sleep, 3.0)
+        return super().submit(fn, *args, **kwargs)
+
+
+@pytest.fixture
+def make_service(store):
+    made = []
+
+    def make(executor, **overrides):
+        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
+                            buffer_horizon_s=7200, **overrides)
+        svc = build_service(settings, plant(), executor=executor, clock=lambda: T0)
+        made.append(svc)
+        svc.state.ingest(simulated_batch())
+        return svc
+
+    yield make
+    for svc in made:
+        svc.executor.shutdown(wait=False, cancel_futures=True)
+        svc.state.store.close()
+
+
+@pytest.mark.parametrize(("mode", "status", "error"), [
+    ("fail", "failed", "RuntimeError: worker crashed"),
+    ("hang", "timeout", "analysis took longer than 0.5 s"),
+])
+def test_one_loop_failing_or_hanging_does_not_stop_the_others(make_service, mode, status,
+                                                              error):
+    svc = make_service(SabotagingExecutor("FIC-2", mode), analysis_timeout_s=0.5)
+    runs = {r.loop_id: r for r in svc.scheduler.run_once(T0)}
+    assert runs["FIC-1"].status == "ok" and runs["FIC-1"].verdict == "stiction"
+    assert runs["FIC-2"].status == status
+    with svc.state.store.session() as session:
+        stored = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "FIC-2")).one()
+        assert stored.error == error and stored.result is None
+    assert svc.state.metrics.value("loopwatch_analyses_total", status=status) == 1
+
+
+def test_samples_past_the_retention_period_are_purged(make_service):
+    svc = make_service(ThreadPoolExecutor(1), sample_retention_days=600 / 86400)
+    with svc.state.store.session() as session:
+        before = session.scalar(select(func.count()).select_from(Sample))
+    svc.scheduler.maintain(T0)
+    with svc.state.store.session() as session:
+        after = session.scalar(select(func.count()).select_from(Sample))
+        oldest = session.scalar(select(func.min(Sample.time)))
+    assert before == 6 * 3600
+    assert oldest >= T0 - 600
+    assert after == 6 * 601  # T0 - 600 s to T0 inclusive
+    assert svc.state.metrics.value("loopwatch_samples_purged_total") == before - after
