@@ -114,43 +114,68 @@ class LoopDataPublic(BaseModel):
     series: list[SeriesPublic]
 
 
-def _latest_runs(session: SessionDep) -> dict[str, AnalysisRun]:
-    newest = (
-        select(AnalysisRun.loop_id, func.max(AnalysisRun.id).label("id"))
-        .where(AnalysisRun.status == "ok")
-        .group_by(AnalysisRun.loop_id)
-        .subquery()
+_RUN_COLUMNS = (AnalysisRun.health, AnalysisRun.oscillating, AnalysisRun.period_s,
+                AnalysisRun.verdict, AnalysisRun.confidence, AnalysisRun.S, AnalysisRun.J,
+                AnalysisRun.started_at)
+
+_STATE_FILTERS = {
+    "oscillating": AnalysisRun.oscillating.is_(True),
+    "stiction": AnalysisRun.verdict == "stiction",
+    "healthy": AnalysisRun.oscillating.is_(False),
+    "unknown": AnalysisRun.health.is_(None),
+}
+
+
+def _loop_rows(
+    session: SessionDep,
+    *,
+    unit: str | None = None,
+    loop_id: str | None = None,
+    state: str | None = None,
+    worst_first: bool = False,
+    offset: int = 0,
+    limit: int | None = None,
+) -> tuple[list[LoopPublic], int]:
+    """Loops joined with their latest successful run and active-alarm count, in one query.
+
+    Only the summary columns of the run are read (not the diagnosis JSON), and
+    filtering, ordering and paging happen in the database.
+    """
+    latest = (
+        select(AnalysisRun.loop_id, func.max(AnalysisRun.id).label("run_id"))
+        .where(AnalysisRun.status == "ok").group_by(AnalysisRun.loop_id).subquery()
     )
-    rows = session.scalars(select(AnalysisRun).join(newest, AnalysisRun.id == newest.c.id))
-    return {r.loop_id: r for r in rows}
-
-
-def _public(loop: Loop, run: AnalysisRun | None, alarms: int) -> LoopPublic:
-    config = loop.config
-    return LoopPublic(
-        id=loop.id, name=loop.name, unit=loop.unit_id, valve_asset=config.get("valve_asset"),
-        importance=config.get("importance", "medium"),
-        health=run.health if run else None, oscillating=run.oscillating if run else None,
-        period_s=run.period_s if run else None, verdict=run.verdict if run else None,
-        confidence=run.confidence if run else None, S=run.S if run else None,
-        J=run.J if run else None, analysed_at=run.started_at if run else None,
-        active_alarms=alarms,
+    alarms = (
+        select(Alarm.loop_id, func.count().label("n")).where(Alarm.state != "normal")
+        .group_by(Alarm.loop_id).subquery()
     )
-
-
-def _all_loops(session: SessionDep, unit: str | None) -> list[LoopPublic]:
-    query = select(Loop).order_by(Loop.id)
+    query = (
+        select(Loop.id, Loop.name, Loop.unit_id, Loop.config, *_RUN_COLUMNS,
+               func.coalesce(alarms.c.n, 0))
+        .outerjoin(latest, latest.c.loop_id == Loop.id)
+        .outerjoin(AnalysisRun, AnalysisRun.id == latest.c.run_id)
+        .outerjoin(alarms, alarms.c.loop_id == Loop.id)
+    )
     if unit is not None:
         query = query.where(Loop.unit_id == unit)
-    runs = _latest_runs(session)
-    alarm_counts: dict[str, int] = {
-        loop_id: n for loop_id, n in session.execute(
-            select(Alarm.loop_id, func.count()).where(Alarm.state != "normal")
-            .group_by(Alarm.loop_id)
+    if loop_id is not None:
+        query = query.where(Loop.id == loop_id)
+    if state is not None:
+        query = query.where(_STATE_FILTERS[state])
+    count = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    order = ([AnalysisRun.health.is_(None), AnalysisRun.health, Loop.id] if worst_first
+             else [Loop.id])
+    rows = session.execute(query.order_by(*order).offset(offset).limit(limit)).all()
+    data = [
+        LoopPublic(
+            id=r[0], name=r[1], unit=r[2], valve_asset=r[3].get("valve_asset"),
+            importance=r[3].get("importance", "medium"), health=r[4], oscillating=r[5],
+            period_s=r[6], verdict=r[7], confidence=r[8], S=r[9], J=r[10], analysed_at=r[11],
+            active_alarms=r[12],
         )
-    }
-    return [_public(loop, runs.get(loop.id), alarm_counts.get(loop.id, 0))
-            for loop in session.scalars(query)]
+        for r in rows
+    ]
+    return data, count
 
 
 @router.get("/loops", response_model=LoopsPublic)
@@ -163,16 +188,8 @@ def list_loops(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> LoopsPublic:
     """Loops with their latest state; filter by unit and state, page with offset/limit."""
-    loops = _all_loops(session, unit)
-    if state == "oscillating":
-        loops = [x for x in loops if x.oscillating]
-    elif state == "stiction":
-        loops = [x for x in loops if x.verdict == "stiction"]
-    elif state == "healthy":
-        loops = [x for x in loops if x.oscillating is False]
-    elif state == "unknown":
-        loops = [x for x in loops if x.health is None]
-    return LoopsPublic(data=loops[offset: offset + limit], count=len(loops))
+    data, count = _loop_rows(session, unit=unit, state=state, offset=offset, limit=limit)
+    return LoopsPublic(data=data, count=count)
 
 
 @router.get("/plant/bad-actors", response_model=LoopsPublic)
@@ -180,9 +197,8 @@ def bad_actors(
     session: SessionDep, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 20
 ) -> LoopsPublic:
     """Loops ranked by health, worst first; loops not yet analysed come last."""
-    loops = sorted(_all_loops(session, None),
-                   key=lambda x: (x.health is None, x.health if x.health is not None else 0))
-    return LoopsPublic(data=loops[:limit], count=len(loops))
+    data, count = _loop_rows(session, worst_first=True, limit=limit)
+    return LoopsPublic(data=data, count=count)
 
 
 def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
@@ -195,9 +211,8 @@ def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
 @router.get("/loops/{loop_id}", response_model=LoopPublic)
 def get_loop(loop_id: str, session: SessionDep, _: Reader) -> LoopPublic:
     """One loop with its latest state."""
-    loop = _loop_or_404(session, loop_id)
-    found = [x for x in _all_loops(session, loop.unit_id) if x.id == loop_id]
-    return found[0]
+    _loop_or_404(session, loop_id)
+    return _loop_rows(session, loop_id=loop_id)[0][0]
 
 
 @router.get("/loops/{loop_id}/config")
@@ -337,5 +352,5 @@ def unit_loops(unit_id: str, session: SessionDep, _: Reader) -> LoopsPublic:
     """The loops of one unit with their latest state."""
     if session.get(Unit, unit_id) is None:
         raise HTTPException(404, "Unit not found")
-    loops = _all_loops(session, unit_id)
-    return LoopsPublic(data=loops, count=len(loops))
+    data, count = _loop_rows(session, unit=unit_id)
+    return LoopsPublic(data=data, count=count)
