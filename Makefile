@@ -31,7 +31,7 @@ pytest: $(VENV)/.installed-test
 test: lint pytest
 
 bench: $(VENV)/.installed-test
-	$(PY) benchmarks/foundation.py
+	for script in benchmarks/*.py; do echo "### $$script"; $(PY) $$script || exit 1; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
