@@ -27,6 +27,8 @@ FORBIDDEN = (
     "bokeh",
     "seaborn",
     "pandas",
+    "resvg_py",
+    "playwright",
     "socket",
     "sqlite3",
     "asyncio",

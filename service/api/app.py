@@ -6,7 +6,7 @@ from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from service.alarms import AlarmStateError
-from service.api.routes import alarms, ingest, keys, loops, system, tickets
+from service.api.routes import alarms, dashboard, ingest, keys, loops, plots, system, tickets
 from service.runtime import AppState
 from service.tickets import TicketStateError
 
@@ -21,7 +21,7 @@ def create_app(state: AppState) -> FastAPI:
         version="0.1.0",
     )
     app.state.loopwatch = state
-    for module in (system, loops, alarms, tickets, ingest, keys):
+    for module in (system, loops, plots, alarms, tickets, ingest, keys, dashboard):
         app.include_router(module.router)
 
     @app.exception_handler(AlarmStateError)

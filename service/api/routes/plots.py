@@ -1,0 +1,253 @@
+"""Plots of a loop as SVG or PNG: ``GET /api/v1/loops/{id}/plots/{kind}``.
+
+The route gathers the data (samples from the store or the rolling buffer,
+the latest diagnosis, the loop's configuration) and hands them to the figure
+builders of :mod:`service.plots`.  Kinds:
+
+* ``trend``: SP, PV, OP, MV between ``start`` and ``end`` (default: the last
+  hour), from the same query as ``GET /loops/{id}/data``.
+* ``signature``, ``spectrum``: the window of the latest analysis, in % of
+  span as the analysis saw it, with the period it used.
+* ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
+  the latest stiction estimate, the configured controller and Choudhury's
+  describing function at the estimated (S, J) (thesis Eq. 3.16).
+* ``history``: health, S and J of the past analyses.
+
+A plot that cannot be drawn yet (no analysis, no estimate, samples gone from
+the rolling buffer) answers 404 with the reason, which the dashboard shows.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from sqlalchemy import select
+
+from analytics.errors import DataError, ModelSpecError
+from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
+from analytics.lti import TransferFunction
+from analytics.simulation import PIDController
+from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
+from analytics.valves import ChoudhuryValve
+from service import plots
+from service.analysis import to_percent_of_span
+from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.routes.loops import loop_data
+from service.buffer import LoopWindowData
+from service.store.models import AnalysisRun, Loop
+
+router = APIRouter(prefix="/api/v1/loops", tags=["plots"])
+Reader = Annotated[Principal, Depends(require("read"))]
+
+PlotKind = Literal["trend", "signature", "spectrum", "nyquist", "history"]
+PlotFormat = Literal["svg", "png"]
+MEDIA_TYPES: dict[str, str] = {"svg": "image/svg+xml", "png": "image/png"}
+HISTORY_RUNS = 200
+"""Analyses shown by the ``history`` plot (the newest)."""
+TREND_POINTS = 2000
+"""Points per signal of the ``trend`` plot (min/max downsampling keeps cycles)."""
+
+
+def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
+    loop = session.get(Loop, loop_id)
+    if loop is None:
+        raise HTTPException(404, "Loop not found")
+    return loop
+
+
+def _latest_run(session: SessionDep, loop_id: str) -> AnalysisRun:
+    run = session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(1)
+    ).first()
+    if run is None or run.result is None:
+        raise HTTPException(404, f"No analysis of loop {loop_id} yet")
+    return run
+
+
+def _analysed_window(state: StateDep, loop: Loop, run: AnalysisRun) -> LoopWindowData:
+    """The samples of ``run``'s window from the rolling buffer, in % of span."""
+    assert run.window_start is not None and run.window_end is not None
+    try:
+        window = state.buffers.window(loop.id, run.window_end - run.window_start,
+                                      run.window_end)
+    except (KeyError, ValueError) as exc:
+        raise HTTPException(404, f"Samples of the analysed window are not available: {exc}") \
+            from None
+    if not any(x is not None and np.isfinite(x).any() for x in (window.op, window.pv)):
+        raise HTTPException(
+            404, "Samples of the analysed window are no longer in the rolling buffer"
+        )
+    ranges = loop.config.get("ranges") or {}
+    scaled = {name: to_percent_of_span(x, tuple(ranges[name]) if name in ranges else None)
+              for name, x in window.signals.items()}
+    return LoopWindowData(t=window.t, op=scaled.get("op"), pv=scaled.get("pv"),
+                          sp=scaled.get("sp"), mv=scaled.get("mv"), ts=window.ts)
+
+
+def _analysed_period(diagnosis: dict[str, Any]) -> float | None:
+    """The period the analysis used (also for an irregular cycle), else the detected one."""
+    oscillation = diagnosis.get("oscillation") or {}
+    period = oscillation.get("analysed_period_s") or oscillation.get("period_s")
+    return None if period is None else float(period)
+
+
+def _ellipse(op: np.ndarray | None, valve: np.ndarray | None, period_samples: float | None
+             ) -> EllipseFit | None:
+    """The signature ellipse, or None without a period, with gaps or too few cycles."""
+    if op is None or valve is None or period_samples is None:
+        return None
+    if not (np.isfinite(op).all() and np.isfinite(valve).all()):
+        return None
+    try:
+        return fit_signature_ellipse(op, valve, period_samples)
+    except DataError:
+        return None
+
+
+def _name(loop: Loop) -> str:
+    return f"{loop.id} {loop.name}".strip()
+
+
+def _title(loop: Loop, what: str, start: float, end: float) -> str:
+    return f"{_name(loop)}: {what}, {(end - start) / 60:.0f} min to {plots.format_utc(end)}"
+
+
+def _trend(session: SessionDep, state: StateDep, key: Principal, loop: Loop,
+           start: float | None, end: float | None) -> plots.Figure:
+    data = loop_data(loop.id, session, state, key, start, end, TREND_POINTS)
+    series = {
+        s.signal: (np.asarray(s.t, dtype=float),
+                   np.array([np.nan if v is None else v for v in s.value], dtype=float))
+        for s in data.series
+    }
+    if not any(t.size for t, _ in series.values()):
+        raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:g} and "
+                                 f"{data.end:g}")
+    return plots.trend_figure(
+        series, title=_title(loop, "trend", data.start, data.end),
+        unit="plant units",
+    )
+
+
+def _signature(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
+    window = _analysed_window(state, loop, run)
+    if window.op is None or window.pv is None:
+        raise HTTPException(404, "The valve signature needs both OP and PV tags")
+    period = _analysed_period(run.result or {})
+    period_samples = None if period is None else period / window.ts
+    return plots.signature_figure(
+        window.op, window.pv, mv=window.mv,
+        pv_fit=_ellipse(window.op, window.pv, period_samples),
+        mv_fit=_ellipse(window.op, window.mv, period_samples),
+        title=_title(loop, "valve signature", window.t[0], window.t[-1]),
+    )
+
+
+def _spectrum(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
+    window = _analysed_window(state, loop, run)
+    return plots.spectrum_figure(
+        window.op, window.pv, window.ts, period_s=_analysed_period(run.result or {}),
+        title=_title(loop, "spectrum and ACF", window.t[0], window.t[-1]),
+    )
+
+
+def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
+    estimate = (run.result or {}).get("quantification")
+    if not estimate or estimate.get("S") is None:
+        raise HTTPException(404, "Nyquist plot not available: the latest analysis has no "
+                                 "stiction estimate (S, J) and identified process model")
+    controller = loop.config.get("controller")
+    if not controller:
+        raise HTTPException(404, "Nyquist plot not available: the loop's configuration has "
+                                 "no controller (Kc, Ti)")
+    process = estimate["process"]
+    # Reverse action closes negative feedback around a positive process gain.
+    gain = process["K"] if controller.get("action", "reverse") == "reverse" else -process["K"]
+    if not gain > 0:
+        raise HTTPException(404, "Nyquist plot not available: the identified process gain "
+                                 f"{process['K']:.3g} and the controller action "
+                                 f"'{controller.get('action', 'reverse')}' make positive "
+                                 "feedback")
+    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
+    den = (*lag, 0.0) if process["integrating"] else lag
+    try:
+        g = TransferFunction((gain,), den, process["theta"])
+        gc = PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
+                                 controller.get("Td", 0.0))
+        valve = ChoudhuryValve(float(estimate["S"]), float(estimate["J"] or 0.0))
+        hold = float(loop.config["ts"]) / 2.0  # zero-order hold of the sampled controller
+        prediction = predict_limit_cycles(g, gc, valve, hold_delay=hold)
+        stable = prediction.stable_cycles
+        curves = nyquist_curves(g, gc, valve, hold_delay=hold,
+                                limit_cycle=stable[0] if stable else None)
+    except (ModelSpecError, ValueError) as exc:
+        raise HTTPException(404, f"Nyquist plot not available: {exc}") from None
+    return plots.nyquist_figure(
+        curves, prediction=prediction,
+        title=f"{_name(loop)}: Nyquist plot, identified model, "
+              f"S = {estimate['S']:.2f} %, J = {estimate['J'] or 0.0:.2f} %",
+    )
+
+
+def _history(session: SessionDep, loop: Loop) -> plots.Figure:
+    runs = list(session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop.id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(HISTORY_RUNS)
+    ))[::-1]
+    if not runs:
+        raise HTTPException(404, f"No analysis of loop {loop.id} yet")
+
+    def column(values: list[float | None]) -> np.ndarray:
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+    return plots.history_figure(
+        column([r.started_at for r in runs]), column([r.health for r in runs]),
+        column([r.S for r in runs]), column([r.J for r in runs]),
+        title=f"{_name(loop)}: health and S, J of {len(runs)} analyses",
+    )
+
+
+@router.get(
+    "/{loop_id}/plots/{kind}",
+    response_class=Response,
+    responses={200: {"content": {"image/svg+xml": {}, "image/png": {}},
+                     "description": "the plot"},
+               404: {"description": "unknown loop, or the plot cannot be drawn yet (why)"}},
+)
+def loop_plot(
+    loop_id: str,
+    kind: PlotKind,
+    session: SessionDep,
+    state: StateDep,
+    key: Reader,
+    image_format: Annotated[PlotFormat, Query(alias="format")] = "svg",
+    start: Annotated[float | None, Query(description="trend: UNIX s")] = None,
+    end: Annotated[float | None, Query(description="trend: UNIX s (default now)")] = None,
+) -> Response:
+    """A plot of the loop as SVG (default) or PNG; see the module docstring for the kinds."""
+    loop = _loop_or_404(session, loop_id)
+    if kind == "trend":
+        figure = _trend(session, state, key, loop, start, end)
+    elif kind == "history":
+        figure = _history(session, loop)
+    else:
+        run = _latest_run(session, loop_id)
+        if kind == "signature":
+            figure = _signature(state, loop, run)
+        elif kind == "spectrum":
+            figure = _spectrum(state, loop, run)
+        else:
+            figure = _nyquist(loop, run)
+    if image_format == "png":
+        body: bytes = plots.render_png(figure)
+    else:
+        body = plots.render_svg(figure).encode()
+    return Response(
+        body, media_type=MEDIA_TYPES[image_format],
+        headers={"Cache-Control": "no-store",
+                 "Content-Disposition": f'inline; filename="{loop_id}-{kind}.{image_format}"'},
+    )

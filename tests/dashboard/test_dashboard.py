@@ -1,0 +1,282 @@
+"""The dashboard in a real headless Chromium against a running loopwatch service.
+
+A uvicorn server of the service runs in a thread on a free loopback port
+with the two-loop plant of ``tests/service/test_api.py`` (FIC-1 behind a
+sticky valve, FIC-2 healthy).  An hour of simulated data is pushed through
+``POST /api/v1/ingest`` as a historian would, and the scheduler analyses
+twice, so FIC-1 has an oscillation alarm and a valve-repair ticket.  Then
+Chromium, driven by Playwright, signs in, finds FIC-1 at the top of the
+overview, opens it, sees the valve signature drawn from the data,
+acknowledges the alarm and the test checks the new state through the API.
+
+Skipped with the reason when Playwright or Chromium is missing; failed
+instead under ``LOOPWATCH_REQUIRE_ALL=1``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import uvicorn
+
+from service.config import Settings
+from service.server import Service, build_service
+from tests.servers import free_port, require
+from tests.service.test_api import ADMIN, T0, plant, simulated_batch
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+]
+WAIT_MS = 30_000
+REFRESH_MS = 500
+"""How often the pages refresh themselves in the test (15 s in service)."""
+PENDING_ENDPOINTS = ("/advice", "/model-check")
+"""Endpoints of work in progress: the dashboard asks for them and expects 404 for now."""
+
+
+def expected_404(text: str, url: str) -> bool:
+    """Chromium logs every 404 as an error; those of pending endpoints are expected."""
+    return "status of 404" in text and url.endswith(PENDING_ENDPOINTS)
+
+
+@dataclass
+class RunningService:
+    """A service behind a real HTTP server, with a key of each role the tests use."""
+
+    service: Service
+    base_url: str
+    keys: dict[str, str]
+
+    def call(self, method: str, path: str, role: str = "admin", body: Any = None) -> Any:
+        """JSON request over HTTP to the running server."""
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(
+            self.base_url + path, data=data, method=method,
+            headers={"X-API-Key": self.keys[role], "Content-Type": "application/json"},
+        )
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return json.loads(response.read())
+
+    def fetch(self, path: str, role: str | None = None) -> tuple[int, str, bytes]:
+        """Status, content type and body of a GET, errors included."""
+        headers = {} if role is None else {"X-API-Key": self.keys[role]}
+        request = urllib.request.Request(self.base_url + path, headers=headers)
+        try:
+            with urllib.request.urlopen(request, timeout=60) as response:
+                return response.status, response.headers["content-type"], response.read()
+        except urllib.error.HTTPError as error:
+            return error.code, error.headers["content-type"], error.read()
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningService]:
+    database = tmp_path_factory.mktemp("dashboard") / "loopwatch.db"
+    settings = Settings(database_url=f"sqlite:///{database}", api_key=ADMIN, window_s=3600,
+                        buffer_horizon_s=7200, ticket_confirmations=2)
+    service = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(service.app, host="127.0.0.1", port=port,
+                                           log_level="warning", lifespan="off"))
+    thread = threading.Thread(target=server.run, name="dashboard-test-server", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.05)
+    running = RunningService(service, f"http://127.0.0.1:{port}", {"admin": ADMIN})
+    try:
+        for role in ("historian", "operator", "viewer"):
+            created = running.call("POST", "/api/v1/keys", body={"name": f"{role} key",
+                                                                 "role": role})
+            running.keys[role] = created["key"]
+        report = running.call("POST", "/api/v1/ingest", "historian", simulated_batch())
+        assert report["stored"] == 6 * 3600, report
+        for _ in range(2):  # two confirming analyses open the ticket
+            service.scheduler.run_once(T0)
+        yield running
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+        service.executor.shutdown()
+        service.state.store.close()
+
+
+def test_page_and_everything_it_loads_come_from_loopwatch(running: RunningService) -> None:
+    status, kind, page = running.fetch("/")
+    assert (status, kind) == (200, "text/html; charset=utf-8")
+    assets = re.findall(r'(?:src|href)="(/static/[^"]+)"', page.decode())
+    assert sorted(assets) == ["/static/app.js", "/static/favicon.svg", "/static/style.css"]
+    for asset in assets:
+        status, kind, _ = running.fetch(asset)
+        assert status == 200 and kind.split(";")[0] in {"text/javascript", "text/css",
+                                                         "image/svg+xml"}
+    assert running.fetch("/static/nope.js")[::2] == (404, b'{"detail":"Static file not found"}')
+    assert running.fetch("/static/..%2Fplots.py")[0] == 404
+
+
+def test_me_names_the_key_and_what_its_role_may_do(running: RunningService) -> None:
+    status, _, body = running.fetch("/api/v1/me", "operator")
+    assert status == 200
+    assert json.loads(body) == {"name": "operator key", "role": "operator",
+                                "permissions": ["alarms", "read"]}
+    assert running.fetch("/api/v1/me")[0] == 401
+    assert running.fetch("/api/v1/me", "historian")[0] == 403
+
+
+@dataclass
+class Browser:
+    """A Chromium page plus what it asked the network for and complained about."""
+
+    page: Any
+    requests: list[str]
+    errors: list[str]
+
+
+@pytest.fixture
+def browser(running: RunningService) -> Iterator[Browser]:
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        require(False, "Playwright for Python is not installed (pip install playwright)")
+    require(CHROMIUM.is_file(), f"Chromium not found at {CHROMIUM} (apt-get install chromium)")
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        context = chromium.new_context(viewport={"width": 1600, "height": 1000})
+        page = context.new_page()
+        page.add_init_script(f"window.LOOPWATCH_REFRESH_MS = {REFRESH_MS}")
+        page.set_default_timeout(WAIT_MS)
+        watched = Browser(page, [], [])
+        page.on("request", lambda request: watched.requests.append(request.url))
+
+        def console(message: Any) -> None:
+            url = message.location.get("url", "")
+            if message.type == "error" and not expected_404(message.text, url):
+                watched.errors.append(f"{message.text} ({url})")
+
+        page.on("console", console)
+        page.on("pageerror", lambda error: watched.errors.append(str(error)))
+        yield watched
+        context.close()
+        chromium.close()
+    assert watched.errors == [], watched.errors
+    offsite = [url for url in watched.requests if not url.startswith(running.base_url)]
+    assert offsite == [], "the dashboard must work without internet access"
+
+
+def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
+    running: RunningService, browser: Browser, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    page = browser.page
+    page.goto(running.base_url + "/")
+    page.get_by_label("API key").fill(running.keys["operator"])
+    page.get_by_role("button", name="Sign in").click()
+
+    ranked = page.locator("#loops tbody tr")
+    ranked.first.wait_for()
+    assert ranked.evaluate_all("rows => rows.map(r => r.dataset.loopId)") == ["FIC-1", "FIC-2"]
+    assert "stiction" in ranked.first.inner_text()
+    alarm_row = page.locator("#alarms tr[data-state]")
+    assert alarm_row.evaluate_all("rows => rows.map(r => r.dataset.state)") == [
+        "unacknowledged"]
+    assert page.locator("#tickets tr[data-ticket-id]").count() == 1
+
+    overview = tmp_path_factory.mktemp("artefacts") / "dashboard-overview.png"
+    page.screenshot(path=str(overview), full_page=True)
+    print(f"overview screenshot: {overview}")
+
+    ranked.first.get_by_role("link", name="FIC-1").click()
+    page.get_by_role("heading", level=1, name="FIC-1").wait_for()
+    signature = page.locator('figure[data-plot="signature"] svg[data-kind="signature"]')
+    signature.wait_for()
+    dots = signature.locator('path[data-series="pv"]').get_attribute("d") or ""
+    window = running.service.state.buffers.window("FIC-1", 3600, T0)
+    assert dots.count("M") == window.t.size  # one dot per sample of the analysed window
+    assert signature.locator('path[data-series="ellipse"]').count() == 1
+    assert "apparent stiction" in signature.inner_html()
+    assert page.locator('[data-method="hammerstein"]').inner_text().count("stiction") >= 1
+    advice = page.locator('[data-pending$="/advice"]')
+    assert "not available" in advice.inner_text()
+
+    alarm = running.call("GET", "/api/v1/alarms?loop_id=FIC-1", "viewer")["data"][0]
+    assert alarm["state"] == "unacknowledged"
+    row = page.locator(f'#main tr[data-alarm-id="{alarm["id"]}"]')
+    row.get_by_role("button", name="Acknowledge").click()
+    page.locator(f'#main tr[data-alarm-id="{alarm["id"]}"][data-state="acknowledged"]').wait_for()
+    assert "acknowledged" in page.locator("#status").inner_text()
+
+    detail = running.call("GET", f"/api/v1/alarms/{alarm['id']}", "viewer")
+    assert detail["state"] == "acknowledged"
+    assert detail["events"][-1]["actor"] == "operator key (operator)"
+
+    shot = tmp_path_factory.mktemp("artefacts") / "dashboard-FIC-1.png"
+    page.screenshot(path=str(shot), full_page=True)
+    print(f"dashboard screenshot: {shot}")
+    assert shot.stat().st_size > 10_000
+
+
+def test_a_key_link_signs_a_viewer_in_without_operator_controls(
+    running: RunningService, browser: Browser
+) -> None:
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    assert running.keys["viewer"] not in page.url  # the key leaves the address bar at once
+    assert page.locator("#who-am-i").inner_text() == "viewer key (viewer)"
+    assert page.locator("#alarms tr[data-state]").count() == 1
+    assert page.get_by_role("button", name="Acknowledge").count() == 0
+
+    alarm = running.call("GET", "/api/v1/alarms?loop_id=FIC-1", "viewer")["data"][0]
+    running.call("POST", f"/api/v1/alarms/{alarm['id']}/shelve", "operator",
+                 {"duration_s": 600})
+    shelved = page.locator(f'#alarms tr[data-alarm-id="{alarm["id"]}"][data-state="shelved"]')
+    shelved.wait_for()  # the overview refreshes on its own
+    assert page.locator("#status").inner_text().startswith("Updated")
+    running.call("POST", f"/api/v1/alarms/{alarm['id']}/unshelve", "operator", {})
+
+    page.get_by_role("combobox", name="State").select_option("healthy")
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('#loops tbody tr')]"
+        ".map(r => r.dataset.loopId).join() === 'FIC-2'"
+    )
+
+
+def test_unit_page_and_printable_ticket(
+    running: RunningService, browser: Browser, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+
+    page.goto(f"{running.base_url}/#/unit/u1")
+    page.get_by_role("heading", level=1, name="Unit 1 unit u1").wait_for()
+    cards = page.locator(".loop-card")
+    cards.nth(1).locator('svg[data-kind="trend"]').wait_for()
+    assert cards.evaluate_all("cards => cards.map(c => c.querySelector('h3 a').textContent)") \
+        == ["FIC-1", "FIC-2"]
+    assert "FV-1" in page.locator('[aria-labelledby="sticky-title"]').inner_text()
+    artefacts = tmp_path_factory.mktemp("artefacts")
+    page.screenshot(path=str(artefacts / "unit-u1.png"), full_page=True)
+
+    ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
+    page.goto(f"{running.base_url}/#/ticket/{ticket['id']}")
+    page.get_by_role("heading", level=1, name=f"Ticket #{ticket['id']}").wait_for()
+    for kind in ("trend", "signature", "spectrum"):
+        page.locator(f'.evidence-plots svg[data-kind="{kind}"]').wait_for()
+    page.emulate_media(media="print")
+    assert page.locator(".top-bar").is_hidden()
+    assert page.get_by_role("button", name="Print").is_hidden()
+    page.screenshot(path=str(artefacts / "ticket-print.png"), full_page=True)
+    print(f"unit page and printed ticket: {artefacts}")
