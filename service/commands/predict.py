@@ -1,0 +1,247 @@
+"""``loopwatch predict MODEL.json [--json]``: the limit cycles sticky valves will cause.
+
+The describing-function prediction of every limit cycle (thesis Eqs. 3.14,
+3.16 with ERRATA item 9; :func:`analytics.limit_cycle.predict_limit_cycles`)
+beside the simulated ("exact") limit cycle of the same model and the error of
+the prediction (:func:`analytics.limit_cycle.compare`).
+
+The model file holds ``dt`` (the controllers' sampling period, s; its hold
+counts as ``dt/2`` of dead time), ``process`` (one transfer function or
+``{"matrix": n x n}``), ``controllers`` and ``valves`` (one per loop), and
+optionally anything else :class:`analytics.simulation.ClosedLoopModel` reads
+(``duration``, ``setpoints``, ``op_limits`` in a controller...). A loop without
+a setpoint schedule gets a setpoint step for the simulation, and noise is left
+out of it (:func:`analytics.tuning.excited_model`). Without ``duration`` the
+simulation runs for 200 periods of the slowest predicted cycle (at least 2000 s,
+at most 2 million samples).
+
+``--json`` prints ``{"limit_cycles": [{"omega", "period_s", "amplitudes",
+"stable", ...}], "linear_stable", "omega_range", "note", "simulated":
+{"oscillating", "period_s", "amplitudes", ...}, "comparison": {...}}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+from analytics.errors import AnalyticsError
+from analytics.limit_cycle import LimitCycleReport, compare, predict_model
+from analytics.lti import TransferFunction
+from analytics.simulation import ClosedLoopModel, PIDController
+from analytics.tuning import excited_model
+from analytics.valves import valve_from_dict
+from service.commands import CliError
+
+#: Simulated periods of the slowest predicted cycle when the model gives no duration
+#: (a cycle can take tens of periods to build up from a setpoint step).
+PERIODS_SIMULATED = 200
+#: Shortest simulation without a duration in the model, s.
+MIN_DURATION = 2000.0
+#: Longest simulation without a duration in the model, samples.
+MAX_SAMPLES = 2_000_000
+
+
+def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add ``predict`` to the ``loopwatch`` subcommands."""
+    parser = commands.add_parser(
+        "predict",
+        help="predict the stiction limit cycles of a model and check them by simulation",
+        description=__doc__.split("\n\n")[0] if __doc__ else None,
+    )
+    parser.add_argument("model", type=Path, help="MODEL.json: dt, process, controllers, valves")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--omega-range",
+        nargs=2,
+        type=float,
+        metavar=("LOW", "HIGH"),
+        help="frequencies searched, rad/s (default: two decades around the crossover)",
+    )
+    parser.add_argument("--duration", type=float, help="simulated time, s")
+    parser.set_defaults(handler=run)
+
+
+def _located(where: str, build: Any, spec: Any) -> Any:
+    """``build(spec)``, with ``where`` in front of any error message."""
+    try:
+        return build(spec)
+    except AnalyticsError as exc:
+        raise CliError(f"{where}: {exc}") from None
+
+
+def _per_loop(spec: dict[str, Any], key: str, n: int) -> list[Any]:
+    items = spec.get(key)
+    if not isinstance(items, list) or len(items) != n:
+        got = "nothing" if items is None else repr(items)
+        raise CliError(f"'{key}' must be a list with one entry per loop ({n}), got {got}")
+    return items
+
+
+def check_model(spec: Any) -> None:
+    """Validate the keys ``predict`` needs, naming the place of every error.
+
+    Raises
+    ------
+    CliError
+        E.g. ``process.matrix[2][1]: missing key 'tau' for model type 'fopdt'``,
+        a non-square matrix, a missing diagonal entry, a missing controller
+        parameter.
+    """
+    if not isinstance(spec, dict):
+        raise CliError("a model must be a JSON object")
+    for key in ("dt", "process", "controllers", "valves"):
+        if key not in spec:
+            raise CliError(f"the model lacks the required key '{key}'")
+    process = spec["process"]
+    if isinstance(process, dict) and "matrix" in process:
+        matrix = process["matrix"]
+        if (
+            not isinstance(matrix, list)
+            or not matrix
+            or not all(isinstance(r, list) for r in matrix)
+        ):
+            raise CliError("process.matrix must be a list of rows (lists)")
+        n = len(matrix)
+        for i, row in enumerate(matrix):
+            if len(row) != n:
+                raise CliError(
+                    f"process.matrix must be square ({n} x {n}, one row and column per "
+                    f"loop): row {i + 1} has {len(row)} entries"
+                )
+            for j, entry in enumerate(row):
+                where = f"process.matrix[{i + 1}][{j + 1}]"
+                if entry is None:
+                    if i == j:
+                        raise CliError(f"{where} is null: loop {i + 1} has no effect on its PV")
+                    continue
+                if not isinstance(entry, dict):
+                    raise CliError(f"{where} must be a transfer function object or null")
+                _located(where, TransferFunction.from_dict, entry)
+    elif isinstance(process, dict):
+        n = 1
+        _located("process", TransferFunction.from_dict, process)
+    else:
+        raise CliError("process must be a transfer function object or {'matrix': [...]}")
+    for i, controller in enumerate(_per_loop(spec, "controllers", n)):
+        _located(f"controllers[{i + 1}]", PIDController.from_dict, controller)
+    for i, valve in enumerate(_per_loop(spec, "valves", n)):
+        _located(f"valves[{i + 1}]", valve_from_dict, valve)
+
+
+def load_model(path: Path) -> tuple[ClosedLoopModel, dict[str, Any]]:
+    """The model of ``path`` and its JSON; user errors as :class:`CliError`."""
+    try:
+        spec = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CliError(f"{path}: no such file") from None
+    except json.JSONDecodeError as exc:
+        raise CliError(
+            f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        ) from None
+    try:
+        check_model(spec)
+    except CliError as exc:
+        raise CliError(f"{path}: {exc}") from None
+    model: ClosedLoopModel = _located(str(path), ClosedLoopModel.from_dict, spec)
+    return model, spec
+
+
+def predict_file(
+    path: Path,
+    *,
+    omega_range: tuple[float, float] | None = None,
+    duration: float | None = None,
+) -> tuple[ClosedLoopModel, LimitCycleReport]:
+    """The model of ``path``, predicted and simulated (see the module notes).
+
+    Raises
+    ------
+    CliError
+        A bad model, no sticky valve, or a loop unstable without stiction.
+    """
+    model, spec = load_model(path)
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise CliError(f"--duration must be > 0 s, got {duration}")
+    try:
+        prediction = predict_model(model, omega_range=omega_range)
+    except AnalyticsError as exc:
+        raise CliError(f"{path}: {exc}") from None
+    if not prediction.linear_stable:
+        raise CliError(f"{path}: unstable without stiction, so no limit cycle: {prediction.note}")
+    if duration is None and "duration" not in spec:
+        slowest = max((c.period_s for c in prediction.limit_cycles), default=0.0)
+        duration = min(max(MIN_DURATION, PERIODS_SIMULATED * slowest), MAX_SAMPLES * model.dt)
+    excited = excited_model(model, duration=duration or model.duration)
+    return model, compare(excited, prediction=prediction)
+
+
+def _number(value: float | None, spec: str = ".4g") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def print_report(
+    report: LimitCycleReport, names: tuple[str, ...], source: str, out: TextIO
+) -> None:
+    """The readable form of ``loopwatch predict``."""
+    prediction, simulated = report.prediction, report.simulated
+    sticky = [names[i] for i, s in enumerate(prediction.sticky) if s]
+    low, high = prediction.omega_range
+    print(f"{source}: {len(names)} loop(s); sticky valves: {', '.join(sticky)}", file=out)
+    print(f"describing functions: {prediction.note}", file=out)
+    print(f"limit cycles predicted in {low:.4g}-{high:.4g} rad/s:", file=out)
+    if not prediction.limit_cycles:
+        print("  none", file=out)
+    else:
+        header = "".join(f"{'A ' + name:>11s}" for name in names)
+        print(f"  {'omega rad/s':>11s} {'period s':>9s} {'stable':>7s}{header}", file=out)
+        for cycle in prediction.limit_cycles:
+            amplitudes = "".join(
+                f"{_number(a) + ('' if moving else '*'):>11s}"
+                for a, moving in zip(cycle.amplitudes, cycle.moving, strict=True)
+            )
+            stable = "yes" if cycle.stable else "no"
+            print(f"  {cycle.omega:11.4g} {cycle.period_s:9.4g} {stable:>7s}{amplitudes}", file=out)
+        if not all(all(cycle.moving) for cycle in prediction.limit_cycles):
+            print("  (* the valve stays stuck: its OP amplitude is below the band)", file=out)
+    start, end = simulated.window_s
+    state = "oscillates" if simulated.oscillating else "no steady oscillation"
+    note = f" ({simulated.note})" if simulated.note else ""
+    print(f"simulation, analysed {start:g}-{end:g} s: {state}{note}", file=out)
+    if simulated.oscillating:
+        amplitudes = ", ".join(
+            f"{name} {_number(a)}" for name, a in zip(names, simulated.amplitudes, strict=True)
+        )
+        print(f"  period {_number(simulated.period_s)} s; OP amplitude: {amplitudes}", file=out)
+    if report.period_error_pct is not None:
+        errors = ", ".join(
+            f"{name} {e:+.1f} %"
+            for name, e in zip(names, report.amplitude_error_pct, strict=True)
+            if e is not None
+        )
+        print(
+            f"describing function against the simulation: period {report.period_error_pct:+.1f} %"
+            + (f"; amplitude {errors}" if errors else ""),
+            file=out,
+        )
+    elif not report.agree:
+        print("describing function and simulation disagree on whether the loop cycles", file=out)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Handler of ``loopwatch predict``."""
+    omega_range = None
+    if args.omega_range:
+        low, high = args.omega_range
+        omega_range = (low, high)
+    model, report = predict_file(args.model, omega_range=omega_range, duration=args.duration)
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=2))
+    else:
+        names = tuple(loop.name for loop in model.loops)
+        print_report(report, names, str(args.model), sys.stdout)
+    return 0
