@@ -168,6 +168,16 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
                       headers=viewer).json()
     assert {s["signal"] for s in data["series"]} == {"op", "pv", "sp"}
     assert all(0 < len(s["t"]) <= 100 for s in data["series"])
+    advice = client.get("/api/v1/loops/FIC-1/advice", headers=viewer)
+    assert advice.status_code == 200, advice.text
+    body = advice.json()
+    assert body["current"] == [{"Kc": 0.5, "Ti": 8.0}]  # the configured tuning
+    assert {"recommendations", "rejected", "notes", "current_simulated"} <= body.keys()
+    for offer in body["recommendations"] + body["rejected"]:  # each checked in simulation
+        assert {"predicted", "simulated", "outcome"} <= offer.keys()
+    assert client.get("/api/v1/loops/FIC-2/advice", headers=viewer).json() == {
+        "detail": "Advice not available: the latest analysis has no stiction estimate (S, J) "
+                  "with an identified process model"}
     metrics = client.get("/metrics", headers=viewer).text
     assert 'loopwatch_analyses_total{status="ok"} 4' in metrics
     assert "loopwatch_tickets_open 1" in metrics

@@ -11,10 +11,12 @@ from pydantic import BaseModel, ValidationError
 from sqlalchemy import func, select
 
 from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.routes import advice
 from service.config import LoopConfig
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
 
 router = APIRouter(prefix="/api/v1", tags=["loops"])
+router.include_router(advice.router)
 Reader = Annotated[Principal, Depends(require("read"))]
 Admin = Annotated[Principal, Depends(require("admin"))]
 

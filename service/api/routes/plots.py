@@ -19,7 +19,6 @@ the rolling buffer) answers 404 with the reason, which the dashboard shows.
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -28,15 +27,13 @@ from sqlalchemy import select
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
-from analytics.lti import TransferFunction
-from analytics.simulation import PIDController
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
-from analytics.valves import ChoudhuryValve
 from service import plots
 from service.analysis import to_percent_of_span
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.api.routes.loops import loop_data
 from service.buffer import LoopWindowData
+from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
 
 router = APIRouter(prefix="/api/v1/loops", tags=["plots"])
@@ -156,33 +153,17 @@ def _spectrum(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
 
 
 def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
-    estimate = (run.result or {}).get("quantification")
-    if not estimate or estimate.get("S") is None:
-        raise HTTPException(404, "Nyquist plot not available: the latest analysis has no "
-                                 "stiction estimate (S, J) and identified process model")
-    controller = loop.config.get("controller")
-    if not controller:
-        raise HTTPException(404, "Nyquist plot not available: the loop's configuration has "
-                                 "no controller (Kc, Ti)")
-    process = estimate["process"]
-    # Reverse action closes negative feedback around a positive process gain.
-    gain = process["K"] if controller.get("action", "reverse") == "reverse" else -process["K"]
-    if not gain > 0:
-        raise HTTPException(404, "Nyquist plot not available: the identified process gain "
-                                 f"{process['K']:.3g} and the controller action "
-                                 f"'{controller.get('action', 'reverse')}' make positive "
-                                 "feedback")
-    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
-    den = (*lag, 0.0) if process["integrating"] else lag
     try:
-        g = TransferFunction((gain,), den, process["theta"])
-        gc = PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
-                                 controller.get("Td", 0.0))
-        valve = ChoudhuryValve(float(estimate["S"]), float(estimate["J"] or 0.0))
-        hold = float(loop.config["ts"]) / 2.0  # zero-order hold of the sampled controller
-        prediction = predict_limit_cycles(g, gc, valve, hold_delay=hold)
+        model = identified_loop(loop.config, run.result)
+    except ModelUnavailableError as exc:
+        raise HTTPException(404, f"Nyquist plot not available: {exc}") from None
+    estimate = (run.result or {})["quantification"]
+    try:
+        prediction = predict_limit_cycles(model.process, model.controller, model.valve,
+                                          hold_delay=model.hold_delay)
         stable = prediction.stable_cycles
-        curves = nyquist_curves(g, gc, valve, hold_delay=hold,
+        curves = nyquist_curves(model.process, model.controller, model.valve,
+                                hold_delay=model.hold_delay,
                                 limit_cycle=stable[0] if stable else None)
     except (ModelSpecError, ValueError) as exc:
         raise HTTPException(404, f"Nyquist plot not available: {exc}") from None

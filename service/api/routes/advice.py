@@ -1,0 +1,62 @@
+"""Tuning advice for a loop with a sticky valve (thesis chapter 5), verified by simulation."""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy import select
+
+from analytics.errors import AnalyticsError
+from analytics.tuning import advise
+from service.api.deps import Principal, SessionDep, require
+from service.loop_model import ModelUnavailableError, identified_loop
+from service.store.models import AnalysisRun, Loop
+
+router = APIRouter(tags=["advice"])  # included by the loops router under /api/v1
+Reader = Annotated[Principal, Depends(require("read"))]
+
+SIMULATED_S = 4000.0
+"""Length of the simulations that verify each candidate tuning."""
+
+
+@lru_cache(maxsize=256)
+def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
+    """Advice is a pure function of the run and the loop's configuration: cache it."""
+    model = identified_loop(json.loads(config), json.loads(diagnosis))
+    return advise(model.closed_loop(SIMULATED_S)).to_dict()
+
+
+@router.get("/loops/{loop_id}/advice")
+async def loop_advice(loop_id: str, session: SessionDep, _: Reader) -> dict[str, Any]:
+    """Retunes that remove or reduce the stiction cycle until the valve is repaired.
+
+    Built from the latest stiction estimate (S, J and the identified process)
+    and the configured controller; every offer carries its predicted effect
+    and was checked in simulation.  404 with the reason when the loop has no
+    estimate or no controller configuration.
+    """
+    loop = session.get(Loop, loop_id)
+    if loop is None:
+        raise HTTPException(404, "Loop not found")
+    run = session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(1)
+    ).first()
+    if run is None:
+        raise HTTPException(404, "Advice not available: the loop has not been analysed yet")
+    try:
+        identified_loop(loop.config, run.result)
+    except ModelUnavailableError as exc:
+        raise HTTPException(404, f"Advice not available: {exc}") from None
+    try:
+        advice = await run_in_threadpool(
+            _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
+            json.dumps(run.result, sort_keys=True),
+        )
+    except AnalyticsError as exc:
+        raise HTTPException(422, f"Advice not available: {exc}") from None
+    return {"loop_id": loop_id, "run_id": run.id, **advice}

@@ -1,0 +1,81 @@
+"""The closed-loop model of a configured loop, from its latest stiction estimate.
+
+The Nyquist plot, the limit-cycle prediction and the tuning advice all need
+the same model: the process identified by the Hammerstein fit, the
+controller of the loop's configuration, and a Choudhury valve with the
+estimated S and J (the describing function of thesis Eq. 3.4).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from analytics.lti import TransferFunction
+from analytics.simulation import ClosedLoopModel, Loop, PIDController
+from analytics.valves import ChoudhuryValve
+
+__all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop"]
+
+
+class ModelUnavailableError(LookupError):
+    """The loop lacks what a model needs; the message says what (HTTP 404)."""
+
+
+@dataclass(frozen=True)
+class IdentifiedLoop:
+    """Process, controller and valve of one loop, in % of span."""
+
+    process: TransferFunction
+    controller: PIDController
+    valve: ChoudhuryValve
+    ts: float
+
+    @property
+    def hold_delay(self) -> float:
+        """Half a sample: the zero-order hold of the sampled controller."""
+        return self.ts / 2.0
+
+    def closed_loop(self, duration: float) -> ClosedLoopModel:
+        """The loop as a simulator model (set point at mid span)."""
+        return ClosedLoopModel(process=self.process,
+                               loops=(Loop(self.controller, self.valve, setpoint=50.0,
+                                           pv_bias=50.0),),
+                               dt=self.ts, duration=duration)
+
+
+def identified_loop(config: dict[str, Any], diagnosis: dict[str, Any] | None) -> IdentifiedLoop:
+    """The model from a loop's configuration and its latest diagnosis.
+
+    Raises
+    ------
+    ModelUnavailableError
+        No stiction estimate with an identified process, no controller in the
+        configuration, or a gain and action that would make positive feedback.
+    """
+    estimate = (diagnosis or {}).get("quantification")
+    if not estimate or estimate.get("S") is None:
+        raise ModelUnavailableError("the latest analysis has no stiction estimate (S, J) "
+                                    "with an identified process model")
+    controller = config.get("controller")
+    if not controller:
+        raise ModelUnavailableError("the loop's configuration has no controller (Kc, Ti)")
+    process = estimate["process"]
+    action = controller.get("action", "reverse")
+    # Reverse action closes negative feedback around a positive process gain.
+    gain = process["K"] if action == "reverse" else -process["K"]
+    if not gain > 0:
+        raise ModelUnavailableError(
+            f"the identified process gain {process['K']:.3g} and the controller action "
+            f"'{action}' make positive feedback"
+        )
+    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
+    den = (*lag, 0.0) if process["integrating"] else lag
+    return IdentifiedLoop(
+        process=TransferFunction((gain,), den, process["theta"]),
+        controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
+                                       controller.get("Td", 0.0)),
+        valve=ChoudhuryValve(float(estimate["S"]), float(estimate["J"] or 0.0)),
+        ts=float(config["ts"]),
+    )
