@@ -24,26 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from analytics.errors import AnalyticsError
-from analytics.limit_cycle import LimitCycleReport, compare, predict_model
-from analytics.lti import TransferFunction
-from analytics.simulation import ClosedLoopModel, PIDController
-from analytics.tuning import excited_model
-from analytics.valves import valve_from_dict
+from analytics.limit_cycle import LimitCycleReport
+from analytics.simulation import ClosedLoopModel
 from service.commands import CliError
-
-#: Simulated periods of the slowest predicted cycle when the model gives no duration
-#: (a cycle can take tens of periods to build up from a setpoint step).
-PERIODS_SIMULATED = 200
-#: Shortest simulation without a duration in the model, s.
-MIN_DURATION = 2000.0
-#: Longest simulation without a duration in the model, samples.
-MAX_SAMPLES = 2_000_000
+from service.prediction import ModelError, predict_spec
 
 
 def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -66,89 +54,16 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     parser.set_defaults(handler=run)
 
 
-def _located(where: str, build: Any, spec: Any) -> Any:
-    """``build(spec)``, with ``where`` in front of any error message."""
+def load_model(path: Path) -> Any:
+    """The JSON of ``path``; user errors as :class:`CliError`."""
     try:
-        return build(spec)
-    except AnalyticsError as exc:
-        raise CliError(f"{where}: {exc}") from None
-
-
-def _per_loop(spec: dict[str, Any], key: str, n: int) -> list[Any]:
-    items = spec.get(key)
-    if not isinstance(items, list) or len(items) != n:
-        got = "nothing" if items is None else repr(items)
-        raise CliError(f"'{key}' must be a list with one entry per loop ({n}), got {got}")
-    return items
-
-
-def check_model(spec: Any) -> None:
-    """Validate the keys ``predict`` needs, naming the place of every error.
-
-    Raises
-    ------
-    CliError
-        E.g. ``process.matrix[2][1]: missing key 'tau' for model type 'fopdt'``,
-        a non-square matrix, a missing diagonal entry, a missing controller
-        parameter.
-    """
-    if not isinstance(spec, dict):
-        raise CliError("a model must be a JSON object")
-    for key in ("dt", "process", "controllers", "valves"):
-        if key not in spec:
-            raise CliError(f"the model lacks the required key '{key}'")
-    process = spec["process"]
-    if isinstance(process, dict) and "matrix" in process:
-        matrix = process["matrix"]
-        if (
-            not isinstance(matrix, list)
-            or not matrix
-            or not all(isinstance(r, list) for r in matrix)
-        ):
-            raise CliError("process.matrix must be a list of rows (lists)")
-        n = len(matrix)
-        for i, row in enumerate(matrix):
-            if len(row) != n:
-                raise CliError(
-                    f"process.matrix must be square ({n} x {n}, one row and column per "
-                    f"loop): row {i + 1} has {len(row)} entries"
-                )
-            for j, entry in enumerate(row):
-                where = f"process.matrix[{i + 1}][{j + 1}]"
-                if entry is None:
-                    if i == j:
-                        raise CliError(f"{where} is null: loop {i + 1} has no effect on its PV")
-                    continue
-                if not isinstance(entry, dict):
-                    raise CliError(f"{where} must be a transfer function object or null")
-                _located(where, TransferFunction.from_dict, entry)
-    elif isinstance(process, dict):
-        n = 1
-        _located("process", TransferFunction.from_dict, process)
-    else:
-        raise CliError("process must be a transfer function object or {'matrix': [...]}")
-    for i, controller in enumerate(_per_loop(spec, "controllers", n)):
-        _located(f"controllers[{i + 1}]", PIDController.from_dict, controller)
-    for i, valve in enumerate(_per_loop(spec, "valves", n)):
-        _located(f"valves[{i + 1}]", valve_from_dict, valve)
-
-
-def load_model(path: Path) -> tuple[ClosedLoopModel, dict[str, Any]]:
-    """The model of ``path`` and its JSON; user errors as :class:`CliError`."""
-    try:
-        spec = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except FileNotFoundError:
         raise CliError(f"{path}: no such file") from None
     except json.JSONDecodeError as exc:
         raise CliError(
             f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
         ) from None
-    try:
-        check_model(spec)
-    except CliError as exc:
-        raise CliError(f"{path}: {exc}") from None
-    model: ClosedLoopModel = _located(str(path), ClosedLoopModel.from_dict, spec)
-    return model, spec
 
 
 def predict_file(
@@ -157,27 +72,12 @@ def predict_file(
     omega_range: tuple[float, float] | None = None,
     duration: float | None = None,
 ) -> tuple[ClosedLoopModel, LimitCycleReport]:
-    """The model of ``path``, predicted and simulated (see the module notes).
-
-    Raises
-    ------
-    CliError
-        A bad model, no sticky valve, or a loop unstable without stiction.
-    """
-    model, spec = load_model(path)
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise CliError(f"--duration must be > 0 s, got {duration}")
+    """The model of ``path``, predicted and simulated (see :mod:`service.prediction`)."""
     try:
-        prediction = predict_model(model, omega_range=omega_range)
-    except AnalyticsError as exc:
-        raise CliError(f"{path}: {exc}") from None
-    if not prediction.linear_stable:
-        raise CliError(f"{path}: unstable without stiction, so no limit cycle: {prediction.note}")
-    if duration is None and "duration" not in spec:
-        slowest = max((c.period_s for c in prediction.limit_cycles), default=0.0)
-        duration = min(max(MIN_DURATION, PERIODS_SIMULATED * slowest), MAX_SAMPLES * model.dt)
-    excited = excited_model(model, duration=duration or model.duration)
-    return model, compare(excited, prediction=prediction)
+        return predict_spec(load_model(path), source=str(path), omega_range=omega_range,
+                            duration=duration)
+    except ModelError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _number(value: float | None, spec: str = ".4g") -> str:
