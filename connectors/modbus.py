@@ -1,0 +1,646 @@
+"""Modbus TCP polling: register codecs, the connector configuration and the connector.
+
+A Modbus device exposes 16-bit registers; a tag is one value spread over one
+(int16, uint16) or two (int32, uint32, float32) consecutive registers.  How
+the bytes of the value are laid out is the device's choice, named after the
+bytes ``A B C D`` of the big-endian value (A the most significant):
+
+========  =========================  ========================================
+order     registers of 0x42F6E979    meaning
+========  =========================  ========================================
+ABCD      [0x42F6, 0xE979]           big-endian words, big-endian bytes
+CDAB      [0xE979, 0x42F6]           words swapped (the common "word swap")
+BADC      [0xF642, 0x79E9]           bytes swapped inside each word
+DCBA      [0x79E9, 0xF642]           fully little-endian
+========  =========================  ========================================
+
+For one-register types only the byte swap matters: BADC and DCBA store
+``AB`` as ``BA``.  Raw values can be scaled linearly from a raw range to
+engineering units; a raw value outside its raw range, or not finite, is sent
+as a bad sample.
+
+The connector polls its groups one request at a time over one connection,
+stamps every value at the poll, and hands the batches to a
+:class:`~connectors.base.SampleSink` in a worker thread.  When the connection
+drops or a request times out it closes the connection, records an outage,
+and reconnects with capped exponential backoff; nothing is stored while the
+connection is down, so the window shows the gap.
+
+References
+----------
+Modbus Organization, *MODBUS Application Protocol Specification V1.1b3*
+(2012), functions 0x03 (read holding registers) and 0x04 (read input
+registers, at most 125 per request).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import itertools
+import logging
+import math
+import struct
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pymodbus.client import AsyncModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.pdu import ModbusPDU
+
+from connectors.base import Backoff, SampleSink, item
+
+__all__ = [
+    "REGISTER_COUNT",
+    "BackgroundConnector",
+    "DataType",
+    "ModbusConnector",
+    "ModbusConnectorConfig",
+    "ModbusCounters",
+    "ModbusGroupConfig",
+    "ModbusTagConfig",
+    "Outage",
+    "WordOrder",
+    "decode",
+    "encode",
+    "to_engineering",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BACKOFF = Backoff()
+"""Reconnection waits: 0.5 s doubling up to 30 s, with 10 % jitter."""
+
+DataType = Literal["int16", "uint16", "int32", "uint32", "float32"]
+WordOrder = Literal["ABCD", "CDAB", "BADC", "DCBA"]
+
+REGISTER_COUNT: dict[DataType, int] = {
+    "int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2,
+}
+"""Registers that one value of each data type occupies."""
+
+_STRUCT_FORMAT: dict[DataType, str] = {
+    "int16": ">h", "uint16": ">H", "int32": ">i", "uint32": ">I", "float32": ">f",
+}
+_INTEGER_RANGE: dict[DataType, tuple[int, int]] = {
+    "int16": (-(2**15), 2**15 - 1),
+    "uint16": (0, 2**16 - 1),
+    "int32": (-(2**31), 2**31 - 1),
+    "uint32": (0, 2**32 - 1),
+}
+
+
+_WORD_ORDERS = frozenset(get_args(WordOrder))
+
+
+def _check_layout(data_type: str, word_order: str) -> None:
+    if data_type not in REGISTER_COUNT:
+        raise ValueError(
+            f"unknown data type {data_type!r}; use one of {', '.join(get_args(DataType))}"
+        )
+    if word_order not in _WORD_ORDERS:
+        raise ValueError(
+            f"unknown word order {word_order!r}; use one of {', '.join(get_args(WordOrder))}"
+        )
+
+
+def _reorder(data: bytes, word_order: WordOrder) -> bytes:
+    """Big-endian bytes to the device layout; applied twice it gives the bytes back."""
+    if word_order in ("BADC", "DCBA"):
+        data = b"".join(data[i : i + 2][::-1] for i in range(0, len(data), 2))
+    if word_order in ("CDAB", "DCBA"):
+        data = b"".join(data[i : i + 2] for i in reversed(range(0, len(data), 2)))
+    return data
+
+
+def encode(value: float, data_type: DataType, word_order: WordOrder = "ABCD") -> list[int]:
+    """The registers that hold ``value`` as ``data_type`` in ``word_order``.
+
+    Raises
+    ------
+    ValueError
+        Unknown type or order, an integer type given a fraction, NaN or a value
+        out of its range, or a float32 value beyond the float32 range.
+
+    Examples
+    --------
+    >>> [hex(r) for r in encode(123.456, "float32", "CDAB")]
+    ['0xe979', '0x42f6']
+    >>> encode(-2, "int16", "ABCD"), encode(-2, "int16", "BADC")
+    ([65534], [65279])
+    """
+    _check_layout(data_type, word_order)
+    if data_type == "float32":
+        try:
+            packed = struct.pack(">f", value)
+        except OverflowError:
+            raise ValueError(f"{value!r} is outside the float32 range") from None
+    else:
+        low, high = _INTEGER_RANGE[data_type]
+        if not (math.isfinite(value) and float(value).is_integer()):
+            raise ValueError(f"{data_type} holds whole numbers only, got {value!r}")
+        if not low <= value <= high:
+            raise ValueError(f"{value!r} is outside the {data_type} range [{low}, {high}]")
+        packed = struct.pack(_STRUCT_FORMAT[data_type], int(value))
+    data = _reorder(packed, word_order)
+    return [int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data), 2)]
+
+
+def decode(registers: list[int], data_type: DataType, word_order: WordOrder = "ABCD") -> float:
+    """The value that ``registers`` hold as ``data_type`` in ``word_order``.
+
+    Raises
+    ------
+    ValueError
+        Unknown type or order, the wrong number of registers, or a register
+        outside 0..65535.
+
+    Examples
+    --------
+    >>> round(decode([0x79E9, 0xF642], "float32", "DCBA"), 3)
+    123.456
+    >>> decode([0xFFFF, 0xFFFE], "int32", "ABCD"), decode([0xFFFF, 0xFFFE], "uint32", "ABCD")
+    (-2.0, 4294967294.0)
+    """
+    _check_layout(data_type, word_order)
+    if len(registers) != REGISTER_COUNT[data_type]:
+        raise ValueError(
+            f"{data_type} takes {REGISTER_COUNT[data_type]} register(s), got {len(registers)}"
+        )
+    for register in registers:
+        if not 0 <= register <= 0xFFFF:
+            raise ValueError(f"register value {register} is outside 0..65535")
+    data = _reorder(b"".join(r.to_bytes(2, "big") for r in registers), word_order)
+    return float(struct.unpack(_STRUCT_FORMAT[data_type], data)[0])
+
+
+def to_engineering(
+    raw: float, raw_range: tuple[float, float], eng_range: tuple[float, float]
+) -> float:
+    """Scale ``raw`` linearly so that ``raw_range`` maps onto ``eng_range``.
+
+    Examples
+    --------
+    >>> to_engineering(6400, (0, 32000), (0.0, 250.0))  # a 0..32000 analogue input card
+    50.0
+    """
+    (raw_low, raw_high), (eng_low, eng_high) = raw_range, eng_range
+    return eng_low + (raw - raw_low) * (eng_high - eng_low) / (raw_high - raw_low)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ModbusTagConfig(_Strict):
+    """One tag of a polling group: where its registers are and how to read them."""
+
+    tag: str = Field(min_length=1)
+    offset: int = Field(ge=0, description="first register, counted from the group's start")
+    data_type: DataType = "float32"
+    word_order: WordOrder = "ABCD"
+    raw_range: tuple[float, float] | None = Field(
+        default=None, description="valid raw values; outside them a sample is bad"
+    )
+    eng_range: tuple[float, float] | None = Field(
+        default=None, description="engineering values that raw_range maps onto"
+    )
+
+    @field_validator("raw_range")
+    @classmethod
+    def _raw_increasing(cls, raw_range: tuple[float, float] | None) -> tuple[float, float] | None:
+        if raw_range is not None and not raw_range[1] > raw_range[0]:
+            raise ValueError(f"raw_range must have high > low, got {list(raw_range)}")
+        return raw_range
+
+    @model_validator(mode="after")
+    def _scaling_needs_raw_range(self) -> ModbusTagConfig:
+        if self.eng_range is not None:
+            if self.raw_range is None:
+                raise ValueError("eng_range needs raw_range (the raw values it maps from)")
+            if self.eng_range[0] == self.eng_range[1]:
+                raise ValueError(f"eng_range must span something, got {list(self.eng_range)}")
+        return self
+
+    @property
+    def registers(self) -> int:
+        """Registers the tag occupies."""
+        return REGISTER_COUNT[self.data_type]
+
+
+class ModbusGroupConfig(_Strict):
+    """Registers read in one request, and the tags inside them."""
+
+    function: Literal["holding", "input"] = "holding"
+    start: int = Field(ge=0, le=0xFFFF, description="first register address (0-based)")
+    count: int = Field(ge=1, le=125, description="registers per request (Modbus allows 125)")
+    tags: list[ModbusTagConfig] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _tags_fit_without_overlap(self) -> ModbusGroupConfig:
+        if self.start + self.count > 0x10000:
+            raise ValueError(
+                f"start {self.start} + count {self.count} runs past register 65535"
+            )
+        placed = sorted(enumerate(self.tags), key=lambda pair: pair[1].offset)
+        for (i, tag), (j, later) in itertools.pairwise(placed):
+            if later.offset < tag.offset + tag.registers:
+                raise ValueError(
+                    f"tags[{j}] ({later.tag!r}, offset {later.offset}) overlaps tags[{i}] "
+                    f"({tag.tag!r}, {tag.data_type} at offsets {tag.offset}.."
+                    f"{tag.offset + tag.registers - 1})"
+                )
+        for i, tag in enumerate(self.tags):
+            if tag.offset + tag.registers > self.count:
+                raise ValueError(
+                    f"tags[{i}] ({tag.tag!r}): {tag.data_type} at offset {tag.offset} needs "
+                    f"offsets {tag.offset}..{tag.offset + tag.registers - 1}, but the group "
+                    f"has count {self.count} (offsets 0..{self.count - 1})"
+                )
+        return self
+
+
+class ModbusConnectorConfig(_Strict):
+    """One Modbus TCP device (one connection) and the register groups polled from it.
+
+    Examples
+    --------
+    >>> config = ModbusConnectorConfig.model_validate({
+    ...     "host": "127.0.0.1", "port": 5020, "poll_interval_s": 1.0,
+    ...     "groups": [{"function": "holding", "start": 0, "count": 4, "tags": [
+    ...         {"tag": "FIC-101.PV", "offset": 0, "data_type": "float32"},
+    ...         {"tag": "FIC-101.OP", "offset": 2, "data_type": "int16",
+    ...          "raw_range": [0, 32000], "eng_range": [0, 100]}]}]})
+    >>> [tag.tag for tag in config.tags()]
+    ['FIC-101.PV', 'FIC-101.OP']
+    """
+
+    host: str = Field(min_length=1)
+    port: int = Field(default=502, ge=1, le=65535)
+    unit_id: int = Field(default=1, ge=0, le=255, description="Modbus unit (device) id")
+    poll_interval_s: float = Field(default=1.0, gt=0)
+    timeout_s: float = Field(default=3.0, gt=0, description="connect and answer timeout")
+    groups: list[ModbusGroupConfig] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _tags_unique(self) -> ModbusConnectorConfig:
+        seen: dict[str, str] = {}
+        for g, group in enumerate(self.groups):
+            for t, tag in enumerate(group.tags):
+                where = f"groups[{g}].tags[{t}]"
+                if tag.tag in seen:
+                    raise ValueError(f"{where}: tag {tag.tag!r} is already read by {seen[tag.tag]}")
+                seen[tag.tag] = where
+        return self
+
+    def tags(self) -> Iterator[ModbusTagConfig]:
+        """Every tag, group by group."""
+        for group in self.groups:
+            yield from group.tags
+
+
+@dataclass(frozen=True)
+class Outage:
+    """A time the device could not be read: no samples exist between ``start`` and ``end``.
+
+    Attributes
+    ----------
+    start : float
+        UNIX time the connection was lost (or the first connect failed).
+    end : float or None
+        UNIX time the connection was back; None while the outage lasts.
+    reason : str
+        What went wrong first.
+    failed_attempts : int
+        Reconnection attempts that failed.
+    """
+
+    start: float
+    end: float | None
+    reason: str
+    failed_attempts: int = 0
+
+
+@dataclass
+class ModbusCounters:
+    """What a :class:`ModbusConnector` has done; ``samples = delivered + undelivered``
+    once it has stopped (before that the difference is still queued for the sink).
+
+    Attributes
+    ----------
+    polls : int
+        Requests answered, exception responses included.
+    error_responses : int
+        Modbus exception responses; the tags of that group are sent as bad.
+    registers_read : int
+        Registers received.
+    samples, bad : int
+        Items made from the answers, and how many of them are bad.
+    delivered, undelivered : int
+        Items the sink took, and items of batches the sink raised on (logged).
+    reconnects : int
+        Connections made after the first.
+    outages : int
+        Times the connection was lost or could not be made (see ``Outage``).
+    skipped_cycles : int
+        Poll cycles left out because a cycle overran the poll interval.
+    """
+
+    polls: int = 0
+    error_responses: int = 0
+    registers_read: int = 0
+    samples: int = 0
+    bad: int = 0
+    delivered: int = 0
+    undelivered: int = 0
+    reconnects: int = 0
+    outages: int = 0
+    skipped_cycles: int = 0
+
+
+class BackgroundConnector(ABC):
+    """A connector whose work is one coroutine: run it in a loop of yours or in its own thread.
+
+    ``await connector.run()`` works until :meth:`stop` is called (from any
+    thread) or, for finite sources, until the work is done;
+    :meth:`start` runs the same in a daemon thread with its own event loop.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._stop_requested = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake: asyncio.Event | None = None
+        self._thread: threading.Thread | None = None
+
+    @abstractmethod
+    async def _work(self) -> None:
+        """The connector's work; it checks :attr:`stopping` and sleeps with :meth:`_sleep`."""
+
+    @property
+    def stopping(self) -> bool:
+        """Whether :meth:`stop` has been called."""
+        return self._stop_requested.is_set()
+
+    async def run(self) -> None:
+        """Do the work in the running event loop until stopped or done."""
+        self._loop, self._wake = asyncio.get_running_loop(), asyncio.Event()
+        try:
+            if not self.stopping:
+                await self._work()
+        finally:
+            self._loop = self._wake = None
+
+    async def _sleep(self, seconds: float) -> bool:
+        """Wait ``seconds`` or until stopped; True if stopped."""
+        assert self._wake is not None
+        if seconds > 0 and not self.stopping:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), seconds)
+        return self.stopping
+
+    def start(self) -> None:
+        """Run in a daemon thread with its own event loop."""
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError(f"{self.name} is already running")
+        self._stop_requested.clear()
+        self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
+        self._thread.start()
+
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self.run())
+        except Exception:
+            log.exception("%s stopped by an unexpected error", self.name)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Ask the work to end (safe from any thread); wait for the thread if :meth:`start` ran.
+
+        A later :meth:`start` runs the work again (a replay carries on where it stopped).
+        """
+        self._stop_requested.set()
+        loop, wake = self._loop, self._wake
+        if loop is not None and wake is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nothing to wake
+                loop.call_soon_threadsafe(wake.set)
+        if self._thread is not None and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                raise TimeoutError(f"{self.name} did not stop within {timeout} s")
+
+    @property
+    def running(self) -> bool:
+        """Whether the work is in progress."""
+        return self._loop is not None
+
+
+class ModbusConnector(BackgroundConnector):
+    """Poll the groups of one Modbus TCP device and hand the samples to ``sink``.
+
+    Each poll cycle reads every group, one request at a time, stamps each
+    group's values with the time its request was sent, and queues one batch
+    for the sink; a worker thread (``asyncio.to_thread``) hands the queued
+    batches over, merged, so a slow database never delays the polls.  A
+    dropped connection or an unanswered request closes the connection,
+    opens an :class:`Outage` and reconnects after the waits of ``backoff``.
+
+    Examples
+    --------
+    >>> config = ModbusConnectorConfig(host="127.0.0.1", port=5020, groups=[
+    ...     ModbusGroupConfig(start=0, count=2, tags=[ModbusTagConfig(tag="T", offset=0)])])
+    >>> connector = ModbusConnector(config, print)
+    >>> connector.counters.polls, connector.outages
+    (0, [])
+    """
+
+    def __init__(
+        self, config: ModbusConnectorConfig, sink: SampleSink, *, backoff: Backoff = DEFAULT_BACKOFF
+    ) -> None:
+        super().__init__(f"modbus {config.host}:{config.port}")
+        self.config = config
+        self._sink = sink
+        self._backoff = backoff
+        self._counters = ModbusCounters()
+        self._outages: list[Outage] = []
+        self._failing_groups: set[int] = set()
+
+    @property
+    def counters(self) -> ModbusCounters:
+        """A copy of the counters now."""
+        return dataclasses.replace(self._counters)
+
+    @property
+    def outages(self) -> list[Outage]:
+        """The outages so far, oldest first (the last one may still be open)."""
+        return list(self._outages)
+
+    async def _work(self) -> None:
+        queue: asyncio.Queue[list[dict[str, Any]] | None] = asyncio.Queue()
+        deliverer = asyncio.create_task(self._deliver(queue))
+        try:
+            await self._supervise(queue)
+        finally:
+            queue.put_nowait(None)
+            await deliverer
+
+    async def _supervise(self, queue: asyncio.Queue[list[dict[str, Any]] | None]) -> None:
+        """Connect, poll until the connection fails, wait, reconnect: until stopped."""
+        host, port = self.config.host, self.config.port
+        delays = self._backoff.delays()
+        connected_before = False
+        while not self.stopping:
+            client = AsyncModbusTcpClient(
+                host, port=port, timeout=self.config.timeout_s, retries=0, reconnect_delay=0,
+                name=self.name,
+            )
+            try:
+                if await client.connect():
+                    if connected_before:
+                        self._counters.reconnects += 1
+                    connected_before = True
+                    self._end_outage()
+                    delays = self._backoff.delays()
+                    log.info("%s: connected", self.name)
+                    reason = await self._poll(client, queue)
+                else:
+                    reason = f"cannot connect to {host}:{port}"
+            except Exception as exc:
+                log.exception("%s: unexpected error while polling", self.name)
+                reason = f"unexpected error: {exc!r}"
+            finally:
+                client.close()
+            if reason is None:
+                return
+            self._begin_outage(reason)
+            if await self._sleep(next(delays)):
+                return
+
+    def _begin_outage(self, reason: str) -> None:
+        if self._outages and self._outages[-1].end is None:
+            last = self._outages[-1]
+            self._outages[-1] = dataclasses.replace(
+                last, failed_attempts=last.failed_attempts + 1
+            )
+            return
+        self._outages.append(Outage(start=time.time(), end=None, reason=reason))
+        self._counters.outages += 1
+        log.warning("%s: outage: %s; reconnecting with backoff", self.name, reason)
+
+    def _end_outage(self) -> None:
+        if self._outages and self._outages[-1].end is None:
+            now = time.time()
+            last = self._outages[-1] = dataclasses.replace(self._outages[-1], end=now)
+            log.info("%s: connection back after %.1f s", self.name, now - last.start)
+
+    async def _poll(
+        self, client: AsyncModbusTcpClient, queue: asyncio.Queue[list[dict[str, Any]] | None]
+    ) -> str | None:
+        """Poll every group each interval; the reason the connection failed, None if stopped."""
+        loop = asyncio.get_running_loop()
+        interval = self.config.poll_interval_s
+        next_cycle = loop.time()
+        while not self.stopping:
+            batch: list[dict[str, Any]] = []
+            for index, group in enumerate(self.config.groups):
+                if not client.connected:
+                    return "the connection was closed"
+                read = (
+                    client.read_holding_registers
+                    if group.function == "holding"
+                    else client.read_input_registers
+                )
+                stamp = time.time()
+                try:
+                    response = await read(
+                        group.start, count=group.count, device_id=self.config.unit_id
+                    )
+                except ModbusIOException as exc:
+                    return f"no answer within {self.config.timeout_s} s: {exc}"
+                except (ConnectionException, ModbusException) as exc:
+                    return f"the connection failed: {exc}"
+                batch.extend(self._samples(index, response, stamp))
+            queue.put_nowait(batch)
+            next_cycle += interval
+            late = loop.time() - next_cycle
+            if late > 0:
+                skipped = math.ceil(late / interval)
+                self._counters.skipped_cycles += skipped
+                next_cycle += skipped * interval
+            await self._sleep(next_cycle - loop.time())
+        return None
+
+    def _samples(self, index: int, response: ModbusPDU, stamp: float) -> list[dict[str, Any]]:
+        """The group's tags as ingest entries; all bad if the device answered with an error."""
+        group = self.config.groups[index]
+        self._counters.polls += 1
+        registers = list(response.registers)
+        failed = response.isError() or len(registers) < group.count
+        if failed:
+            self._counters.error_responses += 1
+            if index not in self._failing_groups:
+                log.warning(
+                    "%s: groups[%d] (%s registers %d..%d) answered %s; its tags are sent as bad",
+                    self.name, index, group.function, group.start,
+                    group.start + group.count - 1, response,
+                )
+            self._failing_groups.add(index)
+        else:
+            self._counters.registers_read += len(registers)
+            self._failing_groups.discard(index)
+        entries = []
+        for tag in group.tags:
+            value = None if failed else self._value(tag, registers)
+            self._counters.bad += value is None
+            entries.append({"tag": tag.tag, "items": [item(stamp, value)]})
+        self._counters.samples += len(entries)
+        return entries
+
+    @staticmethod
+    def _value(tag: ModbusTagConfig, registers: list[int]) -> float | None:
+        """The tag's value in engineering units; None when not finite or out of raw range."""
+        raw = decode(
+            registers[tag.offset : tag.offset + tag.registers], tag.data_type, tag.word_order
+        )
+        if not math.isfinite(raw):
+            return None
+        if tag.raw_range is not None:
+            if not tag.raw_range[0] <= raw <= tag.raw_range[1]:
+                return None
+            if tag.eng_range is not None:
+                return to_engineering(raw, tag.raw_range, tag.eng_range)
+        return raw
+
+    async def _deliver(self, queue: asyncio.Queue[list[dict[str, Any]] | None]) -> None:
+        """Hand queued batches to the sink in a worker thread until the end marker."""
+        finished = False
+        while not finished:
+            entries = await queue.get()
+            if entries is None:
+                break
+            while not queue.empty():
+                more = queue.get_nowait()
+                if more is None:
+                    finished = True
+                    break
+                entries.extend(more)
+            await self._hand_over(entries)
+
+    async def _hand_over(self, entries: list[dict[str, Any]]) -> None:
+        merged: dict[str, list[dict[str, Any]]] = {}
+        for entry in entries:
+            merged.setdefault(entry["tag"], []).extend(entry["items"])
+        batch = [{"tag": tag, "items": items} for tag, items in merged.items()]
+        count = sum(len(items) for items in merged.values())
+        try:
+            await asyncio.to_thread(self._sink, batch)
+        except Exception:
+            self._counters.undelivered += count
+            log.exception("%s: the sink refused a batch of %d samples", self.name, count)
+        else:
+            self._counters.delivered += count

@@ -1,0 +1,392 @@
+"""Replaying a historian CSV export into the service, at a chosen speed.
+
+The export has a header row, one row per time and one column per signal.
+Time is either one column (``time``, ``t``, ``t_s`` or ``timestamp``, or the
+one named: UNIX seconds or ISO 8601) or a ``date`` column beside a ``time``
+column (``2024-11-27`` and ``23:59:00``, as the plant exports in
+``../shared/data/plant_unlabelled`` have).  Times without an offset are in
+the given time zone (UTC unless told otherwise).  Rows may come in any order
+(those exports run newest first): they are replayed in time order.
+
+A row that is ``d`` seconds after the first is sent ``d / speed`` seconds
+after the replay started, stamped with that moment (``timestamps="now"``:
+the file's spacing divided by ``speed``, never in the future) or with its
+own time (``timestamps="original"``).  Empty cells and ``nan`` are sent as
+bad samples; any other cell that is not a number, a time that cannot be
+read, or two rows with the same time refuse the file with its row (the line
+in the file, the header being row 1) and column.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Literal
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from connectors.base import SampleSink, item
+from connectors.modbus import BackgroundConnector
+
+__all__ = [
+    "HistorianExport",
+    "ReplayConnector",
+    "ReplayConnectorConfig",
+    "ReplayCounters",
+    "ReplayError",
+    "read_historian_export",
+]
+
+log = logging.getLogger(__name__)
+
+TIME_NAMES = ("time", "t", "t_s", "timestamp")
+MISSING = {"", "nan", "NaN", "NAN", "null", "NULL", "NA"}
+TimestampMode = Literal["now", "original"]
+
+
+class ReplayError(ValueError):
+    """The file cannot be replayed; the message names file, row and column."""
+
+
+@dataclass(frozen=True)
+class HistorianExport:
+    """The columns to replay of one export, in time order.
+
+    Attributes
+    ----------
+    times : ndarray
+        UNIX seconds, strictly increasing.
+    values : dict
+        column -> values (NaN where the cell was empty or ``nan``).
+    rows : ndarray
+        The file row of each time (the header is row 1).
+    """
+
+    times: NDArray[np.float64]
+    values: dict[str, NDArray[np.float64]]
+    rows: NDArray[np.int64]
+
+
+def _zone(name: str) -> ZoneInfo:
+    try:
+        return ZoneInfo(name)
+    except (ZoneInfoNotFoundError, ValueError):
+        raise ValueError(f"unknown time zone {name!r} (use an IANA name such as 'UTC')") from None
+
+
+def _parse_time(text: str, zone: ZoneInfo) -> float:
+    """UNIX seconds from UNIX seconds or ISO 8601 (naive times are in ``zone``)."""
+    try:
+        return float(text)
+    except ValueError:
+        stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
+        if stamp.tzinfo is None:
+            stamp = stamp.replace(tzinfo=zone)
+        return stamp.timestamp()
+
+
+def _column(header: list[str], name: str, path: Path) -> int:
+    lowered = [h.strip().lower() for h in header]
+    try:
+        return lowered.index(name.strip().lower())
+    except ValueError:
+        raise ReplayError(
+            f"{path}: no column {name!r}; the header has {', '.join(header)}"
+        ) from None
+
+
+def _time_columns(
+    header: list[str], time_column: str | None, date_column: str | None, path: Path
+) -> tuple[int | None, int]:
+    """(date column or None, time column) indices."""
+    lowered = [h.strip().lower() for h in header]
+    if date_column is None and time_column is None and "date" in lowered and "time" in lowered:
+        date_column, time_column = "date", "time"
+    if time_column is None:
+        found = [name for name in TIME_NAMES if name in lowered]
+        if not found:
+            raise ReplayError(
+                f"{path}: no time column ({', '.join(TIME_NAMES)}, or date and time); "
+                f"name it with time_column; the header has {', '.join(header)}"
+            )
+        time_column = found[0]
+    date_index = None if date_column is None else _column(header, date_column, path)
+    return date_index, _column(header, time_column, path)
+
+
+def read_historian_export(
+    path: str | Path,
+    columns: list[str],
+    *,
+    time_column: str | None = None,
+    date_column: str | None = None,
+    timezone: str = "UTC",
+) -> HistorianExport:
+    """Read ``columns`` of a historian export, sorted by time (see the module docstring).
+
+    Raises
+    ------
+    ReplayError
+        Missing file or column, a cell that is not a number or a time (with
+        its row and column), a row of the wrong length, two rows with the
+        same time, or no data rows.
+    """
+    path = Path(path)
+    try:
+        zone = _zone(timezone)
+    except ValueError as exc:
+        raise ReplayError(f"{path}: {exc}") from None
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as handle:
+            table = list(csv.reader(handle))
+    except FileNotFoundError:
+        raise ReplayError(f"{path}: no such file") from None
+    except UnicodeDecodeError as exc:
+        raise ReplayError(f"{path}: not a text file ({exc.reason})") from None
+    except csv.Error as exc:
+        raise ReplayError(f"{path}: not valid CSV: {exc}") from None
+    if not table:
+        raise ReplayError(f"{path}: the file is empty")
+    header = table[0]
+    date_index, time_index = _time_columns(header, time_column, date_column, path)
+    value_index = {name: _column(header, name, path) for name in columns}
+    clash = [name for name, i in value_index.items() if i in (date_index, time_index)]
+    if clash:
+        raise ReplayError(f"{path}: column {clash[0]!r} holds the time, it cannot be replayed")
+    body = [(number, row) for number, row in enumerate(table[1:], start=2) if any(row)]
+    if not body:
+        raise ReplayError(f"{path}: no data rows below the header")
+    times = np.empty(len(body))
+    values = {name: np.empty(len(body)) for name in columns}
+    for k, (number, row) in enumerate(body):
+        if len(row) != len(header):
+            raise ReplayError(
+                f"{path}, row {number}: {len(row)} cells, the header has {len(header)}"
+            )
+        text = row[time_index].strip()
+        if date_index is not None:
+            text = f"{row[date_index].strip()}T{text}"
+        try:
+            times[k] = _parse_time(text, zone)
+        except ValueError:
+            where = f"column {header[time_index]!r}" if date_index is None else (
+                f"columns {header[date_index]!r} and {header[time_index]!r}"
+            )
+            raise ReplayError(
+                f"{path}, row {number}, {where}: {text!r} is neither UNIX seconds "
+                "nor an ISO 8601 time"
+            ) from None
+        if not math.isfinite(times[k]):
+            raise ReplayError(f"{path}, row {number}, column {header[time_index]!r}: "
+                              f"{text!r} is not a finite time")
+        for name, i in value_index.items():
+            cell = row[i].strip()
+            if cell in MISSING:
+                values[name][k] = math.nan
+                continue
+            try:
+                values[name][k] = float(cell)
+            except ValueError:
+                raise ReplayError(
+                    f"{path}, row {number}, column {header[i]!r}: {cell!r} is not a number"
+                ) from None
+    order = np.argsort(times, kind="stable")
+    times = times[order]
+    rows = np.array([number for number, _ in body], dtype=np.int64)[order]
+    same = np.flatnonzero(np.diff(times) == 0)
+    if same.size:
+        k = int(same[0])
+        raise ReplayError(
+            f"{path}, rows {rows[k]} and {rows[k + 1]}: the same time "
+            f"{datetime.fromtimestamp(times[k], zone).isoformat()}; remove the duplicate"
+        )
+    return HistorianExport(
+        times=times, values={name: v[order] for name, v in values.items()}, rows=rows
+    )
+
+
+class ReplayConnectorConfig(BaseModel):
+    """A historian export to replay (the keys mirror :class:`ReplayConnector`'s arguments).
+
+    Examples
+    --------
+    >>> config = ReplayConnectorConfig(path="FIC-211.csv", speed=60,
+    ...                                columns={"FT_211": "FIC-211.PV", "FV_211": "FIC-211.OP"})
+    >>> config.timestamps, config.timezone
+    ('now', 'UTC')
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    path: Path
+    columns: dict[str, str] = Field(min_length=1, description="file column -> tag")
+    speed: float = Field(default=1.0, gt=0, description="file seconds per wall-clock second")
+    timestamps: TimestampMode = "now"
+    time_column: str | None = None
+    date_column: str | None = None
+    timezone: str = Field(default="UTC", description="time zone of times without an offset")
+    max_rows_per_batch: int = Field(default=1000, ge=1)
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_zone(cls, timezone: str) -> str:
+        _zone(timezone)
+        return timezone
+
+    @model_validator(mode="after")
+    def _one_column_per_tag(self) -> ReplayConnectorConfig:
+        seen: dict[str, str] = {}
+        for column, tag in self.columns.items():
+            if tag in seen:
+                raise ValueError(
+                    f"columns.{column}: tag {tag!r} is already fed by column {seen[tag]!r}"
+                )
+            seen[tag] = column
+        return self
+
+
+@dataclass
+class ReplayCounters:
+    """What a :class:`ReplayConnector` has sent.
+
+    Attributes
+    ----------
+    rows : int
+        File rows replayed so far (of ``total_rows``).
+    samples, bad : int
+        Items made (one per row and column), and how many of them are bad.
+    delivered, undelivered : int
+        Items the sink took, and items of batches the sink raised on (logged).
+    """
+
+    total_rows: int
+    rows: int = 0
+    samples: int = 0
+    bad: int = 0
+    delivered: int = 0
+    undelivered: int = 0
+
+
+class ReplayConnector(BackgroundConnector):
+    """Replay ``path`` into ``sink`` at ``speed`` times real time (see the module docstring).
+
+    The file is read, checked and sorted when the connector is made, so a
+    bad file fails at once.  ``run()`` returns when every row is sent (or on
+    ``stop()``); rows due together go out in one batch of at most
+    ``max_rows_per_batch`` rows, handed to the sink in a worker thread.
+
+    Parameters
+    ----------
+    path : path
+        The CSV export.
+    sink : SampleSink
+        Receives ingest batches.
+    columns : mapping
+        File column -> tag to send it as.
+    speed : float
+        File seconds per wall-clock second (60: a minute of data per second).
+    timestamps : {"now", "original"}
+        Stamp each row with the moment it is due, or with its time in the file.
+    time_column, date_column : str, optional
+        Name the time column (and a date column before it) when they are
+        not found by name.
+    timezone : str
+        IANA zone of times without an offset.
+    max_rows_per_batch : int
+        Most rows in one batch (bounds the sink's transactions at high speed).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        sink: SampleSink,
+        *,
+        columns: Mapping[str, str],
+        speed: float = 1.0,
+        timestamps: TimestampMode = "now",
+        time_column: str | None = None,
+        date_column: str | None = None,
+        timezone: str = "UTC",
+        max_rows_per_batch: int = 1000,
+    ) -> None:
+        config = ReplayConnectorConfig(
+            path=Path(path), columns=dict(columns), speed=speed, timestamps=timestamps,
+            time_column=time_column, date_column=date_column, timezone=timezone,
+            max_rows_per_batch=max_rows_per_batch,
+        )
+        super().__init__(f"replay {config.path.name}")
+        self.config = config
+        self.export = read_historian_export(
+            config.path, list(config.columns), time_column=time_column,
+            date_column=date_column, timezone=timezone,
+        )
+        self._sink = sink
+        self._counters = ReplayCounters(total_rows=int(self.export.times.size))
+
+    @classmethod
+    def from_config(cls, config: ReplayConnectorConfig, sink: SampleSink) -> ReplayConnector:
+        """The connector that ``config`` describes."""
+        return cls(config.path, sink, **config.model_dump(exclude={"path"}))
+
+    @property
+    def counters(self) -> ReplayCounters:
+        """A copy of the counters now."""
+        return dataclasses.replace(self._counters)
+
+    @property
+    def finished(self) -> bool:
+        """Whether every row has been sent."""
+        return self._counters.rows == self._counters.total_rows
+
+    async def _work(self) -> None:
+        loop = asyncio.get_running_loop()
+        times = self.export.times
+        due = (times - times[0]) / self.config.speed  # seconds after the first row
+        k = self._counters.rows  # a stopped replay carries on where it stopped
+        if k == times.size:
+            return
+        start_wall = time.time() - due[k]  # read first: a stamp never runs ahead
+        start = loop.time() - due[k]
+        while k < times.size:
+            if await self._sleep(due[k] - (loop.time() - start)):
+                return
+            end = int(np.searchsorted(due, loop.time() - start, side="right"))
+            end = min(max(end, k + 1), k + self.config.max_rows_per_batch)
+            stamps = start_wall + due[k:end] if self.config.timestamps == "now" else times[k:end]
+            await self._send(self._batch(k, end, stamps), rows=end - k)
+            k = end
+
+    def _batch(self, first: int, end: int, stamps: NDArray[np.float64]) -> list[dict[str, Any]]:
+        batch = []
+        for column, tag in self.config.columns.items():
+            values = self.export.values[column][first:end]
+            items = [
+                item(float(stamp), None if math.isnan(value) else float(value))
+                for stamp, value in zip(stamps, values, strict=True)
+            ]
+            self._counters.bad += int(np.isnan(values).sum())
+            batch.append({"tag": tag, "items": items})
+        return batch
+
+    async def _send(self, batch: list[dict[str, Any]], rows: int) -> None:
+        count = sum(len(entry["items"]) for entry in batch)
+        self._counters.rows += rows
+        self._counters.samples += count
+        try:
+            await asyncio.to_thread(self._sink, batch)
+        except Exception:
+            self._counters.undelivered += count
+            log.exception("%s: the sink refused a batch of %d samples", self.name, count)
+        else:
+            self._counters.delivered += count
