@@ -24,13 +24,26 @@ key path (``loops[2].tags.pv``) and the reason.
 
 from __future__ import annotations
 
+import json
+import re
 import secrets
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
 
 __all__ = [
     "ConfigError",
@@ -199,19 +212,40 @@ def load_plant_config(path: str | Path) -> PlantConfig:
 
 
 DEV_API_KEY = "dev-insecure-key"
+KNOWN_DEFAULT_SECRETS = frozenset({
+    DEV_API_KEY, "changeme", "change-me", "secret", "password", "admin", "postgres",
+    "loopwatch", "example", "test",
+})
+"""Secrets that come with examples and tutorials: refused outside development."""
+
+
+def _comma_separated(value: Any) -> Any:
+    """``a,b`` from the environment as ``["a", "b"]`` (JSON lists are taken as they are)."""
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):
+            return json.loads(text)
+        return [part.strip() for part in text.split(",") if part.strip()]
+    return value
 
 
 class Settings(BaseSettings):
-    """Service settings from the environment (prefix ``LOOPWATCH_``)."""
+    """Service settings from the environment (prefix ``LOOPWATCH_``).
+
+    Secrets (the bootstrap key, the database URL with its password) are
+    :class:`~pydantic.SecretStr`, so a logged or printed ``Settings`` shows
+    ``**********`` instead.  Outside ``development`` a secret left at a known
+    default, and a CORS wildcard, are refused at start.
+    """
 
     model_config = SettingsConfigDict(env_prefix="LOOPWATCH_", extra="ignore")
 
     environment: Literal["development", "production"] = "development"
     data_dir: Path = Path("data")
-    database_url: str | None = Field(
+    database_url: SecretStr | None = Field(
         default=None, description="SQLAlchemy URL; default: SQLite file in data_dir"
     )
-    api_key: str | None = Field(
+    api_key: SecretStr | None = Field(
         default=None, description="bootstrap admin key; generated and printed when unset"
     )
     analysis_interval_s: float = Field(default=60.0, gt=0)
@@ -226,27 +260,124 @@ class Settings(BaseSettings):
     webhook_url: str | None = None
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, lt=65536)
+    cors_origins: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
+        default_factory=list,
+        description="origins (scheme://host[:port]) whose pages may call the API; "
+                    "empty: same origin only",
+    )
+    max_body_bytes: int = Field(
+        default=20 * 1024 * 1024, gt=0, description="largest request body accepted, bytes"
+    )
+    max_batch_samples: int = Field(
+        default=200_000, gt=0, description="most samples taken in one ingest batch"
+    )
+    rate_limit_per_s: float = Field(
+        default=20.0, gt=0, description="requests per second sustained by one API key"
+    )
+    rate_limit_burst: int = Field(
+        default=100, ge=1, description="requests one API key may send at once above the rate"
+    )
+    spool_max_samples: int = Field(
+        default=2_000_000, ge=0,
+        description="samples held in memory while the store is unreachable (0: none); "
+                    "17-40 bytes each",
+    )
+    spool_retry_s: float = Field(
+        default=5.0, gt=0, description="pause between attempts to write the spool, s"
+    )
+    auth_outage_grace_s: float = Field(
+        default=3600.0, ge=0,
+        description="while the store is unreachable, keys confirmed this recently still "
+                    "authenticate, s",
+    )
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, origins: list[str]) -> list[str]:
+        for origin in origins:
+            if origin != "*" and not re.fullmatch(r"https?://[^/\s?#]+", origin):
+                raise ValueError(
+                    f"CORS origin {origin!r} must be scheme://host[:port] "
+                    "(no path, no trailing slash)"
+                )
+        return origins
 
     @model_validator(mode="after")
     def _no_unsafe_defaults(self) -> Settings:
-        if self.environment == "production" and (
-            self.api_key is None or self.api_key == DEV_API_KEY or len(self.api_key) < 16
-        ):
-            raise ValueError(
-                "LOOPWATCH_API_KEY must be set to a secret of at least 16 characters "
-                "in production"
-            )
+        if self.environment != "development":
+            self._refuse_default_secrets()
         if self.buffer_horizon_s < self.window_s:
             raise ValueError("LOOPWATCH_BUFFER_HORIZON_S must be at least LOOPWATCH_WINDOW_S")
         return self
 
+    def _refuse_default_secrets(self) -> None:
+        key = None if self.api_key is None else self.api_key.get_secret_value()
+        if key is None or key.lower() in KNOWN_DEFAULT_SECRETS or len(key) < 16:
+            raise ValueError(
+                f"LOOPWATCH_API_KEY must be set to a secret of at least 16 characters "
+                f"in {self.environment}"
+            )
+        if self.database_url is not None:
+            try:
+                url = make_url(self.database_url.get_secret_value())
+            except ArgumentError:
+                raise ValueError("LOOPWATCH_DATABASE_URL is not a database URL") from None
+            if url.password is not None and (
+                url.password.lower() in KNOWN_DEFAULT_SECRETS or url.password == url.username
+            ):
+                raise ValueError(
+                    f"LOOPWATCH_DATABASE_URL has a default password for user {url.username!r}; "
+                    f"set a real one in {self.environment}"
+                )
+        if "*" in self.cors_origins:
+            raise ValueError(
+                f"LOOPWATCH_CORS_ORIGINS may not be '*' in {self.environment}: "
+                "list the origins of the pages that call the API"
+            )
+
     @property
     def resolved_database_url(self) -> str:
         """The database URL, defaulting to ``sqlite:///<data_dir>/loopwatch.db``."""
-        return self.database_url or f"sqlite:///{self.data_dir / 'loopwatch.db'}"
+        if self.database_url is not None:
+            return self.database_url.get_secret_value()
+        return f"sqlite:///{self.data_dir / 'loopwatch.db'}"
 
     def bootstrap_key(self) -> tuple[str, bool]:
         """The admin key and whether it was generated for this run."""
-        if self.api_key:
-            return self.api_key, False
+        if self.api_key is not None and self.api_key.get_secret_value():
+            return self.api_key.get_secret_value(), False
         return secrets.token_urlsafe(24), True
+
+    # Scale-out (issue 11): process roles, analysis executor, ingest shards, leadership.
+    role: Literal["api", "ingest", "scheduler", "all"] = Field(
+        default="all", description="what this process runs (``loopwatch serve --role``)"
+    )
+    executor: Literal["process", "dask"] = Field(
+        default="process", description="analysis workers: local process pool or a Dask cluster"
+    )
+    dask_scheduler: str | None = Field(
+        default=None, description="address of the Dask scheduler, e.g. tcp://dask:8786"
+    )
+    ingest_shard: int = Field(
+        default=0, ge=0, description="index of this ingest process, 0 .. ingest_shards - 1"
+    )
+    ingest_shards: int = Field(
+        default=1, ge=1, description="number of ingest processes sharing the connectors"
+    )
+    leader_lease_s: float = Field(
+        default=15.0, gt=0,
+        description="a scheduler silent this long is replaced by a standby, s",
+    )
+
+    @model_validator(mode="after")
+    def _scale_out_consistent(self) -> Settings:
+        if self.executor == "dask" and not self.dask_scheduler:
+            raise ValueError(
+                "LOOPWATCH_EXECUTOR=dask needs LOOPWATCH_DASK_SCHEDULER (e.g. tcp://dask:8786)"
+            )
+        if self.ingest_shard >= self.ingest_shards:
+            raise ValueError(
+                f"LOOPWATCH_INGEST_SHARD ({self.ingest_shard}) must be below "
+                f"LOOPWATCH_INGEST_SHARDS ({self.ingest_shards})"
+            )
+        return self

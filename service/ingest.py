@@ -387,6 +387,9 @@ def _csv_rows(text: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
         raise IngestError(f"CSV line {reader.line_num}: not valid CSV: {exc}") from None
     if not rows:
         raise IngestError("CSV: the upload is empty")
+    if not any(rows[0]):
+        raise IngestError("CSV row 1: the header row is empty; the first line must name the "
+                          "columns")
     header = [name.strip() for name in rows[0]]
     body = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(row)]
     for number, row in body:

@@ -74,6 +74,7 @@ class PlantRegistry:
                                                       loop.model_dump()]}
             )
             _upsert_loop(session, loop, now)
+            session.flush()  # a row the database refuses must not change the running plant
             self._plant = plant
             return created
 

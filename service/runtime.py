@@ -1,20 +1,75 @@
-"""The running service's shared state: configuration, store, buffers, metrics."""
+"""The running service's shared state: configuration, store, buffers, metrics.
+
+:meth:`AppState.ingest` is the one path every sample takes into the store
+(historian push, CSV upload, connectors, the demo feeder).  It keeps the
+books of :class:`SampleAccounting`: every sample received is stored, was
+already stored, is refused with a reason, or waits in the spool while the
+store is unreachable (:mod:`service.spool`).
+"""
 
 from __future__ import annotations
 
+import logging
+import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import Settings
-from service.ingest import IngestReport, ingest_batch, ingest_csv
+from service.ingest import (
+    REFUSAL_REASONS,
+    IngestError,
+    IngestReport,
+    TagItems,
+    _validate,
+    ingest_batch,
+    ingest_csv,
+)
 from service.metrics import Metrics
 from service.plant import PlantRegistry
+from service.security import RateLimiter
+from service.spool import (
+    IngestSpool,
+    SpooledBatch,
+    SpooledReport,
+    StoreUnavailableError,
+    is_store_outage,
+)
 from service.store.db import Store
 
-__all__ = ["AppState"]
+__all__ = ["SPOOL_REFUSAL_REASONS", "AppState", "SampleAccounting"]
+
+log = logging.getLogger(__name__)
+
+SPOOL_REFUSAL_REASONS = ("spool_full", "spool_write_error")
+"""Refusals of the spool: full during an outage; a spooled batch the store then refused
+with an error that is not an outage (logged with the error)."""
+
+
+@dataclass(frozen=True)
+class SampleAccounting:
+    """Where every sample received since start went (the ``loopwatch_samples_*`` counters).
+
+    ``received == stored + already_stored + sum(refused.values()) + spooled``
+    holds whenever no ingest is in progress (:attr:`balanced`).
+    """
+
+    received: int
+    stored: int
+    already_stored: int
+    refused: dict[str, int]
+    spooled: int
+    """Samples waiting in the spool now."""
+
+    @property
+    def balanced(self) -> bool:
+        """True when every received sample is accounted for."""
+        return self.received == (self.stored + self.already_stored
+                                 + sum(self.refused.values()) + self.spooled)
 
 
 @dataclass
@@ -27,28 +82,156 @@ class AppState:
     buffers: LoopBuffers
     metrics: Metrics = field(default_factory=Metrics)
     clock: Callable[[], float] = time.time
+    spool: IngestSpool = field(init=False)
+    keys: KeyVerifier = field(init=False)
+    limiter: RateLimiter = field(init=False)
 
-    def _account(self, report: IngestReport) -> None:
+    def __post_init__(self) -> None:
+        self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)
+        self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
+        self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
+                                   burst=self.settings.rate_limit_burst)
+        self._flushing = threading.Lock()
+        self._next_flush = -math.inf  # time.monotonic() of the next attempt to write the spool
+
+    def _account(self, report: IngestReport, *, received: bool = True) -> None:
+        """Feed the buffers and count; ``received`` False for a batch counted on entering
+        the spool."""
         self.buffers.append_new(report.new_samples)
-        self.metrics.inc("loopwatch_samples_received_total", report.received)
+        if received:
+            self.metrics.inc("loopwatch_samples_received_total", report.received)
         self.metrics.inc("loopwatch_samples_stored_total", report.stored)
+        self.metrics.inc("loopwatch_samples_already_stored_total", report.already_stored)
         for reason, count in report.refused.items():
             self.metrics.inc("loopwatch_samples_refused_total", count, reason=reason)
 
-    def ingest(self, batch: list[dict[str, Any]] | list[Any]) -> IngestReport:
-        """Store a batch (one transaction), then feed the rolling buffers."""
+    def _write(self, batch: list[TagItems] | list[dict[str, Any]]) -> IngestReport:
         with self.store.session() as session:
-            report = ingest_batch(
+            return ingest_batch(
                 session, batch, known_tags=self.registry.tag_index().keys(), now=self.clock()
             )
+
+    def ingest(self, batch: list[dict[str, Any]] | list[Any]) -> IngestReport:
+        """Store a batch (one transaction), then feed the rolling buffers.
+
+        While the store is unreachable, or the spool still holds batches, the
+        batch is spooled instead and a :class:`~service.spool.SpooledReport`
+        returned.
+
+        Raises
+        ------
+        IngestError
+            The batch is malformed or longer than ``settings.max_batch_samples``;
+            nothing is stored.
+        StoreUnavailableError
+            The store is unreachable and the batch does not fit in the spool;
+            it is counted as refused (``spool_full``).
+        """
+        items = _validate(batch)
+        samples = sum(len(entry.items) for entry in items)
+        if samples > self.settings.max_batch_samples:
+            raise IngestError(
+                f"batch of {samples} samples is longer than the limit of "
+                f"{self.settings.max_batch_samples} (LOOPWATCH_MAX_BATCH_SAMPLES); split it"
+            )
+        if len(self.spool) and time.monotonic() >= self._next_flush:
+            self.flush_spool()
+        if len(self.spool):
+            return self._hold(SpooledBatch.of(items))
+        try:
+            report = self._write(items)
+        except Exception as exc:
+            if not is_store_outage(exc):
+                raise
+            log.warning("store unreachable (%s): spooling ingest batches", type(exc).__name__)
+            self._next_flush = time.monotonic() + self.settings.spool_retry_s
+            return self._hold(SpooledBatch.of(items))
         self._account(report)
         return report
 
-    def ingest_csv(self, text: str) -> IngestReport:
-        """Store an uploaded CSV (long or wide format), then feed the buffers."""
-        with self.store.session() as session:
-            report = ingest_csv(
-                session, text, known_tags=self.registry.tag_index().keys(), now=self.clock()
+    def _hold(self, held: SpooledBatch) -> SpooledReport:
+        self.metrics.inc("loopwatch_samples_received_total", held.samples)
+        if not self.spool.put(held):
+            self.metrics.inc("loopwatch_samples_refused_total", held.samples, reason="spool_full")
+            log.warning("store unreachable and spool full: refused a batch of %d samples",
+                        held.samples)
+            raise StoreUnavailableError(
+                f"The store is unreachable and the ingest spool is full ({self.spool.samples} "
+                f"of {self.spool.max_samples} samples held): the batch of {held.samples} "
+                "samples was not accepted; send it again later"
             )
+        self.metrics.inc("loopwatch_samples_spooled_total", held.samples)
+        return SpooledReport.of(held, self.spool.samples)
+
+    def flush_spool(self) -> int:
+        """Write the spooled batches, oldest first, until the spool is empty or the store
+        fails again; the number of samples taken out of the spool.
+
+        Called by :meth:`ingest` at most every ``settings.spool_retry_s`` while
+        the spool holds batches; the scheduler may call it too.  Only one
+        thread writes the spool at a time (others return 0 at once).
+        """
+        if not self._flushing.acquire(blocking=False):
+            return 0
+        written = 0
+        try:
+            while (held := self.spool.oldest()) is not None:
+                try:
+                    report = self._write(held.as_batch())
+                except Exception as exc:
+                    if is_store_outage(exc):
+                        self._next_flush = time.monotonic() + self.settings.spool_retry_s
+                        break
+                    log.exception("a spooled batch of %d samples could not be stored",
+                                  held.samples)
+                    self.metrics.inc("loopwatch_samples_refused_total", held.samples,
+                                     reason="spool_write_error")
+                else:
+                    self._account(report, received=False)
+                self.spool.discard_oldest()
+                self.metrics.inc("loopwatch_samples_unspooled_total", held.samples)
+                written += held.samples
+        finally:
+            self._flushing.release()
+        if written and not len(self.spool):
+            log.info("store reachable again: %d spooled samples written", written)
+        return written
+
+    def ingest_csv(self, text: str) -> IngestReport:
+        """Store an uploaded CSV (long or wide format), then feed the buffers.
+
+        Raises
+        ------
+        StoreUnavailableError
+            The store is unreachable (CSV uploads are not spooled: send the
+            file again later).
+        """
+        if len(self.spool) and time.monotonic() >= self._next_flush:
+            self.flush_spool()
+        try:
+            with self.store.session() as session:
+                report = ingest_csv(
+                    session, text, known_tags=self.registry.tag_index().keys(), now=self.clock()
+                )
+        except Exception as exc:
+            if not is_store_outage(exc):
+                raise
+            raise StoreUnavailableError(
+                "The store is unreachable: CSV uploads are not spooled, send the file again "
+                "later"
+            ) from None
         self._account(report)
         return report
+
+    def accounting(self) -> SampleAccounting:
+        """The sample counters now (see :class:`SampleAccounting`)."""
+        count = self.metrics.value
+        return SampleAccounting(
+            received=int(count("loopwatch_samples_received_total")),
+            stored=int(count("loopwatch_samples_stored_total")),
+            already_stored=int(count("loopwatch_samples_already_stored_total")),
+            refused={reason: n for reason in (*REFUSAL_REASONS, *SPOOL_REFUSAL_REASONS)
+                     if (n := int(count("loopwatch_samples_refused_total", reason=reason)))},
+            spooled=int(count("loopwatch_samples_spooled_total")
+                        - count("loopwatch_samples_unspooled_total")),
+        )

@@ -1,16 +1,40 @@
-"""The FastAPI application: routers, error translation, OpenAPI at ``/docs``."""
+"""The FastAPI application: routers, protections, error translation, the OpenAPI schema.
+
+Every route needs an API key except the liveness probe ``/healthz`` and the
+dashboard shell (``/`` and ``/static/*``: fixed files holding no plant data;
+the page asks for a key and sends it with every API call).
+
+The OpenAPI schema is served at ``/openapi.json`` to any active key (of any
+role): it is part of the API, every client that uses it holds a key, and it
+maps every route and role for whoever reads it.  The interactive ``/docs``
+and ``/redoc`` pages are not served: they fetch the schema without a key,
+and they load their code from a public CDN with an inline script, which a
+plant network without internet access cannot reach and the Content Security
+Policy of :mod:`service.security` forbids.  Tools that read OpenAPI
+(Swagger UI or Postman on a workstation, client generators, schemathesis)
+take the schema with the key in the ``X-API-Key`` header.
+"""
 
 from __future__ import annotations
 
-from fastapi import FastAPI, Request
+import logging
+from typing import Annotated, Any
+
+from fastapi import Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError, DBAPIError
 
 from service.alarms import AlarmStateError
+from service.api.deps import Principal, require
 from service.api.routes import alarms, dashboard, ingest, keys, loops, plots, system, tickets
 from service.runtime import AppState
+from service.security import install_protections, retry_after
+from service.spool import StoreUnavailableError, is_store_outage
 from service.tickets import TicketStateError
 
 __all__ = ["create_app"]
+
+log = logging.getLogger(__name__)
 
 
 def create_app(state: AppState) -> FastAPI:
@@ -19,15 +43,49 @@ def create_app(state: AppState) -> FastAPI:
         title="loopwatch",
         summary="Control-loop monitoring: oscillation, valve stiction, alarms and repair tickets",
         version="0.1.0",
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.loopwatch = state
     for module in (system, loops, plots, alarms, tickets, ingest, keys, dashboard):
         app.include_router(module.router)
+
+    @app.get("/openapi.json", include_in_schema=False)
+    def openapi_schema(_: Annotated[Principal, Depends(require(None))]) -> dict[str, Any]:
+        """The OpenAPI schema of the API (any active key)."""
+        return app.openapi()
+
+    install_protections(app, state.settings)
+    unavailable_retry = retry_after(state.settings.spool_retry_s)
 
     @app.exception_handler(AlarmStateError)
     @app.exception_handler(TicketStateError)
     async def conflict(_: Request, exc: ValueError) -> JSONResponse:
         """An alarm or ticket transition that its state does not allow: 409."""
         return JSONResponse(status_code=409, content={"detail": str(exc)})
+
+    @app.exception_handler(StoreUnavailableError)
+    async def store_unavailable(_: Request, exc: StoreUnavailableError) -> JSONResponse:
+        """The store is unreachable and the request cannot wait for it: 503."""
+        return JSONResponse(status_code=503, content={"detail": str(exc)},
+                            headers={"Retry-After": unavailable_retry})
+
+    @app.exception_handler(DBAPIError)
+    async def database_error(request: Request, exc: DBAPIError) -> JSONResponse:
+        """A value the store cannot hold (too long for its column, a NUL character): 422
+        with the database's reason; the store unreachable: 503 (the driver's message, with
+        host names, stays in the log); any other database error is a bug: 500."""
+        if isinstance(exc, DataError):
+            reason = str(exc.orig).strip().splitlines()[0] if str(exc.orig).strip() else ""
+            return JSONResponse(status_code=422, content={
+                "detail": f"A value cannot be stored: {reason or type(exc.orig).__name__}"})
+        if not is_store_outage(exc):
+            raise exc
+        log.warning("%s %s: store unreachable: %s", request.method, request.url.path,
+                    str(exc.orig).strip() or type(exc.orig).__name__)
+        return await store_unavailable(
+            request, StoreUnavailableError("The store is unreachable; try again later")
+        )
 
     return app

@@ -432,10 +432,54 @@ function estimateFacts(diagnosis) {
 }
 
 function genericResult(result) {
-  // PENDING: tuning advice and model check land with their own issues; until their shape is
-  // fixed, show their fields as they come.
+  // PENDING: the model check lands with its own issue; until its shape is fixed, show its
+  // fields as they come.
   return definitionList(Object.entries(result).map(([k, v]) =>
     [k, typeof v === "object" ? JSON.stringify(v) : String(v)]));
+}
+
+function cycleText(cycle) {
+  if (!cycle) return "—";
+  if (!cycle.oscillating) return "no cycle";
+  const amplitude = (cycle.amplitudes || []).filter((a) => a !== null).map((a) => num(a));
+  return `cycle ${num(cycle.period_s, 0)} s, OP amplitude ${amplitude.join(", ") || "—"} %`;
+}
+
+function tuningText(tunings) {
+  return (tunings || []).map((t) => `Kc ${num(t.Kc, 3)}, Ti ${num(t.Ti, 1)} s`).join("; ");
+}
+
+function adviceResult(advice) {
+  // Tuning advice (GET /loops/{id}/advice): every candidate was predicted with the describing
+  // function and simulated; only the ones the simulation confirms are recommended.
+  const rows = [...advice.recommendations.map((r) => [r, "recommended"]),
+    ...advice.rejected.map((r) => [r, "not recommended"])].map(([r, kind]) =>
+    h("tr", { "data-advice": kind },
+      h("td", {}, tuningText(r.tunings)), h("td", {}, r.source),
+      h("td", {}, cycleText(r.predicted)), h("td", {}, cycleText(r.simulated)),
+      h("td", {}, `${kind}: ${r.outcome}`)));
+  return h("div", {},
+    definitionList([
+      ["Current tuning", tuningText(advice.current)],
+      ["Current, predicted", cycleText(advice.current_predicted)],
+      ["Current, simulated", cycleText(advice.current_simulated)],
+    ]),
+    table("Candidate tunings", ["Tuning", "From", "Predicted", "Simulated", "Verdict"], rows,
+      "No candidate tuning."),
+    ...(advice.notes || []).map((note) => h("p", { class: "note" }, note)));
+}
+
+async function adviceSection(path) {
+  const box = h("div", { "data-advice-box": path });
+  try {
+    const advice = await optional(path);
+    box.append(advice === null
+      ? h("p", { class: "unavailable" }, "Tuning advice: not available yet.")
+      : adviceResult(advice));
+  } catch (error) {
+    box.append(h("p", { class: "unavailable" }, `Tuning advice: not available (${error.message}).`));
+  }
+  return section("Tuning advice", "advice-title", box);
 }
 
 async function pendingSection(title, id, path) {
@@ -518,11 +562,11 @@ async function renderLoop(loopId) {
       section("Detection methods", "methods-title", methodsTable(diagnosis)),
       section("Stiction estimate", "estimate-title", estimateFacts(diagnosis),
         await plot(loopId, "history"))),
-    // PENDING: the Nyquist/DF plot, tuning advice and model check depend on work in progress;
-    // they show "not available" until their endpoints answer.
+    // PENDING: the model check depends on work in progress; it shows "not available" until
+    // its endpoint answers.
     h("div", { class: "grid-2" },
       section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", await plot(loopId, "nyquist")),
-      await pendingSection("Tuning advice", "advice-title", `${path}/advice`)),
+      await adviceSection(`${path}/advice`)),
     await pendingSection("Model check", "model-check-title", `${path}/model-check`),
     h("div", { class: "grid-2" },
       section("Alarms of this loop", "loop-alarms-title", alarmsBox),
