@@ -1,0 +1,655 @@
+"""OPC UA subscriptions: the endpoint configuration and the supervised connector.
+
+One :class:`OpcUaConnector` holds one connection to one endpoint and one
+subscription over all its nodes.  Monitored items are created in batches
+(one ``CreateMonitoredItems`` call for up to :data:`MONITORED_ITEMS_PER_CALL`
+nodes) with the ``StatusValueTimestamp`` trigger, so a sample that repeats
+the previous value -- a stuck valve position -- is still delivered, and with
+a queue per item, so samples written faster than the publishing interval are
+not lost on the server.
+
+Every notification becomes one ingest item (:func:`connectors.base.item`):
+stamped with its source timestamp (the server timestamp when the source
+gives none), good only when its status code is Good.  A Bad or Uncertain
+status, or a value that is not a number, is sent as a bad sample (value
+None) and counted in ``bad``.  Items are collected and handed to the
+synchronous sink in batches every ``flush_interval_s``, in a worker thread
+(the sink writes to a database).
+
+Supervision follows asyncua's own pattern: one supervisor loop per
+connection; when the transport is lost, a request fails, or the watchdog
+finds the subscription stale (no data and no keep-alive within
+``watchdog_s``), the connection is dropped and made again after a capped
+exponential backoff, and the subscription is created anew.  The time the
+data was missing is recorded as an :class:`Outage`, so analyses know the
+window is broken.
+
+References
+----------
+OPC Foundation, *OPC 10000-4 Unified Architecture Part 4: Services*, 5.12
+(MonitoredItem services, DataChangeFilter) and 5.13 (Subscription services,
+keep-alive and lifetime counts).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from asyncua import Client, ua
+from asyncua.common.subscription import DataChangeEvent, StatusChangeEvent, Subscription
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    FilePath,
+    SecretStr,
+    field_validator,
+    model_validator,
+)
+
+from connectors.base import Backoff, SampleSink, item
+
+__all__ = [
+    "MONITORED_ITEMS_PER_CALL",
+    "ConnectorStats",
+    "OpcUaConnector",
+    "OpcUaEndpointConfig",
+    "OpcUaNodeConfig",
+    "Outage",
+    "ThreadedRunner",
+]
+
+log = logging.getLogger(__name__)
+
+MONITORED_ITEMS_PER_CALL = 1000
+"""Nodes per CreateMonitoredItems request; many servers cap a call near 1,000 items."""
+
+DISCONNECT_TIMEOUT_S = 2.0
+"""How long a clean disconnect may take before the connection is simply dropped."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class OpcUaNodeConfig(_Strict):
+    """One monitored node and the tag its samples are stored under."""
+
+    tag: str = Field(min_length=1)
+    node_id: str = Field(min_length=1, description='OPC UA node id, e.g. "ns=2;s=FIC-101.PV"')
+
+    @field_validator("node_id")
+    @classmethod
+    def _parsable(cls, node_id: str) -> str:
+        try:
+            ua.NodeId.from_string(node_id)
+        except Exception as exc:  # asyncua raises several types for a malformed id
+            raise ValueError(f"not an OPC UA node id ({exc})") from None
+        return node_id
+
+
+class OpcUaEndpointConfig(_Strict):
+    """One OPC UA endpoint: how to connect, how to subscribe, and which nodes.
+
+    ``security_policy: Basic256Sha256`` needs ``security_mode`` Sign or
+    SignAndEncrypt and the client's ``certificate`` and ``private_key`` (PEM
+    or DER); without ``server_certificate`` the server's certificate is taken
+    from its endpoint list, unchecked.  The server sends a keep-alive three
+    times per ``watchdog_s`` when it has no data.
+
+    Examples
+    --------
+    >>> config = OpcUaEndpointConfig(
+    ...     url="opc.tcp://127.0.0.1:4840", publishing_interval_ms=500, watchdog_s=30,
+    ...     nodes=[{"tag": "FIC-101.PV", "node_id": "ns=2;s=FIC-101.PV"}])
+    >>> config.keepalive_count  # publishing intervals between keep-alives: 10 s
+    20
+    """
+
+    url: str = Field(pattern=r"^opc\.tcp://", description="opc.tcp://host:port[/path]")
+    security_policy: Literal["none", "Basic256Sha256"] = "none"
+    security_mode: Literal["None", "Sign", "SignAndEncrypt"] = "None"
+    certificate: FilePath | None = None
+    private_key: FilePath | None = None
+    server_certificate: FilePath | None = None
+    application_uri: str = Field(
+        default="urn:loopwatch:connector",
+        description="the client's application URI; must match the certificate's SAN URI",
+    )
+    username: str | None = None
+    password: SecretStr | None = None
+    sampling_interval_ms: float = Field(default=1000.0, ge=0)
+    publishing_interval_ms: float = Field(default=1000.0, gt=0)
+    queue_size: int = Field(default=10, ge=1, description="samples kept per node between publishes")
+    nodes: list[OpcUaNodeConfig] = Field(min_length=1)
+    watchdog_s: float = Field(default=30.0, gt=0)
+    flush_interval_s: float = Field(default=1.0, gt=0)
+    request_timeout_s: float = Field(default=10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> OpcUaEndpointConfig:
+        if self.security_policy == "none" and self.security_mode != "None":
+            raise ValueError(
+                f"security_mode {self.security_mode} needs security_policy Basic256Sha256"
+            )
+        if self.security_policy != "none":
+            if self.security_mode == "None":
+                raise ValueError(
+                    f"security_policy {self.security_policy} needs security_mode "
+                    "Sign or SignAndEncrypt"
+                )
+            missing = [k for k in ("certificate", "private_key") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(
+                    f"security_policy {self.security_policy} needs {' and '.join(missing)}"
+                )
+        if (self.username is None) != (self.password is None):
+            raise ValueError("username and password go together: give both or neither")
+        if self.watchdog_s * 1000.0 < 3.0 * self.publishing_interval_ms:
+            raise ValueError(
+                f"watchdog_s ({self.watchdog_s} s) must cover at least three publishing "
+                f"intervals ({self.publishing_interval_ms} ms each)"
+            )
+        for what in ("tag", "node_id"):
+            seen: set[str] = set()
+            for i, node in enumerate(self.nodes):
+                value = getattr(node, what)
+                if value in seen:
+                    raise ValueError(f"nodes[{i}].{what}: duplicate {value!r}")
+                seen.add(value)
+        return self
+
+    @property
+    def keepalive_count(self) -> int:
+        """Publishing intervals between keep-alives: three keep-alives per watchdog period."""
+        return max(1, math.floor(self.watchdog_s * 1000.0 / self.publishing_interval_ms / 3.0))
+
+
+@dataclass(frozen=True)
+class Outage:
+    """A time during which no data came from the endpoint: the window has a gap.
+
+    Attributes
+    ----------
+    start : float
+        UNIX time the connection was lost (or the first connect failed).
+    end : float or None
+        UNIX time the subscription delivered again; None while the outage lasts.
+    reason : str
+        What went wrong first.
+    failed_attempts : int
+        Reconnection attempts that failed.
+    """
+
+    start: float
+    end: float | None
+    reason: str
+    failed_attempts: int = 0
+
+
+@dataclass(frozen=True)
+class ConnectorStats:
+    """The connector's counters.
+
+    Once the connector has stopped, ``received == flushed + pending`` (pending
+    is not 0 only if the sink refused the last flush); while it runs, the
+    batch inside a sink call is in neither.
+
+    Attributes
+    ----------
+    received : int
+        Samples taken from the subscription, bad ones included.
+    flushed : int
+        Samples the sink accepted.
+    bad : int
+        Received samples sent as bad (status not Good, or not a number).
+    pending : int
+        Received samples waiting for the next flush.
+    reconnects : int
+        Sessions established after a lost one.
+    watchdog_timeouts : int
+        Times the watchdog found the subscription stale.
+    sink_failures : int
+        Flushes the sink refused (their samples are kept and sent again).
+    outages : tuple of Outage
+    failed_nodes : dict
+        tag -> status name of the nodes the server refused to monitor.
+    connected : bool
+    last_error : str or None
+    """
+
+    received: int = 0
+    flushed: int = 0
+    bad: int = 0
+    pending: int = 0
+    reconnects: int = 0
+    watchdog_timeouts: int = 0
+    sink_failures: int = 0
+    outages: tuple[Outage, ...] = ()
+    failed_nodes: dict[str, str] = field(default_factory=dict)
+    connected: bool = False
+    last_error: str | None = None
+
+
+class _SessionEndedError(Exception):
+    """The session is over (transport lost, subscription ended, watchdog); the message says why."""
+
+
+@dataclass
+class _Counters:
+    """The mutable counters behind :class:`ConnectorStats` (one event loop updates them)."""
+
+    received: int = 0
+    flushed: int = 0
+    bad: int = 0
+    reconnects: int = 0
+    watchdog_timeouts: int = 0
+    sink_failures: int = 0
+    sessions: int = 0
+    connected: bool = False
+    last_error: str | None = None
+    failed_nodes: dict[str, str] = field(default_factory=dict)
+
+
+class OpcUaConnector:
+    """Subscribe to the nodes of one endpoint and deliver their samples to ``sink``.
+
+    Parameters
+    ----------
+    config : OpcUaEndpointConfig
+    sink : SampleSink
+        Called (in a worker thread) with ingest batches of the PI Web API shape.
+    backoff : Backoff
+        Waits between connection attempts; it starts over after every session
+        that got as far as subscribing.
+    clock : callable
+        Wall clock (UNIX seconds) for outages and for samples without timestamps.
+
+    Use ``await connector.run()`` (until cancelled) inside an event loop, or
+    :meth:`start` / :meth:`stop` to run it in a thread of its own.
+    """
+
+    def __init__(
+        self,
+        config: OpcUaEndpointConfig,
+        sink: SampleSink,
+        *,
+        backoff: Backoff = Backoff(),  # noqa: B008 -- frozen, so one shared default is safe
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.config = config
+        self.sink = sink
+        self.backoff = backoff
+        self.clock = clock
+        self._tags = {handle: node.tag for handle, node in enumerate(config.nodes, start=1)}
+        self._counters = _Counters()
+        self._outages: list[Outage] = []
+        self._pending: dict[str, list[dict[str, Any]]] = {}
+        self._pending_count = 0
+        self._warned_tags: set[str] = set()
+        self._runner = ThreadedRunner(self.run, name=f"opcua {config.url}")
+
+    @property
+    def stats(self) -> ConnectorStats:
+        """A snapshot of the counters."""
+        c = self._counters
+        return ConnectorStats(
+            received=c.received, flushed=c.flushed, bad=c.bad, pending=self._pending_count,
+            reconnects=c.reconnects, watchdog_timeouts=c.watchdog_timeouts,
+            sink_failures=c.sink_failures, outages=tuple(self._outages),
+            failed_nodes=dict(c.failed_nodes), connected=c.connected, last_error=c.last_error,
+        )
+
+    # --- running --------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Connect, subscribe and deliver samples until cancelled; reconnect on any loss."""
+        stop_flushing = asyncio.Event()
+        flusher = asyncio.create_task(self._flush_until(stop_flushing), name="opcua-flush")
+        delays = self.backoff.delays()
+        try:
+            while True:
+                sessions_before = self._counters.sessions
+                try:
+                    await self._session()
+                except _SessionEndedError as exc:
+                    reason = str(exc)
+                except (OSError, ua.UaError, ConnectionError) as exc:  # TimeoutError is an OSError
+                    reason = f"{type(exc).__name__}: {exc}"
+                except Exception as exc:  # a bug or an unexpected answer: log it, carry on
+                    log.exception("opcua %s: session failed unexpectedly", self.config.url)
+                    reason = f"{type(exc).__name__}: {exc}"
+                self._begin_outage(reason)
+                if self._counters.sessions > sessions_before:
+                    delays = self.backoff.delays()
+                delay = next(delays)
+                log.info("opcua %s: reconnecting in %.1f s", self.config.url, delay)
+                await asyncio.sleep(delay)
+        finally:
+            self._counters.connected = False
+            stop_flushing.set()
+            await flusher
+
+    def start(self) -> None:
+        """Run :meth:`run` in a background thread with its own event loop."""
+        self._runner.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Cancel :meth:`run` (pending samples are flushed first) and join the thread."""
+        self._runner.stop(timeout)
+
+    def _begin_outage(self, reason: str) -> None:
+        self._counters.connected = False
+        self._counters.last_error = reason
+        if self._outages and self._outages[-1].end is None:
+            outage = self._outages[-1]
+            self._outages[-1] = replace(outage, failed_attempts=outage.failed_attempts + 1)
+            log.info("opcua %s: still no connection: %s", self.config.url, reason)
+            return
+        self._outages.append(Outage(self.clock(), None, reason))
+        log.warning("opcua %s: no data from now on: %s", self.config.url, reason)
+
+    def _session_up(self) -> None:
+        c = self._counters
+        if c.sessions > 0:
+            c.reconnects += 1
+        c.sessions += 1
+        c.connected, c.last_error = True, None
+        if self._outages and self._outages[-1].end is None:
+            end = self.clock()
+            self._outages[-1] = replace(self._outages[-1], end=end)
+            log.warning("opcua %s: data again after %.1f s without",
+                        self.config.url, end - self._outages[-1].start)
+        log.info("opcua %s: subscribed to %d nodes", self.config.url,
+                 len(self._tags) - len(c.failed_nodes))
+
+    # --- one session ------------------------------------------------------------
+
+    async def _connect(self) -> Client:
+        config = self.config
+        # asyncua's own health probe (a read of the server state) runs at a third of
+        # the watchdog period: a busy server is given that long to answer
+        client = Client(config.url, timeout=config.request_timeout_s,
+                        watchdog_intervall=max(1.0, config.watchdog_s / 3.0))
+        client.application_uri = config.application_uri
+        if config.security_policy == "Basic256Sha256":
+            assert config.certificate is not None and config.private_key is not None
+            await client.set_security(
+                SecurityPolicyBasic256Sha256,
+                certificate=str(config.certificate),
+                private_key=str(config.private_key),
+                server_certificate=(
+                    str(config.server_certificate) if config.server_certificate else None
+                ),
+                mode=getattr(ua.MessageSecurityMode, config.security_mode),
+            )
+        if config.username is not None and config.password is not None:
+            client.set_user(config.username)
+            client.set_password(config.password.get_secret_value())
+        await client.connect(auto_reconnect=False)
+        return client
+
+    async def _session(self) -> None:
+        """One connection: subscribe, then consume until it ends, which it does by raising."""
+        client = await self._connect()
+        ended: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+
+        def end(reason: str) -> None:
+            if not ended.done():
+                ended.set_result(reason)
+
+        async def on_connection_lost(exc: Exception) -> None:
+            end(f"connection lost: {type(exc).__name__}: {exc}")
+
+        client.connection_lost_callback = on_connection_lost
+        subscription: Subscription | None = None
+        consumer: asyncio.Task[None] | None = None
+        watchdog: asyncio.Task[None] | None = None
+        try:
+            subscription = await self._subscribe(client)
+            self._session_up()
+            consumer = asyncio.create_task(self._consume(subscription, end), name="opcua-consume")
+            watchdog = asyncio.create_task(self._watch(subscription, end), name="opcua-watchdog")
+            raise _SessionEndedError(await ended)
+        finally:
+            if watchdog is not None:
+                watchdog.cancel()
+            if subscription is not None:
+                await self._close(subscription, consumer)
+            await self._disconnect(client)
+
+    async def _subscribe(self, client: Client) -> Subscription:
+        """Create the subscription and its monitored items in batches.
+
+        The subscription is built directly rather than by
+        ``Client.create_subscription``, so that asyncua does not re-create it
+        behind this connector's back: a stale subscription is this
+        connector's watchdog's business, and it records the outage.
+        """
+        config = self.config
+        params = ua.CreateSubscriptionParameters(
+            RequestedPublishingInterval=config.publishing_interval_ms,
+            RequestedLifetimeCount=10 * config.keepalive_count,
+            RequestedMaxKeepAliveCount=config.keepalive_count,
+            MaxNotificationsPerPublish=0,
+            PublishingEnabled=True,
+            Priority=0,
+        )
+        # queue_maxsize=0: unbounded, so that no notification is ever dropped
+        subscription = Subscription(client.uaclient.session, params, None, queue_maxsize=0)
+        await subscription.init()
+        requests = [self._monitor_request(handle, node)
+                    for handle, node in enumerate(config.nodes, start=1)]
+        failed: dict[str, str] = {}
+        for first in range(0, len(requests), MONITORED_ITEMS_PER_CALL):
+            batch = requests[first: first + MONITORED_ITEMS_PER_CALL]
+            results = await subscription.create_monitored_items(batch)
+            for request, result in zip(batch, results, strict=True):
+                if isinstance(result, ua.StatusCode):
+                    tag = self._tags[request.RequestedParameters.ClientHandle]
+                    failed[tag] = result.name
+                    log.error(
+                        "opcua %s: the server refused to monitor %s (%s): %s",
+                        config.url, tag, request.ItemToMonitor.NodeId.to_string(), result.name,
+                    )
+        self._counters.failed_nodes = failed
+        return subscription
+
+    def _monitor_request(self, handle: int, node: OpcUaNodeConfig) -> ua.MonitoredItemCreateRequest:
+        parameters = ua.MonitoringParameters(
+            ClientHandle=handle,
+            SamplingInterval=self.config.sampling_interval_ms,
+            QueueSize=self.config.queue_size,
+            DiscardOldest=True,
+            Filter=ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp),
+        )
+        return ua.MonitoredItemCreateRequest(
+            ItemToMonitor=ua.ReadValueId(
+                NodeId=ua.NodeId.from_string(node.node_id), AttributeId=ua.AttributeIds.Value
+            ),
+            MonitoringMode=ua.MonitoringMode.Reporting,
+            RequestedParameters=parameters,
+        )
+
+    async def _consume(self, subscription: Subscription, end: Callable[[str], None]) -> None:
+        """Take every notification until the subscription is closed; then end the session."""
+        try:
+            async for event in subscription:
+                if isinstance(event, DataChangeEvent):
+                    notification = event.data.monitored_item
+                    tag = self._tags[notification.ClientHandle]
+                    self._add(tag, *self._sample(tag, notification.Value))
+                elif (isinstance(event, StatusChangeEvent)
+                      and not event.notification.Status.is_good()):
+                    end(f"the server ended the subscription: {event.notification.Status.name}")
+        except Exception as exc:  # a bug: end the session rather than lose data quietly
+            log.exception("opcua %s: reading notifications failed", self.config.url)
+            end(f"reading notifications failed: {type(exc).__name__}: {exc}")
+        else:
+            end("the subscription was closed")
+
+    def _sample(self, tag: str, data_value: ua.DataValue | None) -> tuple[float, float | None]:
+        """(timestamp, value or None when bad) of one notification."""
+        if data_value is None:
+            return self.clock(), None
+        stamp = data_value.SourceTimestamp or data_value.ServerTimestamp
+        timestamp = _unix_seconds(stamp) if stamp is not None else self.clock()
+        status = data_value.StatusCode
+        if status is not None and not status.is_good():
+            return timestamp, None
+        value = None if data_value.Value is None else data_value.Value.Value
+        if isinstance(value, int | float) and math.isfinite(value):
+            return timestamp, float(value)
+        if tag not in self._warned_tags:
+            self._warned_tags.add(tag)
+            log.warning("opcua %s: %s sent %r, not a number: stored as bad",
+                        self.config.url, tag, value)
+        return timestamp, None
+
+    def _add(self, tag: str, timestamp: float, value: float | None) -> None:
+        self._pending.setdefault(tag, []).append(item(timestamp, value))
+        self._pending_count += 1
+        self._counters.received += 1
+        if value is None:
+            self._counters.bad += 1
+
+    async def _watch(self, subscription: Subscription, end: Callable[[str], None]) -> None:
+        """End the session when neither data nor a keep-alive came for ``watchdog_s``."""
+        watchdog_s = self.config.watchdog_s
+        since = time.monotonic()
+        while True:
+            await asyncio.sleep(min(watchdog_s / 4.0, 1.0))
+            heard = max(since, subscription.last_publish_at or since)
+            silent = time.monotonic() - heard
+            if silent > watchdog_s:
+                self._counters.watchdog_timeouts += 1
+                end(f"watchdog: no data and no keep-alive for {silent:.1f} s "
+                    f"(limit {watchdog_s:g} s)")
+                return
+
+    async def _close(self, subscription: Subscription, consumer: asyncio.Task[None] | None) -> None:
+        """Delete the subscription, then let the consumer take what is still queued."""
+        try:
+            await asyncio.wait_for(subscription.delete(), DISCONNECT_TIMEOUT_S)
+        except Exception as exc:  # the server is often gone: the local queue closes anyway
+            log.debug("opcua %s: deleting the subscription: %r", self.config.url, exc)
+        if consumer is not None:
+            await asyncio.wait_for(consumer, DISCONNECT_TIMEOUT_S)
+
+    async def _disconnect(self, client: Client) -> None:
+        try:
+            await asyncio.wait_for(client.disconnect(), DISCONNECT_TIMEOUT_S)
+        except Exception as exc:  # the transport is often gone already
+            log.debug("opcua %s: disconnect: %r", self.config.url, exc)
+        # when asyncua's health probe gives up it marks the client disconnected but
+        # leaves the socket open, and disconnect() then skips it: close it here
+        protocol = client.uaclient.protocol
+        if protocol is not None and protocol.transport is not None:
+            protocol.transport.close()
+
+    # --- delivery -------------------------------------------------------------
+
+    async def _flush_until(self, stop: asyncio.Event) -> None:
+        """Flush every ``flush_interval_s``, and once more when ``stop`` is set.
+
+        Stopped by the event rather than cancelled: a sink call cannot be
+        cancelled half-way, and its samples must be counted either way.
+        """
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), self.config.flush_interval_s)
+            await self._flush()
+
+    async def _flush(self) -> None:
+        """Hand the pending samples to the sink; on failure keep them for the next flush."""
+        if not self._pending:
+            return
+        pending, count = self._pending, self._pending_count
+        self._pending, self._pending_count = {}, 0
+        batch = [{"tag": tag, "items": items} for tag, items in pending.items()]
+        try:
+            await asyncio.to_thread(self.sink, batch)
+        except Exception:
+            log.exception(
+                "opcua %s: the sink refused %d samples; they are kept for the next flush",
+                self.config.url, count,
+            )
+            for tag, items in self._pending.items():  # arrived during the failed call
+                pending.setdefault(tag, []).extend(items)
+            self._pending = pending
+            self._pending_count += count
+            self._counters.sink_failures += 1
+            return
+        self._counters.flushed += count
+
+
+def _unix_seconds(stamp: datetime) -> float:
+    """UNIX seconds of an OPC UA time stamp (UTC; asyncua may give it without a zone)."""
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=UTC)
+    return stamp.timestamp()
+
+
+class ThreadedRunner:
+    """Run a coroutine function in a thread of its own, with its own event loop.
+
+    The service is synchronous apart from FastAPI; a connector or the plant
+    simulator runs beside it this way.  :meth:`stop` cancels the coroutine,
+    waits for its clean-up, and joins the thread.
+    """
+
+    def __init__(self, main: Callable[[], Coroutine[Any, Any, None]], *, name: str) -> None:
+        self.main = main
+        self.name = name
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._ready = threading.Event()
+        self.error: BaseException | None = None
+
+    def start(self) -> None:
+        """Start the thread; returns once the coroutine is scheduled."""
+        if self._thread is not None:
+            raise RuntimeError(f"{self.name}: already started")
+        self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
+        self._thread.start()
+        self._ready.wait()
+
+    def _thread_main(self) -> None:
+        async def supervised() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._task = asyncio.current_task()
+            self._ready.set()
+            await self.main()
+
+        try:
+            asyncio.run(supervised())
+        except asyncio.CancelledError:
+            pass
+        except BaseException as exc:
+            self.error = exc
+            log.exception("%s: stopped by an error", self.name)
+        finally:
+            self._ready.set()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Cancel the coroutine and join the thread (at most ``timeout`` seconds)."""
+        if self._thread is None:
+            return
+        if self._loop is not None and self._task is not None and not self._loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+                self._loop.call_soon_threadsafe(self._task.cancel)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise TimeoutError(f"{self.name}: did not stop within {timeout} s")
+        self._thread = None
