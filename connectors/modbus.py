@@ -22,9 +22,10 @@ as a bad sample.
 The connector polls its groups one request at a time over one connection,
 stamps every value at the poll, and hands the batches to a
 :class:`~connectors.base.SampleSink` in a worker thread.  When the connection
-drops or a request times out it closes the connection, records an outage,
-and reconnects with capped exponential backoff; nothing is stored while the
-connection is down, so the window shows the gap.
+drops or a request times out it closes the connection, records an
+:class:`~connectors.base.Outage`, and reconnects with capped exponential
+backoff; nothing is stored while the connection is down, so the window shows
+the gap.
 
 References
 ----------
@@ -36,15 +37,12 @@ registers, at most 125 per request).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import itertools
 import logging
 import math
 import struct
-import threading
 import time
-from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
@@ -54,18 +52,25 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
-from connectors.base import Backoff, SampleSink, item
+from connectors.base import (
+    BackgroundConnector,
+    Backoff,
+    DeliveryCounters,
+    Outage,
+    OutageLog,
+    SampleSink,
+    hand_over,
+    item,
+)
 
 __all__ = [
     "REGISTER_COUNT",
-    "BackgroundConnector",
     "DataType",
     "ModbusConnector",
     "ModbusConnectorConfig",
     "ModbusCounters",
     "ModbusGroupConfig",
     "ModbusTagConfig",
-    "Outage",
     "WordOrder",
     "decode",
     "encode",
@@ -305,32 +310,9 @@ class ModbusConnectorConfig(_Strict):
             yield from group.tags
 
 
-@dataclass(frozen=True)
-class Outage:
-    """A time the device could not be read: no samples exist between ``start`` and ``end``.
-
-    Attributes
-    ----------
-    start : float
-        UNIX time the connection was lost (or the first connect failed).
-    end : float or None
-        UNIX time the connection was back; None while the outage lasts.
-    reason : str
-        What went wrong first.
-    failed_attempts : int
-        Reconnection attempts that failed.
-    """
-
-    start: float
-    end: float | None
-    reason: str
-    failed_attempts: int = 0
-
-
 @dataclass
-class ModbusCounters:
-    """What a :class:`ModbusConnector` has done; ``samples = delivered + undelivered``
-    once it has stopped (before that the difference is still queued for the sink).
+class ModbusCounters(DeliveryCounters):
+    """What a :class:`ModbusConnector` has done, besides the sample counts of its base class.
 
     Attributes
     ----------
@@ -340,10 +322,6 @@ class ModbusCounters:
         Modbus exception responses; the tags of that group are sent as bad.
     registers_read : int
         Registers received.
-    samples, bad : int
-        Items made from the answers, and how many of them are bad.
-    delivered, undelivered : int
-        Items the sink took, and items of batches the sink raised on (logged).
     reconnects : int
         Connections made after the first.
     outages : int
@@ -355,89 +333,9 @@ class ModbusCounters:
     polls: int = 0
     error_responses: int = 0
     registers_read: int = 0
-    samples: int = 0
-    bad: int = 0
-    delivered: int = 0
-    undelivered: int = 0
     reconnects: int = 0
     outages: int = 0
     skipped_cycles: int = 0
-
-
-class BackgroundConnector(ABC):
-    """A connector whose work is one coroutine: run it in a loop of yours or in its own thread.
-
-    ``await connector.run()`` works until :meth:`stop` is called (from any
-    thread) or, for finite sources, until the work is done;
-    :meth:`start` runs the same in a daemon thread with its own event loop.
-    """
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self._stop_requested = threading.Event()
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._wake: asyncio.Event | None = None
-        self._thread: threading.Thread | None = None
-
-    @abstractmethod
-    async def _work(self) -> None:
-        """The connector's work; it checks :attr:`stopping` and sleeps with :meth:`_sleep`."""
-
-    @property
-    def stopping(self) -> bool:
-        """Whether :meth:`stop` has been called."""
-        return self._stop_requested.is_set()
-
-    async def run(self) -> None:
-        """Do the work in the running event loop until stopped or done."""
-        self._loop, self._wake = asyncio.get_running_loop(), asyncio.Event()
-        try:
-            if not self.stopping:
-                await self._work()
-        finally:
-            self._loop = self._wake = None
-
-    async def _sleep(self, seconds: float) -> bool:
-        """Wait ``seconds`` or until stopped; True if stopped."""
-        assert self._wake is not None
-        if seconds > 0 and not self.stopping:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), seconds)
-        return self.stopping
-
-    def start(self) -> None:
-        """Run in a daemon thread with its own event loop."""
-        if self._thread is not None and self._thread.is_alive():
-            raise RuntimeError(f"{self.name} is already running")
-        self._stop_requested.clear()
-        self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
-        self._thread.start()
-
-    def _thread_main(self) -> None:
-        try:
-            asyncio.run(self.run())
-        except Exception:
-            log.exception("%s stopped by an unexpected error", self.name)
-
-    def stop(self, timeout: float = 10.0) -> None:
-        """Ask the work to end (safe from any thread); wait for the thread if :meth:`start` ran.
-
-        A later :meth:`start` runs the work again (a replay carries on where it stopped).
-        """
-        self._stop_requested.set()
-        loop, wake = self._loop, self._wake
-        if loop is not None and wake is not None:
-            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nothing to wake
-                loop.call_soon_threadsafe(wake.set)
-        if self._thread is not None and threading.current_thread() is not self._thread:
-            self._thread.join(timeout)
-            if self._thread.is_alive():
-                raise TimeoutError(f"{self.name} did not stop within {timeout} s")
-
-    @property
-    def running(self) -> bool:
-        """Whether the work is in progress."""
-        return self._loop is not None
 
 
 class ModbusConnector(BackgroundConnector):
@@ -448,7 +346,11 @@ class ModbusConnector(BackgroundConnector):
     for the sink; a worker thread (``asyncio.to_thread``) hands the queued
     batches over, merged, so a slow database never delays the polls.  A
     dropped connection or an unanswered request closes the connection,
-    opens an :class:`Outage` and reconnects after the waits of ``backoff``.
+    opens an :class:`~connectors.base.Outage` and reconnects after the waits
+    of ``backoff``.
+
+    Use ``await connector.run()`` (until cancelled) inside an event loop, or
+    :meth:`start` / :meth:`stop` to run it in a thread of its own.
 
     Examples
     --------
@@ -467,7 +369,7 @@ class ModbusConnector(BackgroundConnector):
         self._sink = sink
         self._backoff = backoff
         self._counters = ModbusCounters()
-        self._outages: list[Outage] = []
+        self._outages = OutageLog(self.name)
         self._failing_groups: set[int] = set()
 
     @property
@@ -478,9 +380,10 @@ class ModbusConnector(BackgroundConnector):
     @property
     def outages(self) -> list[Outage]:
         """The outages so far, oldest first (the last one may still be open)."""
-        return list(self._outages)
+        return list(self._outages.outages)
 
-    async def _work(self) -> None:
+    async def run(self) -> None:
+        """Poll until cancelled, reconnecting after every loss."""
         queue: asyncio.Queue[list[dict[str, Any]] | None] = asyncio.Queue()
         deliverer = asyncio.create_task(self._deliver(queue))
         try:
@@ -490,11 +393,11 @@ class ModbusConnector(BackgroundConnector):
             await deliverer
 
     async def _supervise(self, queue: asyncio.Queue[list[dict[str, Any]] | None]) -> None:
-        """Connect, poll until the connection fails, wait, reconnect: until stopped."""
+        """Connect, poll until the connection fails, wait, reconnect: until cancelled."""
         host, port = self.config.host, self.config.port
         delays = self._backoff.delays()
         connected_before = False
-        while not self.stopping:
+        while True:
             client = AsyncModbusTcpClient(
                 host, port=port, timeout=self.config.timeout_s, retries=0, reconnect_delay=0,
                 name=self.name,
@@ -504,7 +407,7 @@ class ModbusConnector(BackgroundConnector):
                     if connected_before:
                         self._counters.reconnects += 1
                     connected_before = True
-                    self._end_outage()
+                    self._outages.restored()
                     delays = self._backoff.delays()
                     log.info("%s: connected", self.name)
                     reason = await self._poll(client, queue)
@@ -515,65 +418,48 @@ class ModbusConnector(BackgroundConnector):
                 reason = f"unexpected error: {exc!r}"
             finally:
                 client.close()
-            if reason is None:
-                return
-            self._begin_outage(reason)
-            if await self._sleep(next(delays)):
-                return
-
-    def _begin_outage(self, reason: str) -> None:
-        if self._outages and self._outages[-1].end is None:
-            last = self._outages[-1]
-            self._outages[-1] = dataclasses.replace(
-                last, failed_attempts=last.failed_attempts + 1
-            )
-            return
-        self._outages.append(Outage(start=time.time(), end=None, reason=reason))
-        self._counters.outages += 1
-        log.warning("%s: outage: %s; reconnecting with backoff", self.name, reason)
-
-    def _end_outage(self) -> None:
-        if self._outages and self._outages[-1].end is None:
-            now = time.time()
-            last = self._outages[-1] = dataclasses.replace(self._outages[-1], end=now)
-            log.info("%s: connection back after %.1f s", self.name, now - last.start)
+            if self._outages.lost(reason):
+                self._counters.outages += 1
+            await asyncio.sleep(next(delays))
 
     async def _poll(
         self, client: AsyncModbusTcpClient, queue: asyncio.Queue[list[dict[str, Any]] | None]
-    ) -> str | None:
-        """Poll every group each interval; the reason the connection failed, None if stopped."""
+    ) -> str:
+        """Poll every group each interval until the connection fails; the reason it did."""
         loop = asyncio.get_running_loop()
         interval = self.config.poll_interval_s
         next_cycle = loop.time()
-        while not self.stopping:
+        while True:
             batch: list[dict[str, Any]] = []
-            for index, group in enumerate(self.config.groups):
-                if not client.connected:
-                    return "the connection was closed"
-                read = (
-                    client.read_holding_registers
-                    if group.function == "holding"
-                    else client.read_input_registers
-                )
-                stamp = time.time()
-                try:
-                    response = await read(
-                        group.start, count=group.count, device_id=self.config.unit_id
+            try:
+                for index, group in enumerate(self.config.groups):
+                    if not client.connected:
+                        return "the connection was closed"
+                    read = (
+                        client.read_holding_registers
+                        if group.function == "holding"
+                        else client.read_input_registers
                     )
-                except ModbusIOException as exc:
-                    return f"no answer within {self.config.timeout_s} s: {exc}"
-                except (ConnectionException, ModbusException) as exc:
-                    return f"the connection failed: {exc}"
-                batch.extend(self._samples(index, response, stamp))
-            queue.put_nowait(batch)
+                    stamp = time.time()
+                    try:
+                        response = await read(
+                            group.start, count=group.count, device_id=self.config.unit_id
+                        )
+                    except ModbusIOException as exc:
+                        return f"no answer within {self.config.timeout_s} s: {exc}"
+                    except (ConnectionException, ModbusException) as exc:
+                        return f"the connection failed: {exc}"
+                    batch.extend(self._samples(index, response, stamp))
+            finally:  # what was read is delivered, also when the cycle is cut short
+                if batch:
+                    queue.put_nowait(batch)
             next_cycle += interval
             late = loop.time() - next_cycle
             if late > 0:
                 skipped = math.ceil(late / interval)
                 self._counters.skipped_cycles += skipped
                 next_cycle += skipped * interval
-            await self._sleep(next_cycle - loop.time())
-        return None
+            await asyncio.sleep(next_cycle - loop.time())
 
     def _samples(self, index: int, response: ModbusPDU, stamp: float) -> list[dict[str, Any]]:
         """The group's tags as ingest entries; all bad if the device answered with an error."""
@@ -636,11 +522,4 @@ class ModbusConnector(BackgroundConnector):
         for entry in entries:
             merged.setdefault(entry["tag"], []).extend(entry["items"])
         batch = [{"tag": tag, "items": items} for tag, items in merged.items()]
-        count = sum(len(items) for items in merged.values())
-        try:
-            await asyncio.to_thread(self._sink, batch)
-        except Exception:
-            self._counters.undelivered += count
-            log.exception("%s: the sink refused a batch of %d samples", self.name, count)
-        else:
-            self._counters.delivered += count
+        await hand_over(self._sink, batch, self._counters, self.name)

@@ -21,8 +21,8 @@ connection; when the transport is lost, a request fails, or the watchdog
 finds the subscription stale (no data and no keep-alive within
 ``watchdog_s``), the connection is dropped and made again after a capped
 exponential backoff, and the subscription is created anew.  The time the
-data was missing is recorded as an :class:`Outage`, so analyses know the
-window is broken.
+data was missing is recorded as an :class:`~connectors.base.Outage`, so analyses know
+the window is broken.
 
 References
 ----------
@@ -37,10 +37,9 @@ import asyncio
 import contextlib
 import logging
 import math
-import threading
 import time
-from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -57,7 +56,7 @@ from pydantic import (
     model_validator,
 )
 
-from connectors.base import Backoff, SampleSink, item
+from connectors.base import BackgroundConnector, Backoff, Outage, OutageLog, SampleSink, item
 
 __all__ = [
     "MONITORED_ITEMS_PER_CALL",
@@ -65,8 +64,6 @@ __all__ = [
     "OpcUaConnector",
     "OpcUaEndpointConfig",
     "OpcUaNodeConfig",
-    "Outage",
-    "ThreadedRunner",
 ]
 
 log = logging.getLogger(__name__)
@@ -176,28 +173,6 @@ class OpcUaEndpointConfig(_Strict):
 
 
 @dataclass(frozen=True)
-class Outage:
-    """A time during which no data came from the endpoint: the window has a gap.
-
-    Attributes
-    ----------
-    start : float
-        UNIX time the connection was lost (or the first connect failed).
-    end : float or None
-        UNIX time the subscription delivered again; None while the outage lasts.
-    reason : str
-        What went wrong first.
-    failed_attempts : int
-        Reconnection attempts that failed.
-    """
-
-    start: float
-    end: float | None
-    reason: str
-    failed_attempts: int = 0
-
-
-@dataclass(frozen=True)
 class ConnectorStats:
     """The connector's counters.
 
@@ -261,7 +236,7 @@ class _Counters:
     failed_nodes: dict[str, str] = field(default_factory=dict)
 
 
-class OpcUaConnector:
+class OpcUaConnector(BackgroundConnector):
     """Subscribe to the nodes of one endpoint and deliver their samples to ``sink``.
 
     Parameters
@@ -287,17 +262,17 @@ class OpcUaConnector:
         backoff: Backoff = Backoff(),  # noqa: B008 -- frozen, so one shared default is safe
         clock: Callable[[], float] = time.time,
     ) -> None:
+        super().__init__(f"opcua {config.url}")
         self.config = config
         self.sink = sink
         self.backoff = backoff
         self.clock = clock
         self._tags = {handle: node.tag for handle, node in enumerate(config.nodes, start=1)}
         self._counters = _Counters()
-        self._outages: list[Outage] = []
+        self._outages = OutageLog(self.name, clock)
         self._pending: dict[str, list[dict[str, Any]]] = {}
         self._pending_count = 0
         self._warned_tags: set[str] = set()
-        self._runner = ThreadedRunner(self.run, name=f"opcua {config.url}")
 
     @property
     def stats(self) -> ConnectorStats:
@@ -306,7 +281,7 @@ class OpcUaConnector:
         return ConnectorStats(
             received=c.received, flushed=c.flushed, bad=c.bad, pending=self._pending_count,
             reconnects=c.reconnects, watchdog_timeouts=c.watchdog_timeouts,
-            sink_failures=c.sink_failures, outages=tuple(self._outages),
+            sink_failures=c.sink_failures, outages=self._outages.outages,
             failed_nodes=dict(c.failed_nodes), connected=c.connected, last_error=c.last_error,
         )
 
@@ -340,24 +315,10 @@ class OpcUaConnector:
             stop_flushing.set()
             await flusher
 
-    def start(self) -> None:
-        """Run :meth:`run` in a background thread with its own event loop."""
-        self._runner.start()
-
-    def stop(self, timeout: float = 10.0) -> None:
-        """Cancel :meth:`run` (pending samples are flushed first) and join the thread."""
-        self._runner.stop(timeout)
-
     def _begin_outage(self, reason: str) -> None:
         self._counters.connected = False
         self._counters.last_error = reason
-        if self._outages and self._outages[-1].end is None:
-            outage = self._outages[-1]
-            self._outages[-1] = replace(outage, failed_attempts=outage.failed_attempts + 1)
-            log.info("opcua %s: still no connection: %s", self.config.url, reason)
-            return
-        self._outages.append(Outage(self.clock(), None, reason))
-        log.warning("opcua %s: no data from now on: %s", self.config.url, reason)
+        self._outages.lost(reason)
 
     def _session_up(self) -> None:
         c = self._counters
@@ -365,11 +326,7 @@ class OpcUaConnector:
             c.reconnects += 1
         c.sessions += 1
         c.connected, c.last_error = True, None
-        if self._outages and self._outages[-1].end is None:
-            end = self.clock()
-            self._outages[-1] = replace(self._outages[-1], end=end)
-            log.warning("opcua %s: data again after %.1f s without",
-                        self.config.url, end - self._outages[-1].start)
+        self._outages.restored()
         log.info("opcua %s: subscribed to %d nodes", self.config.url,
                  len(self._tags) - len(c.failed_nodes))
 
@@ -599,57 +556,3 @@ def _unix_seconds(stamp: datetime) -> float:
         stamp = stamp.replace(tzinfo=UTC)
     return stamp.timestamp()
 
-
-class ThreadedRunner:
-    """Run a coroutine function in a thread of its own, with its own event loop.
-
-    The service is synchronous apart from FastAPI; a connector or the plant
-    simulator runs beside it this way.  :meth:`stop` cancels the coroutine,
-    waits for its clean-up, and joins the thread.
-    """
-
-    def __init__(self, main: Callable[[], Coroutine[Any, Any, None]], *, name: str) -> None:
-        self.main = main
-        self.name = name
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._ready = threading.Event()
-        self.error: BaseException | None = None
-
-    def start(self) -> None:
-        """Start the thread; returns once the coroutine is scheduled."""
-        if self._thread is not None:
-            raise RuntimeError(f"{self.name}: already started")
-        self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
-        self._thread.start()
-        self._ready.wait()
-
-    def _thread_main(self) -> None:
-        async def supervised() -> None:
-            self._loop = asyncio.get_running_loop()
-            self._task = asyncio.current_task()
-            self._ready.set()
-            await self.main()
-
-        try:
-            asyncio.run(supervised())
-        except asyncio.CancelledError:
-            pass
-        except BaseException as exc:
-            self.error = exc
-            log.exception("%s: stopped by an error", self.name)
-        finally:
-            self._ready.set()
-
-    def stop(self, timeout: float = 10.0) -> None:
-        """Cancel the coroutine and join the thread (at most ``timeout`` seconds)."""
-        if self._thread is None:
-            return
-        if self._loop is not None and self._task is not None and not self._loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
-                self._loop.call_soon_threadsafe(self._task.cancel)
-        self._thread.join(timeout)
-        if self._thread.is_alive():
-            raise TimeoutError(f"{self.name}: did not stop within {timeout} s")
-        self._thread = None

@@ -56,9 +56,9 @@ from asyncua import Server, ua
 from analytics.scenarios import column3x3
 from analytics.simulation import PIDController, SimulationResult
 from analytics.synthetic_cases import SyntheticCase, synthetic_library
+from connectors.base import ThreadedRunner
 from connectors.modbus import REGISTER_COUNT, WordOrder
 from connectors.modbus_server import ModbusRegisterServer
-from connectors.opcua import ThreadedRunner
 
 __all__ = [
     "COLUMN_LOOPS",

@@ -20,9 +20,7 @@ in the file, the header being row 1) and column.
 from __future__ import annotations
 
 import asyncio
-import csv
 import dataclasses
-import logging
 import math
 import time
 from collections.abc import Mapping
@@ -36,8 +34,18 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from connectors.base import SampleSink, item
-from connectors.modbus import BackgroundConnector
+from connectors.base import (
+    TIME_NAMES,
+    BackgroundConnector,
+    DeliveryCounters,
+    SampleSink,
+    column_index,
+    hand_over,
+    item,
+    number_columns,
+    parse_time,
+    read_csv_rows,
+)
 
 __all__ = [
     "HistorianExport",
@@ -48,10 +56,6 @@ __all__ = [
     "read_historian_export",
 ]
 
-log = logging.getLogger(__name__)
-
-TIME_NAMES = ("time", "t", "t_s", "timestamp")
-MISSING = {"", "nan", "NaN", "NAN", "null", "NULL", "NA"}
 TimestampMode = Literal["now", "original"]
 
 
@@ -85,27 +89,6 @@ def _zone(name: str) -> ZoneInfo:
         raise ValueError(f"unknown time zone {name!r} (use an IANA name such as 'UTC')") from None
 
 
-def _parse_time(text: str, zone: ZoneInfo) -> float:
-    """UNIX seconds from UNIX seconds or ISO 8601 (naive times are in ``zone``)."""
-    try:
-        return float(text)
-    except ValueError:
-        stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
-        if stamp.tzinfo is None:
-            stamp = stamp.replace(tzinfo=zone)
-        return stamp.timestamp()
-
-
-def _column(header: list[str], name: str, path: Path) -> int:
-    lowered = [h.strip().lower() for h in header]
-    try:
-        return lowered.index(name.strip().lower())
-    except ValueError:
-        raise ReplayError(
-            f"{path}: no column {name!r}; the header has {', '.join(header)}"
-        ) from None
-
-
 def _time_columns(
     header: list[str], time_column: str | None, date_column: str | None, path: Path
 ) -> tuple[int | None, int]:
@@ -121,8 +104,10 @@ def _time_columns(
                 f"name it with time_column; the header has {', '.join(header)}"
             )
         time_column = found[0]
-    date_index = None if date_column is None else _column(header, date_column, path)
-    return date_index, _column(header, time_column, path)
+    date_index = (
+        None if date_column is None else column_index(header, date_column, path, ReplayError)
+    )
+    return date_index, column_index(header, time_column, path, ReplayError)
 
 
 def read_historian_export(
@@ -147,38 +132,19 @@ def read_historian_export(
         zone = _zone(timezone)
     except ValueError as exc:
         raise ReplayError(f"{path}: {exc}") from None
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            table = list(csv.reader(handle))
-    except FileNotFoundError:
-        raise ReplayError(f"{path}: no such file") from None
-    except UnicodeDecodeError as exc:
-        raise ReplayError(f"{path}: not a text file ({exc.reason})") from None
-    except csv.Error as exc:
-        raise ReplayError(f"{path}: not valid CSV: {exc}") from None
-    if not table:
-        raise ReplayError(f"{path}: the file is empty")
-    header = table[0]
+    header, body = read_csv_rows(path, ReplayError)
     date_index, time_index = _time_columns(header, time_column, date_column, path)
-    value_index = {name: _column(header, name, path) for name in columns}
+    value_index = {name: column_index(header, name, path, ReplayError) for name in columns}
     clash = [name for name, i in value_index.items() if i in (date_index, time_index)]
     if clash:
         raise ReplayError(f"{path}: column {clash[0]!r} holds the time, it cannot be replayed")
-    body = [(number, row) for number, row in enumerate(table[1:], start=2) if any(row)]
-    if not body:
-        raise ReplayError(f"{path}: no data rows below the header")
     times = np.empty(len(body))
-    values = {name: np.empty(len(body)) for name in columns}
     for k, (number, row) in enumerate(body):
-        if len(row) != len(header):
-            raise ReplayError(
-                f"{path}, row {number}: {len(row)} cells, the header has {len(header)}"
-            )
         text = row[time_index].strip()
         if date_index is not None:
             text = f"{row[date_index].strip()}T{text}"
         try:
-            times[k] = _parse_time(text, zone)
+            times[k] = parse_time(text, zone)
         except ValueError:
             where = f"column {header[time_index]!r}" if date_index is None else (
                 f"columns {header[date_index]!r} and {header[time_index]!r}"
@@ -190,17 +156,7 @@ def read_historian_export(
         if not math.isfinite(times[k]):
             raise ReplayError(f"{path}, row {number}, column {header[time_index]!r}: "
                               f"{text!r} is not a finite time")
-        for name, i in value_index.items():
-            cell = row[i].strip()
-            if cell in MISSING:
-                values[name][k] = math.nan
-                continue
-            try:
-                values[name][k] = float(cell)
-            except ValueError:
-                raise ReplayError(
-                    f"{path}, row {number}, column {header[i]!r}: {cell!r} is not a number"
-                ) from None
+    values = number_columns(path, header, body, value_index, ReplayError)
     order = np.argsort(times, kind="stable")
     times = times[order]
     rows = np.array([number for number, _ in body], dtype=np.int64)[order]
@@ -256,35 +212,31 @@ class ReplayConnectorConfig(BaseModel):
         return self
 
 
-@dataclass
-class ReplayCounters:
-    """What a :class:`ReplayConnector` has sent.
+@dataclass(kw_only=True)
+class ReplayCounters(DeliveryCounters):
+    """What a :class:`ReplayConnector` has sent (one sample per row and column).
 
     Attributes
     ----------
+    total_rows : int
+        Rows of the file.
     rows : int
-        File rows replayed so far (of ``total_rows``).
-    samples, bad : int
-        Items made (one per row and column), and how many of them are bad.
-    delivered, undelivered : int
-        Items the sink took, and items of batches the sink raised on (logged).
+        File rows replayed so far.
     """
 
     total_rows: int
     rows: int = 0
-    samples: int = 0
-    bad: int = 0
-    delivered: int = 0
-    undelivered: int = 0
 
 
 class ReplayConnector(BackgroundConnector):
     """Replay ``path`` into ``sink`` at ``speed`` times real time (see the module docstring).
 
     The file is read, checked and sorted when the connector is made, so a
-    bad file fails at once.  ``run()`` returns when every row is sent (or on
-    ``stop()``); rows due together go out in one batch of at most
-    ``max_rows_per_batch`` rows, handed to the sink in a worker thread.
+    bad file fails at once.  ``await connector.run()`` returns when every
+    row is sent (or when cancelled); :meth:`start` / :meth:`stop` run it in a
+    thread of its own.  Rows due together go out in one batch of at most
+    ``max_rows_per_batch`` rows, handed to the sink in a worker thread.  A
+    stopped replay carries on where it stopped when run again.
 
     Parameters
     ----------
@@ -349,7 +301,8 @@ class ReplayConnector(BackgroundConnector):
         """Whether every row has been sent."""
         return self._counters.rows == self._counters.total_rows
 
-    async def _work(self) -> None:
+    async def run(self) -> None:
+        """Send the rows not sent yet, each when it is due."""
         loop = asyncio.get_running_loop()
         times = self.export.times
         due = (times - times[0]) / self.config.speed  # seconds after the first row
@@ -359,8 +312,7 @@ class ReplayConnector(BackgroundConnector):
         start_wall = time.time() - due[k]  # read first: a stamp never runs ahead
         start = loop.time() - due[k]
         while k < times.size:
-            if await self._sleep(due[k] - (loop.time() - start)):
-                return
+            await asyncio.sleep(due[k] - (loop.time() - start))
             end = int(np.searchsorted(due, loop.time() - start, side="right"))
             end = min(max(end, k + 1), k + self.config.max_rows_per_batch)
             stamps = start_wall + due[k:end] if self.config.timestamps == "now" else times[k:end]
@@ -380,13 +332,6 @@ class ReplayConnector(BackgroundConnector):
         return batch
 
     async def _send(self, batch: list[dict[str, Any]], rows: int) -> None:
-        count = sum(len(entry["items"]) for entry in batch)
         self._counters.rows += rows
-        self._counters.samples += count
-        try:
-            await asyncio.to_thread(self._sink, batch)
-        except Exception:
-            self._counters.undelivered += count
-            log.exception("%s: the sink refused a batch of %d samples", self.name, count)
-        else:
-            self._counters.delivered += count
+        self._counters.samples += sum(len(entry["items"]) for entry in batch)
+        await hand_over(self._sink, batch, self._counters, self.name)

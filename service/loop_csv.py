@@ -12,22 +12,20 @@ row and column.
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from connectors.base import TIME_NAMES, column_index, number_columns, parse_time, read_csv_rows
+
 __all__ = ["LoopCsvError", "LoopData", "read_loop_csv"]
 
 FloatArray = NDArray[np.float64]
 
-TIME_NAMES = ("time", "t", "t_s", "timestamp")
 SIGNALS = ("op", "pv", "sp", "mv")
-MISSING = {"", "nan", "NaN", "NAN", "null", "NULL", "NA"}
 
 
 class LoopCsvError(ValueError):
@@ -53,28 +51,13 @@ class LoopData:
 
 
 def _find(header: list[str], wanted: str | None, names: tuple[str, ...], path: Path) -> int | None:
-    lowered = [h.strip().lower() for h in header]
     if wanted is not None:
-        try:
-            return lowered.index(wanted.strip().lower())
-        except ValueError:
-            raise LoopCsvError(
-                f"{path}: no column {wanted!r}; the header has {', '.join(header)}"
-            ) from None
+        return column_index(header, wanted, path, LoopCsvError)
+    lowered = [h.strip().lower() for h in header]
     for name in names:
         if name in lowered:
             return lowered.index(name)
     return None
-
-
-def _parse_time(cell: str) -> float:
-    try:
-        return float(cell)
-    except ValueError:
-        stamp = datetime.fromisoformat(cell.strip().replace("Z", "+00:00"))
-        if stamp.tzinfo is None:
-            stamp = stamp.replace(tzinfo=UTC)  # as the historian ingest reads them
-        return stamp.timestamp()
 
 
 def read_loop_csv(
@@ -110,18 +93,7 @@ def read_loop_csv(
     path = Path(path)
     if ts is not None and not (math.isfinite(ts) and ts > 0):
         raise LoopCsvError(f"--ts must be a positive number of seconds, got {ts}")
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            rows = list(csv.reader(handle))
-    except FileNotFoundError:
-        raise LoopCsvError(f"{path}: no such file") from None
-    except UnicodeDecodeError as exc:
-        raise LoopCsvError(f"{path}: not a text file ({exc.reason})") from None
-    except csv.Error as exc:
-        raise LoopCsvError(f"{path}: not valid CSV: {exc}") from None
-    if not rows:
-        raise LoopCsvError(f"{path}: the file is empty")
-    header = rows[0]
+    header, body = read_csv_rows(path, LoopCsvError)
     wanted = {"op": op, "pv": pv, "sp": sp, "mv": mv}
     index = {name: _find(header, wanted[name], (name,), path) for name in SIGNALS}
     time_index = _find(header, time, TIME_NAMES, path)
@@ -134,31 +106,13 @@ def read_loop_csv(
         raise LoopCsvError(
             f"{path}: no time column (time, t, t_s, timestamp); give --time or --ts"
         )
-    body = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(row)]
-    if not body:
-        raise LoopCsvError(f"{path}: no data rows below the header")
     used = {name: i for name, i in index.items() if i is not None}
-    values = {name: np.empty(len(body)) for name in used}
+    values = number_columns(path, header, body, used, LoopCsvError)
     t: FloatArray = np.empty(len(body))
     for k, (number, row) in enumerate(body):
-        if len(row) != len(header):
-            raise LoopCsvError(
-                f"{path}, row {number}: {len(row)} cells, the header has {len(header)}"
-            )
-        for name, i in used.items():
-            cell = row[i].strip()
-            if cell in MISSING:
-                values[name][k] = np.nan
-                continue
-            try:
-                values[name][k] = float(cell)
-            except ValueError:
-                raise LoopCsvError(
-                    f"{path}, row {number}, column {header[i]!r}: {cell!r} is not a number"
-                ) from None
         if time_index is not None:
             try:
-                t[k] = _parse_time(row[time_index])
+                t[k] = parse_time(row[time_index])
             except ValueError:
                 raise LoopCsvError(
                     f"{path}, row {number}, column {header[time_index]!r}: "

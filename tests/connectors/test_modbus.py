@@ -274,6 +274,13 @@ async def wait_until(condition: Callable[[], bool], what: str) -> None:
     raise AssertionError(f"timed out waiting for {what}")
 
 
+async def cancel(task: asyncio.Task[None]) -> None:
+    """Stop a connector running in this loop as its owner does: cancel it, wait for its end."""
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+
+
 def run_with(
     server: ModbusRegisterServer,
     config: dict[str, Any],
@@ -294,8 +301,7 @@ def run_with(
         try:
             await scenario(connector, collected)
         finally:
-            connector.stop()
-            await task
+            await cancel(task)
             await server.stop()
         return connector
 
@@ -459,8 +465,7 @@ def test_a_device_that_does_not_answer_is_a_timeout_outage():
         connector = ModbusConnector(config, Sink(), backoff=FAST_BACKOFF)
         task = asyncio.create_task(connector.run())
         await wait_until(lambda: bool(connector.outages), "the timeout")
-        connector.stop()
-        await task
+        await cancel(task)
         listener.close()
         await listener.wait_closed()
         return connector

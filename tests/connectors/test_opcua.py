@@ -194,6 +194,15 @@ async def wait_for(condition: Callable[[], bool], within_s: float = 15.0) -> Non
         await asyncio.sleep(0.05)
 
 
+async def first_sample_or_error(config: OpcUaEndpointConfig) -> OpcUaConnector:
+    """Run a connector until its first sample or its first error; the stopped connector."""
+    connector = OpcUaConnector(config, Sink(), backoff=FAST_BACKOFF)
+    async with running(connector):
+        await wait_for(lambda: connector.stats.received == 1
+                       or connector.stats.last_error is not None)
+    return connector
+
+
 def run(test: Callable[[], Awaitable[None]]) -> None:
     asyncio.run(asyncio.wait_for(test(), 60))
 
@@ -398,11 +407,7 @@ def test_certificates_sign_and_encrypt(pki, mode):
             "certificate": pki / who / "cert.der", "private_key": pki / who / "key.pem",
             "server_certificate": pki / "server" / "cert.der", "application_uri": CLIENT_URI,
         }
-        connector = OpcUaConnector(endpoint(server, **security), Sink(), backoff=FAST_BACKOFF)
-        async with running(connector):
-            await wait_for(lambda: connector.stats.received == 1
-                           or connector.stats.last_error is not None)
-        return connector
+        return await first_sample_or_error(endpoint(server, **security))
 
     async def scenario() -> None:
         async with server:
@@ -421,12 +426,7 @@ def test_username_and_password():
     server = PlainServer(free_port(), ["FIC-105.PV"], users={"operator": "s3cret"})
 
     async def connect(password: str) -> OpcUaConnector:
-        config = endpoint(server, username="operator", password=password)
-        connector = OpcUaConnector(config, Sink(), backoff=FAST_BACKOFF)
-        async with running(connector):
-            await wait_for(lambda: connector.stats.received == 1
-                           or connector.stats.last_error is not None)
-        return connector
+        return await first_sample_or_error(endpoint(server, username="operator", password=password))
 
     async def scenario() -> None:
         async with server:
