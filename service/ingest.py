@@ -43,7 +43,7 @@ from sqlalchemy import CursorResult, delete, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from service.loop_csv import MISSING, TIME_NAMES
+from connectors.base import MISSING, TIME_NAMES
 from service.store.models import Sample
 
 __all__ = [
