@@ -190,8 +190,9 @@ def hammerstein_evidence(estimate: StictionEstimate) -> MethodEvidence:
     stiction model in front of the linear process instead of a healthy
     valve (Jelali 2008; thesis Appendix A).  A gain above the
     quantification's ``min_r2_gain`` votes stiction; a fit that explains the
-    data well without needing stiction votes against; a poor fit or an
-    estimate that could not be made abstains.
+    data well without needing stiction votes against; a poor fit (below
+    ``MIN_FIT_R2``, even one that stiction improves) or an estimate that could
+    not be made abstains.
     """
     name = "hammerstein"
     search = estimate.search
@@ -201,7 +202,7 @@ def hammerstein_evidence(estimate: StictionEstimate) -> MethodEvidence:
     threshold = MIN_R2_GAIN
     details = {"fit_r2": estimate.fit_r2, "fit_r2_healthy_valve": search.r2_ideal_valve,
                "S": estimate.S, "J": estimate.J if estimate.J is not None else float("nan")}
-    if estimate.stiction_found:
+    if estimate.stiction_found and estimate.fit_r2 >= MIN_FIT_R2:
         return MethodEvidence(
             name, STICTION, gain, margin_confidence(gain, threshold, HAMMERSTEIN_GAIN_SCALE),
             f"a stiction model (S = {estimate.S:.2f}) raises the fit R2 from "

@@ -18,7 +18,7 @@ class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
 
 
-COMMAND_MODULES: tuple[str, ...] = ("predict", "compensate", "plant_sim")
+COMMAND_MODULES: tuple[str, ...] = ("predict", "compensate", "plant_sim", "unit_analyze")
 """Modules (under ``service.commands``) whose ``register`` adds a subcommand."""
 
 

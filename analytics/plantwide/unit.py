@@ -1,0 +1,604 @@
+"""Which valves of a unit stick: the multi-loop diagnosis of thesis chapter 2.
+
+In a unit of interacting loops one sticky valve makes many loops oscillate,
+and the single-loop methods then blame every valve whose loop cycles.
+:func:`diagnose_unit` works on the unit as a whole:
+
+1. **Plant-wide oscillations** (:func:`~analytics.plantwide.groups.find_oscillation_groups`):
+   the OPs, PVs (and any further measurements) that share an oscillation
+   form a group; each distinct oscillation has a source of its own.
+2. **Thesis step 2** (:func:`~analytics.plantwide.decomposition.decompose_cycles`):
+   the PV cycles of the group's loops are decomposed into ``k`` known shapes
+   plus sinusoids; ``k`` is chosen on held-out cycles.
+3. **Thesis step 3**: every OP and PV of the group is ranked by the surrogate
+   nonlinearity index (thesis Eqs. 2.5-2.9, Thornhill 2005; ``K = 8``,
+   ``M = 50``, 30 samples per cycle).
+4. **Own-valve test** (the Hammerstein identification that the thesis names
+   as the alternative for step 3, :func:`analytics.quantification.quantify_stiction`):
+   a valve is named sticky when a stiction model of *that* valve, driven by
+   its own OP, explains its own PV better than a healthy valve -- in the
+   whole window and again in each half of it on its own (held-out
+   replication, so that the two extra parameters of the valve model do not
+   fit noise).  A healthy valve in a loop shaken by a neighbour's cycle
+   passes its OP through unchanged; a stiction model of it adds nothing.
+
+The named valves are those of step 4, in the order of their evidence; the
+shape count of step 2 and the nonlinearity ranking of step 3 are reported
+beside them.  On the simulated column (thesis section 2.4) the ranking by
+the surrogate index does not single out the sticky valves -- every signal of
+a unit in a stiction limit cycle is nonlinear, and the noise decides the
+order -- and the shape count grows with the dynamics of the healthy loops,
+which are not sinusoidal there; the own-valve test separates them
+(``tests/analytics/test_plantwide.py`` and ``benchmarks/plantwide.py`` show
+the figures).
+
+A cycle of only a few samples per period (a limit cycle at the scan rate, or
+aliased by slow sampling) is too fast for shapes, surrogates or a Hammerstein
+fit.  When such a cycle is confined to the signals of one loop and keeps a
+constant amplitude (:func:`~analytics.plantwide.groups.envelope_variation`
+well below the Rayleigh value of a noise-driven resonance), the loop itself
+holds the nonlinearity that sustains it, and its valve is named with a
+lower confidence.
+
+References
+----------
+.. [1] Thesis chapter 2: section 2.3.5 (steps 1-3), section 2.4 (the
+   simulated column, Tables 2.3-2.8).
+.. [2] N. F. Thornhill, "Finding the source of nonlinearity in a process with
+   plant-wide oscillation", IEEE Trans. Control Syst. Technol. 13 (2005)
+   434-443.
+.. [3] M. Jelali, "Estimation of valve stiction in control loops using
+   separable least-squares and global search algorithms", J. Process
+   Control 18 (2008) 632-642.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from analytics.diagnosis import HAMMERSTEIN_GAIN_SCALE
+from analytics.errors import DataError
+from analytics.oscillation import MIN_SAMPLES
+from analytics.plantwide.decomposition import ShapeDecomposition, decompose_cycles
+from analytics.plantwide.groups import (
+    RAYLEIGH_ENVELOPE_CV,
+    GroupMember,
+    OscillationGroup,
+    envelope_variation,
+    find_oscillation_groups,
+)
+from analytics.quantification import MIN_FIT_R2, MIN_R2_GAIN, StictionEstimate, quantify_stiction
+from analytics.stiction.evidence import margin_confidence
+from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinearity_index
+
+__all__ = [
+    "LIMIT_CYCLE_ENVELOPE_CV",
+    "GroupDiagnosis",
+    "LoopEvidence",
+    "UnitDiagnosis",
+    "ValveFinding",
+    "diagnose_unit",
+]
+
+FloatArray = NDArray[np.float64]
+
+LIMIT_CYCLE_ENVELOPE_CV = 0.5 * RAYLEIGH_ENVELOPE_CV
+"""Envelope variation below which a fast oscillation counts as a sustained limit
+cycle: half the Rayleigh value of a noise-driven resonance (0.26).  The sticky
+reactor cooling valve of the Tennessee Eastman process gives 0.08; normal
+operation of the same loop 0.45-0.55."""
+
+FAST_CYCLE_CONFIDENCE = 0.6
+"""Highest confidence for a valve named from a fast cycle: the localisation and
+the constant envelope show a nonlinearity inside the loop, but no test of the
+valve itself can run on two or three samples per period."""
+
+
+@dataclass(frozen=True)
+class LoopEvidence:
+    """What the unit diagnosis found about one loop of an oscillation group.
+
+    Attributes
+    ----------
+    loop : str
+        The loop's id.
+    nonlinearity_op, nonlinearity_pv : float or None
+        Surrogate nonlinearity index ``N`` of OP and PV at the group's period
+        (thesis Eq. 2.9; ``N > 1`` is nonlinear); None where it could not be
+        computed.
+    own_valve_gain : float or None
+        Output-error R^2 that a stiction model of the loop's valve adds over a
+        healthy valve (:func:`analytics.quantification.quantify_stiction`).
+    half_gains : tuple of (float or None)
+        The same gain in the first and in the second half of the window (only
+        computed when the whole window shows stiction).
+    S, J : float or None
+        Stick band and slip jump of the identified valve model (% of OP span).
+    sticky : bool
+        True when the stiction model fits well and is needed in the whole
+        window and in each half.
+    note : str
+        One sentence on the outcome.
+    """
+
+    loop: str
+    nonlinearity_op: float | None
+    nonlinearity_pv: float | None
+    own_valve_gain: float | None
+    half_gains: tuple[float | None, float | None]
+    S: float | None
+    J: float | None
+    sticky: bool
+    note: str
+
+    @property
+    def nonlinearity(self) -> float | None:
+        """The larger of the OP and PV indices (the loop's place in the ranking)."""
+        known = [v for v in (self.nonlinearity_op, self.nonlinearity_pv) if v is not None]
+        return max(known) if known else None
+
+
+@dataclass(frozen=True)
+class GroupDiagnosis:
+    """The diagnosis of one plant-wide oscillation.
+
+    Attributes
+    ----------
+    period_s : float
+        The group's period, s.
+    cycles : float
+        Periods in the window.
+    members : tuple of GroupMember
+        The signals that share the oscillation (strongest first).
+    loops : tuple of str
+        Loops with their OP or PV among the members: the valves that could be
+        the source.
+    decomposition : ShapeDecomposition or None
+        Thesis step 2 on the PVs of ``loops`` (None when it could not run;
+        see ``note``).
+    evidence : tuple of LoopEvidence
+        One entry per loop, sticky ones first, then by nonlinearity index.
+    sticky_valves : tuple of str
+        The loops whose valves are named sticky for this oscillation.
+    envelope_cv : float or None
+        Envelope variation of the strongest member (computed for fast cycles,
+        where it decides).
+    note : str
+        How the group was diagnosed, or why it was not.
+    """
+
+    period_s: float
+    cycles: float
+    members: tuple[GroupMember, ...]
+    loops: tuple[str, ...]
+    decomposition: ShapeDecomposition | None
+    evidence: tuple[LoopEvidence, ...]
+    sticky_valves: tuple[str, ...]
+    envelope_cv: float | None
+    note: str
+
+    @property
+    def ranking(self) -> tuple[tuple[str, float], ...]:
+        """Every OP and PV of the group's loops by decreasing surrogate index (thesis
+        step 3), as ``(signal, N)``."""
+        pairs = [
+            (f"{role}_{e.loop}", value)
+            for e in self.evidence
+            for role, value in (("op", e.nonlinearity_op), ("pv", e.nonlinearity_pv))
+            if value is not None
+        ]
+        return tuple(sorted(pairs, key=lambda pair: pair[1], reverse=True))
+
+
+@dataclass(frozen=True)
+class ValveFinding:
+    """A valve named sticky.
+
+    Attributes
+    ----------
+    loop : str
+        The loop whose valve sticks.
+    confidence : float
+        0 to 1.
+    period_s : float
+        Period of the oscillation it drives, s.
+    S, J : float or None
+        Identified stick band and slip jump (% of OP span); None for a fast
+        cycle.
+    reason : str
+        The evidence in one sentence.
+    """
+
+    loop: str
+    confidence: float
+    period_s: float
+    S: float | None
+    J: float | None
+    reason: str
+
+
+@dataclass(frozen=True)
+class UnitDiagnosis:
+    """Result of :func:`diagnose_unit`.
+
+    Attributes
+    ----------
+    loops : tuple of str
+        The loops analysed.
+    samples : int
+        Window length.
+    ts : float
+        Sampling interval, s.
+    groups : tuple of GroupDiagnosis
+        Every plant-wide oscillation found, with its diagnosis.
+    sticky_valves : tuple of ValveFinding
+        The valves named sticky, most confident first; empty when no valve
+        is to blame.
+    """
+
+    loops: tuple[str, ...]
+    samples: int
+    ts: float
+    groups: tuple[GroupDiagnosis, ...]
+    sticky_valves: tuple[ValveFinding, ...]
+
+    @property
+    def k(self) -> int:
+        """Number of sticky valves found."""
+        return len(self.sticky_valves)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready form (the ``loopwatch unit-analyze --json`` contract)."""
+        return {
+            "loops": list(self.loops),
+            "samples": self.samples,
+            "ts": self.ts,
+            "k": self.k,
+            "sticky_valves": [
+                {"loop": f.loop, "confidence": f.confidence, "period_s": f.period_s,
+                 "S": f.S, "J": f.J, "reason": f.reason}
+                for f in self.sticky_valves
+            ],
+            "groups": [_group_dict(g) for g in self.groups],
+        }
+
+
+def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:
+    d = group.decomposition
+    return {
+        "period_s": group.period_s,
+        "cycles": group.cycles,
+        "loops": list(group.loops),
+        "members": [
+            {"signal": m.signal, "period_s": m.period_s, "regularity": m.regularity,
+             "power_fraction": m.power_fraction, "amplitude": m.amplitude,
+             "similarity": m.similarity}
+            for m in group.members
+        ],
+        "shape_decomposition": None if d is None else {
+            "k": d.k,
+            "n": d.n,
+            "held_out_error": list(d.held_out_error),
+            "held_out_se": list(d.held_out_se),
+            "structures": {name: list(s) for name, s in d.structures.items()},
+            "cycles": dict(d.cycles),
+        },
+        "ranking": [{"signal": s, "nonlinearity": n} for s, n in group.ranking],
+        "evidence": [
+            {"loop": e.loop, "nonlinearity_op": e.nonlinearity_op,
+             "nonlinearity_pv": e.nonlinearity_pv, "own_valve_gain": e.own_valve_gain,
+             "half_gains": list(e.half_gains), "S": e.S, "J": e.J, "sticky": e.sticky,
+             "note": e.note}
+            for e in group.evidence
+        ],
+        "sticky_valves": list(group.sticky_valves),
+        "envelope_cv": group.envelope_cv,
+        "note": group.note,
+    }
+
+
+def _checked(name: str, x: ArrayLike) -> FloatArray:
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim != 1:
+        raise DataError(f"{name} must be one-dimensional, got shape {a.shape}")
+    bad = np.flatnonzero(~np.isfinite(a))
+    if bad.size:
+        raise DataError(
+            f"{name} has {bad.size} missing or non-finite value(s), the first at index {bad[0]}"
+        )
+    return a
+
+
+def _unit_signals(
+    loops: Mapping[str, tuple[ArrayLike, ArrayLike]],
+    measurements: Mapping[str, ArrayLike],
+) -> tuple[dict[str, FloatArray], dict[str, str]]:
+    """All signals by name (``op_<loop>``, ``pv_<loop>``, measurements) and the loop of each
+    OP and PV; every input checked."""
+    if not loops:
+        raise DataError("a unit needs at least one loop")
+    signals: dict[str, FloatArray] = {}
+    owner: dict[str, str] = {}
+    for loop, pair in loops.items():
+        if not isinstance(loop, str) or not loop:
+            raise DataError(f"loop ids must be non-empty strings, got {loop!r}")
+        if len(pair) != 2:
+            raise DataError(f"loop {loop!r}: expected (op, pv), got {len(pair)} signals")
+        for role, x in zip(("op", "pv"), pair, strict=True):
+            name = f"{role}_{loop}"
+            signals[name] = _checked(f"loop {loop!r}: {role.upper()}", x)
+            owner[name] = loop
+    for name, x in measurements.items():
+        if name in signals:
+            raise DataError(f"measurement {name!r} has the name of a loop signal")
+        signals[name] = _checked(f"measurement {name!r}", x)
+    sizes = {name: a.size for name, a in signals.items()}
+    if len(set(sizes.values())) > 1:
+        raise DataError(f"signals differ in length: {sizes}")
+    samples = next(iter(sizes.values()))
+    if samples < MIN_SAMPLES:
+        raise DataError(f"{samples} samples per signal, at least {MIN_SAMPLES} are needed")
+    return signals, owner
+
+
+def _estimate_holds(estimate: StictionEstimate) -> bool:
+    """A stiction model that fits (R^2 >= MIN_FIT_R2) and is needed (``stiction_found``)."""
+    return bool(
+        estimate.stiction_found and estimate.fit_r2 is not None and estimate.fit_r2 >= MIN_FIT_R2
+    )
+
+
+def _gain(estimate: StictionEstimate) -> float | None:
+    if estimate.fit_r2 is None or estimate.search is None:
+        return None
+    return estimate.fit_r2 - estimate.search.r2_ideal_valve
+
+
+def _own_valve_test(
+    op: FloatArray, pv: FloatArray, ts: float, period_s: float
+) -> tuple[StictionEstimate, tuple[StictionEstimate | None, StictionEstimate | None], bool]:
+    """The Hammerstein test of one valve in the whole window and, if it holds, in each half."""
+    whole = quantify_stiction(op, pv, ts, period_s=period_s)
+    if not _estimate_holds(whole):
+        return whole, (None, None), False
+    middle = op.size // 2
+    halves = (
+        quantify_stiction(op[:middle], pv[:middle], ts, period_s=period_s),
+        quantify_stiction(op[middle:], pv[middle:], ts, period_s=period_s),
+    )
+    return whole, halves, all(_estimate_holds(h) for h in halves)
+
+
+def _nonlinearity(
+    x: FloatArray, period_samples: float, settings: Mapping[str, int]
+) -> float | None:
+    try:
+        return surrogate_nonlinearity_index(x, period_samples, **settings).index
+    except DataError:
+        return None
+
+
+def _loop_evidence(
+    loop: str, op: FloatArray, pv: FloatArray, ts: float, period_s: float,
+    surrogate_settings: Mapping[str, int],
+) -> LoopEvidence:
+    period_samples = period_s / ts
+    n_op = _nonlinearity(op, period_samples, surrogate_settings)
+    n_pv = _nonlinearity(pv, period_samples, surrogate_settings)
+    whole, halves, sticky = _own_valve_test(op, pv, ts, period_s)
+    gain = _gain(whole)
+    half_gains = tuple(None if h is None else _gain(h) for h in halves)
+    if sticky:
+        note = (f"a stiction model of its own valve (S = {whole.S:.2f}, J = {whole.J:.2f}) "
+                f"raises the fit of its PV by {gain:.2f} in R2, in each half of the window too")
+    elif _estimate_holds(whole):
+        note = "stiction of its own valve fits the whole window but not both halves of it"
+    elif whole.S is None:
+        note = "its own valve could not be identified: " + "; ".join(whole.issues)
+    elif whole.fit_r2 is None or whole.fit_r2 < MIN_FIT_R2:
+        note = (f"its own valve explains little of its PV (fit R2 "
+                f"{0.0 if whole.fit_r2 is None else whole.fit_r2:.2f}, stiction adds "
+                f"{0.0 if gain is None else gain:+.3f}): the cycle reaches it from elsewhere")
+    else:
+        note = (f"a healthy valve explains its PV as well (stiction adds "
+                f"{0.0 if gain is None else gain:+.3f} in R2, fit R2 "
+                f"{0.0 if whole.fit_r2 is None else whole.fit_r2:.2f})")
+    return LoopEvidence(
+        loop=loop,
+        nonlinearity_op=n_op,
+        nonlinearity_pv=n_pv,
+        own_valve_gain=gain,
+        half_gains=(half_gains[0], half_gains[1]),
+        S=whole.S if sticky else None,
+        J=whole.J if sticky else None,
+        sticky=sticky,
+        note=note,
+    )
+
+
+def _evidence_order(e: LoopEvidence) -> tuple[bool, float, float]:
+    return (e.sticky, e.own_valve_gain or 0.0, e.nonlinearity or -math.inf)
+
+
+def _fast_cycle(
+    group: OscillationGroup, loops: tuple[str, ...], signals: Mapping[str, FloatArray],
+    ts: float, cycles: float,
+) -> GroupDiagnosis:
+    """A cycle too fast for shapes and models: localisation and a constant envelope."""
+    period = group.period_s / ts
+    envelope = envelope_variation(signals[group.members[0].signal], period)
+    named: tuple[str, ...] = ()
+    if len(loops) != 1:
+        note = (f"a cycle of {period:.1f} samples shared by {len(loops)} loops: too fast to "
+                "test shapes or valve models, and not confined to one loop")
+    elif envelope >= LIMIT_CYCLE_ENVELOPE_CV:
+        note = (f"a cycle of {period:.1f} samples in loop {loops[0]} whose amplitude varies "
+                f"like a noise-driven resonance (envelope variation {envelope:.2f}, "
+                f"limit cycles stay below {LIMIT_CYCLE_ENVELOPE_CV:.2f})")
+    else:
+        named = loops
+        note = (f"a sustained limit cycle of {period:.1f} samples (envelope variation "
+                f"{envelope:.2f}) confined to loop {loops[0]}: the nonlinearity that drives "
+                "it sits in that loop; too fast for shape or valve-model tests")
+    evidence = tuple(
+        LoopEvidence(loop, None, None, None, (None, None), None, None, loop in named, note)
+        for loop in loops
+    )
+    return GroupDiagnosis(group.period_s, cycles, group.members, loops, None, evidence,
+                          named, envelope, note)
+
+
+def _diagnose_group(
+    group: OscillationGroup,
+    owner: Mapping[str, str],
+    signals: Mapping[str, FloatArray],
+    ts: float,
+    *,
+    min_cycles: float,
+    max_k: int,
+    surrogate_settings: Mapping[str, int],
+) -> GroupDiagnosis:
+    loops = tuple(dict.fromkeys(owner[m.signal] for m in group.members if m.signal in owner))
+    samples = next(iter(signals.values())).size
+    period = group.period_s / ts
+    cycles = samples / period
+    if not loops:
+        return GroupDiagnosis(group.period_s, cycles, group.members, loops, None, (), (), None,
+                              "no loop takes part: a disturbance seen only in measurements")
+    if cycles < min_cycles:
+        return GroupDiagnosis(
+            group.period_s, cycles, group.members, loops, None, (), (), None,
+            f"only {cycles:.1f} cycles in the window; at least {min_cycles:g} are needed "
+            "to tell a valve from the rest of the loop",
+        )
+    if period < MIN_PERIOD_SAMPLES:
+        return _fast_cycle(group, loops, signals, ts, cycles)
+    decomposition = None
+    notes = []
+    try:
+        decomposition = decompose_cycles(
+            {f"pv_{loop}": signals[f"pv_{loop}"] for loop in loops}, period,
+            n_valves=len(loops), max_k=max_k,
+        )
+    except DataError as exc:
+        notes.append(f"no shape decomposition: {exc}")
+    evidence = sorted(
+        (
+            _loop_evidence(loop, signals[f"op_{loop}"], signals[f"pv_{loop}"], ts,
+                           group.period_s, surrogate_settings)
+            for loop in loops
+        ),
+        key=_evidence_order,
+        reverse=True,
+    )
+    named = tuple(e.loop for e in evidence if e.sticky)
+    if named:
+        notes.insert(0, f"sticky: {', '.join(named)} (own-valve stiction model, replicated "
+                        "in both halves of the window)")
+    elif any((e.nonlinearity or 0.0) > 1.0 for e in evidence):
+        notes.insert(0, "nonlinear cycle, but no valve of the group explains it: look for "
+                        "another nonlinearity or a source outside the unit")
+    else:
+        notes.insert(0, "no valve of the group explains the cycle and no signal is nonlinear: "
+                        "a linear oscillation (tuning or an external disturbance)")
+    return GroupDiagnosis(group.period_s, cycles, group.members, loops, decomposition,
+                          tuple(evidence), named, None, "; ".join(notes))
+
+
+def _finding(group: GroupDiagnosis, loop: str) -> ValveFinding:
+    evidence = next(e for e in group.evidence if e.loop == loop)
+    if group.envelope_cv is not None:
+        confidence = FAST_CYCLE_CONFIDENCE * margin_confidence(
+            group.envelope_cv, LIMIT_CYCLE_ENVELOPE_CV, LIMIT_CYCLE_ENVELOPE_CV / 2
+        )
+        return ValveFinding(loop, confidence, group.period_s, None, None, evidence.note)
+    gains = [g for g in (evidence.own_valve_gain, *evidence.half_gains) if g is not None]
+    confidence = margin_confidence(min(gains), MIN_R2_GAIN, HAMMERSTEIN_GAIN_SCALE)
+    return ValveFinding(loop, confidence, group.period_s, evidence.S, evidence.J, evidence.note)
+
+
+def diagnose_unit(
+    loops: Mapping[str, tuple[ArrayLike, ArrayLike]],
+    ts: float,
+    *,
+    measurements: Mapping[str, ArrayLike] | None = None,
+    min_cycles: float = 8.0,
+    max_k: int = 3,
+    neighbours: int = 8,
+    surrogates: int = 50,
+    samples_per_cycle: int = 30,
+    seed: int = 0,
+) -> UnitDiagnosis:
+    """Find the sticky valves of a unit of interacting loops (see the module docstring).
+
+    Parameters
+    ----------
+    loops : mapping of str to (array_like, array_like)
+        ``loop id -> (OP, PV)``, equally long, uniformly sampled, finite.
+    ts : float
+        Sampling interval, s.
+    measurements : mapping of str to array_like, optional
+        Further measurements of the unit (no valve of their own); they join
+        the plant-wide grouping, so that a cycle seen in a loop and in the
+        measurements around it counts as one.
+    min_cycles : float
+        Fewest periods of an oscillation in the window before a valve is
+        blamed for it (the surrogate index needs 8; Thornhill's defaults
+        hold for more than 12).
+    max_k : int
+        Most shapes the decomposition tries.
+    neighbours, surrogates, samples_per_cycle, seed : int
+        ``K``, ``M``, ``S_n`` and the seed of the surrogate index (thesis
+        Remark 5).
+
+    Returns
+    -------
+    UnitDiagnosis
+
+    Raises
+    ------
+    DataError
+        If there is no loop, ``ts`` is not positive, or a signal is not
+        one-dimensional, finite, as long as the others and at least
+        :data:`analytics.oscillation.MIN_SAMPLES` long (the message names
+        the loop and signal).
+
+    Examples
+    --------
+    >>> from analytics.scenarios import column3x3
+    >>> run = column3x3(sticky=(1,)).run()
+    >>> late = run.t >= 2000
+    >>> unit = {name: (run.op[i][late], run.pv[i][late]) for i, name in enumerate(run.names)}
+    >>> result = diagnose_unit(unit, run.dt)
+    >>> [f.loop for f in result.sticky_valves]
+    ['loop1']
+    """
+    if not (math.isfinite(ts) and ts > 0):
+        raise DataError(f"sampling interval ts must be positive and finite, got {ts!r}")
+    signals, owner = _unit_signals(loops, measurements or {})
+    settings = {"neighbours": neighbours, "surrogates": surrogates,
+                "samples_per_cycle": samples_per_cycle, "seed": seed}
+    groups = tuple(
+        _diagnose_group(g, owner, signals, ts, min_cycles=min_cycles, max_k=max_k,
+                        surrogate_settings=settings)
+        for g in find_oscillation_groups(signals, ts)
+    )
+    best: dict[str, ValveFinding] = {}
+    for group in groups:
+        for loop in group.sticky_valves:
+            finding = _finding(group, loop)
+            if loop not in best or finding.confidence > best[loop].confidence:
+                best[loop] = finding
+    return UnitDiagnosis(
+        loops=tuple(loops),
+        samples=next(iter(signals.values())).size,
+        ts=float(ts),
+        groups=groups,
+        sticky_valves=tuple(sorted(best.values(), key=lambda f: f.confidence, reverse=True)),
+    )

@@ -1,0 +1,223 @@
+"""Multi-loop stiction detection (thesis chapter 2): accuracy and speed.
+
+Prints, in one run:
+
+1. the simulated 3x3 column (thesis section 2.4) with every combination of
+   sticky valves and with an external sinusoid instead: the valves named,
+   and for the thesis scenarios with one, two and three sticky valves the
+   counterparts of thesis Tables 2.4-2.8 beside the published values (the
+   held-out error of the shape decomposition for k = 1..3, the structures,
+   the surrogate nonlinearity index of every OP and PV);
+2. the Tennessee Eastman runs (../shared/data/tep): the valves named in
+   normal operation and with the reactor (IDV 14) or condenser (IDV 15)
+   cooling-water valve sticking;
+3. medians of repeated runs: the surrogate index of 8 signals of 2,000
+   samples with M = 50 (one core), the grouping of the 52 TEP signals and
+   the whole unit diagnosis of the column.
+
+Run with ``make bench`` or ``.venv/bin/python benchmarks/plantwide.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+# One core for the speed figures (set before numpy and numba load their pools).
+for variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                 "MKL_NUM_THREADS"):
+    os.environ.setdefault(variable, "1")
+
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.signal import lfilter  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from analytics.plantwide import (  # noqa: E402
+    GroupDiagnosis,
+    UnitDiagnosis,
+    diagnose_unit,
+    find_oscillation_groups,
+)
+from analytics.scenarios import column3x3  # noqa: E402
+from analytics.simulation import ClosedLoopModel, Disturbance  # noqa: E402
+from analytics.stiction.surrogate import surrogate_nonlinearity_index  # noqa: E402
+
+TEP = ROOT.parent / "shared" / "data" / "tep"
+TEP_PV_OF = {1: 26, 2: 27, 3: 1, 4: 4, 5: 13, 6: 10, 7: 12, 8: 15, 9: 19, 10: 9, 11: 17}
+"""XMV(j) -> the XMEAS it controls (from d00 normal operation; see the tests)."""
+
+THESIS_TABLE_2_8 = {  # surrogate index, OP1-3 then PV1-3
+    (1,): (1.4478, 0.1150, 1.4499, 11.0361, 7.2391, 8.2083),
+    (1, 2): (1.013, -0.8190, -0.2103, 12.3109, 9.4891, 7.4260),
+    (1, 2, 3): (-0.2138, 0.2513, 0.9936, 9.3172, 6.3321, 9.0021),
+}
+THESIS_TABLE_2_7 = {
+    (1,): ("tri+sin+sin", "tri+sin+sin", "tri+sin+sin"),
+    (1, 2): ("tri+tri+sin", "tri+squ+sin", "tri+tri+sin"),
+    (1, 2, 3): ("tri+tri+squ", "tri+tri+squ", "tri+tri+squ"),
+}
+THESIS_MSE = {  # Tables 2.4-2.6: MSE of PV1-3 with k = 1, 2, 3 shapes (scenarios A, B, C)
+    (1,): ((0.0002, 0.0011, 0.0014), (0.0051, 0.0037, 0.0065), (1.2981, 1.1350, 1.4887)),
+    (1, 2): ((0.0001, 0.0001, 0.0006), (0.0006, 0.0002, 0.0003), (1.4960, 0.2450, 0.8707)),
+    (1, 2, 3): ((0.0001, 0.0005, 0.0002), (0.0007, 0.0047, 0.0006), (1.9160, 0.5854, 0.5007)),
+}
+SHORT = {"square": "squ", "triangular": "tri", "sinusoidal": "sin"}
+
+
+def median_time(run: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def column_unit(model: ClosedLoopModel) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    run = model.run()
+    late = run.t >= 2000.0  # after the start-up transient
+    return {name: (run.op[i][late], run.pv[i][late]) for i, name in enumerate(run.names)}
+
+
+def with_sine(loop: int, at: str, period: float) -> ClosedLoopModel:
+    model = column3x3(sticky=())
+    loops = list(model.loops)
+    loops[loop] = dataclasses.replace(
+        loops[loop], disturbances=(*loops[loop].disturbances, Disturbance("sine", 1.0, at=at,
+                                                                          period=period)))
+    return dataclasses.replace(model, loops=tuple(loops))
+
+
+def thesis_tables(sticky: tuple[int, ...], result: UnitDiagnosis) -> None:
+    print(f"  thesis Tables 2.4-2.8 for {len(sticky)} sticky valve(s):")
+    indices: dict[str, float] = {}
+    for group in result.groups:
+        for signal, value in group.ranking:
+            indices.setdefault(signal, value)
+    ours = [indices.get(f"{r}_loop{i}") for r in ("op", "pv") for i in (1, 2, 3)]
+    print("    Table 2.8 N      " + " ".join(f"{s:>7s}" for s in
+                                            ("OP1", "OP2", "OP3", "PV1", "PV2", "PV3")))
+    print("      thesis         " + " ".join(f"{v:7.2f}" for v in THESIS_TABLE_2_8[sticky]))
+    print("      ours           " + " ".join("      -" if v is None else f"{v:7.2f}"
+                                             for v in ours))
+    for i, mse in enumerate(THESIS_MSE[sticky], start=1):
+        print(f"    Tables 2.4-2.6 PV{i}: thesis MSE k=1..3 {mse} -> best k = "
+              f"{int(np.argmin(mse)) + 1}; structure {THESIS_TABLE_2_7[sticky][i - 1]}")
+    for group in result.groups:
+        d = group.decomposition
+        if d is None:
+            continue
+        print(f"    ours, cycle {group.period_s:.0f} s: shapes k = {d.k} of {d.n}")
+        for name, errors in d.per_signal_error.items():
+            structure = "+".join(SHORT[s] for s in d.structures[name])
+            print(f"      {name}: held-out error k=0..{len(errors) - 1} "
+                  f"{tuple(round(e, 3) for e in errors)}; structure {structure}")
+
+
+def group_line(group: GroupDiagnosis) -> str:
+    shapes = "-" if group.decomposition is None else str(group.decomposition.k)
+    return (f"{group.period_s:7.1f} s  loops {','.join(group.loops) or '-':22s} shapes k={shapes}"
+            f"  named {','.join(group.sticky_valves) or '-'}")
+
+
+def column() -> None:
+    print("== simulated 3x3 column (thesis Eq. 2.10, Table 2.3 He valves, noise var 0.01) ==")
+    cases: list[tuple[str, tuple[int, ...], ClosedLoopModel]] = [
+        (f"sticky {','.join(map(str, s))}", s, column3x3(sticky=s))
+        for s in ((1,), (1, 2), (1, 2, 3), (2,), (3,), (1, 3), (2, 3))
+    ]
+    cases += [
+        ("healthy, sine at input 1", (), with_sine(0, "input", 200.0)),
+        ("healthy, sine at output 2", (), with_sine(1, "output", 150.0)),
+    ]
+    right = 0
+    for label, sticky, model in cases:
+        result = diagnose_unit(column_unit(model), 0.5)
+        truth = {f"loop{i}" for i in sticky}
+        named = {f.loop for f in result.sticky_valves}
+        right += named == truth
+        mark = "ok" if named == truth else "XX"
+        print(f"{mark} {label:27s} true k={len(truth)}  named k={result.k}: "
+              + ", ".join(f"{f.loop} ({f.confidence:.2f}, S={f.S:.2f})"
+                          if f.S is not None else f.loop for f in result.sticky_valves))
+        for group in result.groups:
+            print("     " + group_line(group))
+        if sticky in THESIS_TABLE_2_8:
+            thesis_tables(sticky, result)
+    print(f"right valves in {right} of {len(cases)} cases\n")
+
+
+def tep_unit(name: str) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
+    data = np.loadtxt(TEP / name)
+    if data.shape[0] == 52:
+        data = data.T
+    if name.endswith("_te.dat"):
+        data = data[160:]
+    loops = {f"XMV({j})": (data[:, 40 + j], data[:, pv - 1]) for j, pv in TEP_PV_OF.items()}
+    others = {f"XMEAS({i})": data[:, i - 1] for i in range(1, 42) if i not in TEP_PV_OF.values()}
+    return loops, others
+
+
+def tennessee_eastman() -> None:
+    print("== Tennessee Eastman (Braatz data, 3-minute samples, test runs from the fault on) ==")
+    if not TEP.is_dir():
+        print(f"skipped: {TEP} not found\n")
+        return
+    truth = {"d00": "none", "d14": "XMV(10)", "d15": "XMV(11)"}
+    for name in ("d00.dat", "d00_te.dat", "d14.dat", "d14_te.dat", "d15.dat", "d15_te.dat"):
+        loops, others = tep_unit(name)
+        result = diagnose_unit(loops, 180.0, measurements=others)
+        named = ", ".join(f"{f.loop} ({f.confidence:.2f})" for f in result.sticky_valves)
+        print(f"{name:11s} sticky: {truth[name[:3]]:8s} named: {named or 'none'}")
+        for group in result.groups:
+            print(f"     {group.period_s / 180.0:6.1f} samples, {group.cycles:5.1f} cycles: "
+                  f"{group.note[:110]}")
+    print()
+
+
+def speed() -> None:
+    print("== speed (median of repeated runs, one core) ==")
+    rng = np.random.default_rng(2)
+    signals = []
+    for i in range(8):  # a valve slipping every 22-28 samples, seen through a lag, in noise
+        halves = rng.integers(22, 29, 120)
+        mv = np.concatenate([np.full(h, (-1.0) ** j) for j, h in enumerate(halves)])[:2000]
+        signals.append(lfilter([0.1], [1, -0.9 + 0.02 * i], mv)
+                       + 0.05 * rng.standard_normal(2000))
+
+    def surrogates() -> None:
+        for x in signals:
+            surrogate_nonlinearity_index(x, 50.0, surrogates=50)
+
+    def surrogates_all_cycles() -> None:
+        for x in signals:
+            surrogate_nonlinearity_index(x, 50.0, surrogates=50, max_cycles=40)
+
+    surrogates()  # compile
+    print(f"surrogate index, 8 signals x 2000 samples, M = 50, K = 8, S_n = 30 "
+          f"(latest 12 cycles, the default): {median_time(surrogates, 7):.3f} s")
+    print(f"the same on all 40 cycles of each signal: "
+          f"{median_time(surrogates_all_cycles, 7):.3f} s")
+    if TEP.is_dir():
+        loops, others = tep_unit("d14.dat")
+        flat = {f"{role}_{loop}": x for loop, pair in loops.items()
+                for role, x in zip(("op", "pv"), pair, strict=True)} | others
+        print(f"plant-wide grouping, 52 TEP signals x 480 samples: "
+              f"{median_time(lambda: find_oscillation_groups(flat, 180.0), 5):.3f} s")
+    unit = column_unit(column3x3(sticky=(1, 2)))
+    print(f"whole unit diagnosis, column with valves 1 and 2 sticky (3 loops x 12000 samples): "
+          f"{median_time(lambda: diagnose_unit(unit, 0.5), 3):.2f} s")
+
+
+if __name__ == "__main__":
+    column()
+    tennessee_eastman()
+    speed()
