@@ -211,3 +211,16 @@ def test_loops_can_be_added_by_an_admin(client):
     assert "duplicate tags (a tag belongs to one loop): 'NEW.PV'" in taken.text
     assert client.get("/api/v1/loops/NEW-2",
                       headers={"X-API-Key": ADMIN}).status_code == 404
+
+
+def test_unit_diagnosis_names_the_sticky_valve_of_the_unit(client):
+    historian, viewer = key(client, "historian"), key(client, "viewer")
+    assert client.get("/api/v1/units/u1/diagnosis", headers=viewer).status_code == 404
+    client.post("/api/v1/ingest", json=simulated_batch(), headers=historian)
+    response = client.get("/api/v1/units/u1/diagnosis", headers=viewer)
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert [v["loop"] for v in body["sticky_valves"]] == ["FIC-1"]
+    assert body["loops_without_complete_window"] == []
+    assert client.get("/api/v1/units/nope/diagnosis", headers=viewer).json() == {
+        "detail": "Unit not found"}

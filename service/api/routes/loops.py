@@ -11,12 +11,13 @@ from pydantic import BaseModel, ValidationError
 from sqlalchemy import func, select
 
 from service.api.deps import Principal, SessionDep, StateDep, require
-from service.api.routes import advice
+from service.api.routes import advice, unit_diagnosis
 from service.config import LoopConfig
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
 
 router = APIRouter(prefix="/api/v1", tags=["loops"])
 router.include_router(advice.router)
+router.include_router(unit_diagnosis.router)
 Reader = Annotated[Principal, Depends(require("read"))]
 Admin = Annotated[Principal, Depends(require("admin"))]
 
