@@ -148,9 +148,10 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
 
     service.app.router.lifespan_context = lifespan
     url = f"http://{settings.host}:{settings.port}"
-    print(f"loopwatch: API docs at {url}/docs  (dashboard at {url}/)")
+    print(f"loopwatch: dashboard at {url}/  (API schema at {url}/openapi.json, with a key)")
     if service.key_generated:
         print(f"loopwatch: admin API key for this run: {service.admin_key}")
+        print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
         print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
     if plant is None:
         print("loopwatch: demo plant -- simulated loops, two with sticky valves "
