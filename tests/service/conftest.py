@@ -1,12 +1,17 @@
 """Store fixtures: every store test runs on SQLite and on a real PostgreSQL."""
 
 from collections.abc import Iterator
+from concurrent.futures import Executor, ThreadPoolExecutor
 from itertools import count
+from typing import Any
 
 import pytest
 from sqlalchemy import create_engine, text
 
+from service.config import Settings
+from service.server import Service, build_service
 from service.store.db import Store
+from tests.service.test_api import ADMIN, T0, plant
 
 _databases = count()
 
@@ -30,3 +35,29 @@ def store(request: pytest.FixtureRequest, tmp_path) -> Iterator[Store]:
     with admin.connect() as connection:
         connection.execute(text(f"DROP DATABASE {name} WITH (FORCE)"))
     admin.dispose()
+
+
+@pytest.fixture
+def make_service(store):
+    """Build services on ``store`` with the two-loop test plant; they are closed after the test.
+
+    ``make_service(executor=None, **settings)``: a one-thread pool unless an
+    executor is given; keyword arguments override the settings.
+    """
+    made: list[Service] = []
+
+    def make(executor: Executor | None = None, **overrides: Any) -> Service:
+        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
+                            buffer_horizon_s=7200, **overrides)
+        svc = build_service(settings, plant(), executor=executor or ThreadPoolExecutor(1),
+                            clock=lambda: T0)
+        made.append(svc)
+        return svc
+
+    yield make
+    for svc in made:
+        release = getattr(svc.executor, "release", None)  # ends a deliberately hung job
+        if release is not None:
+            release.set()
+        svc.executor.shutdown(wait=False, cancel_futures=True)
+        svc.state.store.close()

@@ -100,23 +100,6 @@ def store_outage(store: Store, request: pytest.FixtureRequest) -> Iterator[None]
         subprocess.run(["chattr", "-i", *map(str, files)], check=True)
 
 
-@pytest.fixture
-def make_service(store):
-    made: list[Service] = []
-
-    def make(**overrides: Any) -> Service:
-        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                            buffer_horizon_s=7200, **overrides)
-        svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
-        made.append(svc)
-        return svc
-
-    yield make
-    for svc in made:
-        svc.executor.shutdown()
-        svc.state.store.close()
-
-
 def new_key(client: TestClient, role: str) -> dict[str, str]:
     response = client.post("/api/v1/keys", json={"name": role, "role": role},
                            headers={"X-API-Key": ADMIN})

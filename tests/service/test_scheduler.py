@@ -6,10 +6,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import pytest
 from sqlalchemy import func, select
 
-from service.config import Settings
-from service.server import build_service
 from service.store.models import AnalysisRun, Sample
-from tests.service.test_api import ADMIN, T0, plant, simulated_batch
+from tests.service.test_api import T0, simulated_batch
 
 
 class SabotagingExecutor(ThreadPoolExecutor):
@@ -30,26 +28,6 @@ class SabotagingExecutor(ThreadPoolExecutor):
         return super().submit(fn, *args, **kwargs)
 
 
-@pytest.fixture
-def make_service(store):
-    made = []
-
-    def make(executor, **overrides):
-        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                            buffer_horizon_s=7200, **overrides)
-        svc = build_service(settings, plant(), executor=executor, clock=lambda: T0)
-        made.append(svc)
-        svc.state.ingest(simulated_batch())
-        return svc
-
-    yield make
-    for svc in made:
-        if isinstance(svc.executor, SabotagingExecutor):
-            svc.executor.release.set()
-        svc.executor.shutdown(wait=False, cancel_futures=True)
-        svc.state.store.close()
-
-
 @pytest.mark.parametrize(("mode", "status", "error"), [
     ("fail", "failed", "RuntimeError: worker crashed"),
     ("hang", "timeout", "analysis took longer than 20 s"),
@@ -59,6 +37,7 @@ def test_one_loop_failing_or_hanging_does_not_stop_the_others(make_service, mode
     # The limit leaves the healthy loop ample time even with a cold JIT on a busy machine;
     # the hanging one waits until the test ends, so only the limit can end its wait.
     svc = make_service(SabotagingExecutor("FIC-2", mode), analysis_timeout_s=20.0)
+    svc.state.ingest(simulated_batch())
     runs = {r.loop_id: r for r in svc.scheduler.run_once(T0)}
     assert runs["FIC-1"].status == "ok" and runs["FIC-1"].verdict == "stiction"
     assert runs["FIC-2"].status == status
@@ -69,7 +48,8 @@ def test_one_loop_failing_or_hanging_does_not_stop_the_others(make_service, mode
 
 
 def test_samples_past_the_retention_period_are_purged(make_service):
-    svc = make_service(ThreadPoolExecutor(1), sample_retention_days=600 / 86400)
+    svc = make_service(sample_retention_days=600 / 86400)
+    svc.state.ingest(simulated_batch())
     with svc.state.store.session() as session:
         before = session.scalar(select(func.count()).select_from(Sample))
     svc.scheduler.maintain(T0)

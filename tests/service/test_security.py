@@ -12,7 +12,6 @@ import hashlib
 import logging
 import re
 from collections.abc import Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from html.parser import HTMLParser
 from typing import Any
 
@@ -25,9 +24,9 @@ from service.api.routes.dashboard import STATIC_FILES
 from service.auth import PERMISSIONS, ROLES
 from service.config import Settings
 from service.security import CONTENT_SECURITY_POLICY, RateLimiter
-from service.server import Service, build_service
+from service.server import Service
 from service.store.models import ApiKey
-from tests.service.test_api import ADMIN, T0, plant
+from tests.service.test_api import ADMIN, T0
 
 PUBLIC = {("GET", "/healthz"), ("GET", "/"), ("GET", "/static/{name}")}
 """Routes without a key: the liveness probe and the dashboard shell (fixed files, no data)."""
@@ -101,23 +100,6 @@ def declared_access(dependant: Any) -> list[str]:
 
 def may(role: str, access: str) -> bool:
     return access == ANY_KEY or access in PERMISSIONS[role]  # type: ignore[index]
-
-
-@pytest.fixture
-def make_service(store):
-    made: list[Service] = []
-
-    def make(**overrides: Any) -> Service:
-        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                            buffer_horizon_s=7200, **overrides)
-        svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
-        made.append(svc)
-        return svc
-
-    yield make
-    for svc in made:
-        svc.executor.shutdown()
-        svc.state.store.close()
 
 
 @pytest.fixture
