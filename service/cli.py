@@ -10,7 +10,7 @@ Commands that exist so far:
 [--process-type auto|self-regulating|integrating] [--json]``
     Diagnose one loop from measured data: data quality, oscillation,
     stiction verdict with the evidence of every method, and S/J estimates.
-``loopwatch serve [--config PLANT.yaml] [--host H] [--port P]``
+``loopwatch serve [--config PLANT.yaml] [--host H] [--port P] [--role api|ingest|scheduler|all]``
     Run the service: REST API, analyses, alarms and tickets.  Without a plant
     file it runs the simulated demo plant.
 ``loopwatch demo``
@@ -164,11 +164,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from service.config import ConfigError
+    from service.executors import ExecutorError
     from service.server import serve
 
     try:
-        serve(args.config, host=args.host, port=args.port)
-    except ConfigError as exc:
+        serve(args.config, host=args.host, port=args.port, role=args.role)
+    except (ConfigError, ExecutorError) as exc:
         raise CliError(str(exc)) from None
     except ValidationError as exc:
         raise CliError(f"invalid LOOPWATCH_* settings: {exc}") from None
@@ -222,6 +223,12 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--config", type=Path, help="plant YAML file (default: the demo plant)")
     serve.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     serve.add_argument("--port", type=int, help="port to listen on (default 8000)")
+    serve.add_argument(
+        "--role", choices=("api", "ingest", "scheduler", "all"),
+        help="what this process runs (default all; see LOOPWATCH_ROLE): the API, the "
+             "connectors of its ingest shard, the analysis scheduler (one leads, others "
+             "stand by), or all of them",
+    )
     serve.set_defaults(handler=_cmd_serve)
     demo = commands.add_parser("demo", help="simulate the thesis scenarios and summarise them")
     demo.set_defaults(handler=_cmd_demo)

@@ -4,27 +4,47 @@ With no plant file the service runs the demo: the simulated plant of
 :mod:`service.demo` is fed in-process, the analysis interval is short and
 the window one hour, so alarms and a ticket for each sticky valve appear
 within about a minute of start.
+
+A process has a role (``--role`` or ``LOOPWATCH_ROLE``); the roles share
+nothing but the store, so any number of each can run:
+
+``api``
+    The REST API only: stateless, run as many replicas as the load needs.
+``ingest``
+    The connectors whose endpoint falls in this process's shard
+    (:func:`ingest_shard`; the demo feeder counts as one endpoint), plus
+    the API (health, metrics, historian push).
+``scheduler``
+    The analysis scheduler: one process leads (:mod:`service.leader`), the
+    others stand by and take over when it dies.
+``all``
+    All of them in one process: the embedded default.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
-from collections.abc import Iterator
-from concurrent.futures import Executor, ProcessPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
 from contextlib import asynccontextmanager, contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import uvicorn
 from fastapi import FastAPI
+from sqlalchemy.exc import IntegrityError
 
+from connectors.base import SampleSink
 from service.api.app import create_app
 from service.auth import ensure_bootstrap_key
 from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings, load_plant_config
 from service.demo import DemoFeeder, DemoPlant, demo_plant_config
+from service.executors import make_executor
+from service.leader import make_election
 from service.metrics import Metrics
 from service.plant import PlantRegistry, sync_plant
 from service.runtime import AppState
@@ -32,41 +52,133 @@ from service.scheduler import AnalysisScheduler
 from service.store.db import Store
 from service.tickets import TicketWebhook, get_ticket
 
-__all__ = ["Service", "build_service", "serve"]
+__all__ = [
+    "INGEST_ROLES",
+    "ROLES",
+    "SCHEDULING_ROLES",
+    "Connector",
+    "ConnectorFactory",
+    "Service",
+    "build_service",
+    "ingest_shard",
+    "serve",
+]
 
 log = logging.getLogger(__name__)
 
 DEMO_INTERVAL_S = 15.0
 
+DEMO_ENDPOINT = "demo://loopwatch"
+"""The demo plant's feeder counts as one endpoint: one ingest process runs it."""
+
+ROLES = ("api", "ingest", "scheduler", "all")
+INGEST_ROLES = frozenset({"ingest", "all"})
+SCHEDULING_ROLES = frozenset({"scheduler", "all"})
+
+
+class Connector(Protocol):
+    """A connector as the service runs it (:class:`connectors.opcua.OpcUaConnector` fits)."""
+
+    def start(self) -> None:
+        """Connect and deliver samples in the background."""
+
+    def stop(self) -> None:
+        """Disconnect; no sample is delivered afterwards."""
+
+
+ConnectorFactory = Callable[[PlantConfig, Callable[[str], bool], SampleSink], list[Connector]]
+"""The hook through which ingest processes get their connectors.
+
+Called as ``factory(plant, owns, sink)``: build the connectors of
+``plant.connectors`` whose endpoint ``owns(endpoint)`` accepts (the
+endpoint as written in the plant file: an OPC UA ``url``, ``host:port`` of a
+Modbus device), delivering their batches to ``sink``.
+"""
+
+
+def ingest_shard(endpoint: str, shards: int) -> int:
+    """The ingest process, ``0 .. shards - 1``, that runs the connector of ``endpoint``.
+
+    Rendezvous (highest random weight) hashing: every process computes the
+    same answer with no coordination, the endpoints spread evenly, and going
+    from ``n`` to ``n + 1`` processes moves only the endpoints the new process
+    takes (about ``1 / (n + 1)`` of them).  Case, surrounding blanks and a
+    trailing slash of the endpoint do not matter.
+
+    References
+    ----------
+    D.G. Thaler and C.V. Ravishankar, "Using name-based mappings to increase
+    hit rates", IEEE/ACM Trans. Networking 6(1), 1998.
+
+    Examples
+    --------
+    >>> ingest_shard("opc.tcp://plc-7:4840", 3) == ingest_shard(" OPC.TCP://PLC-7:4840/ ", 3)
+    True
+    >>> ingest_shard("opc.tcp://plc-7:4840", 1)
+    0
+    """
+    if shards < 1:
+        raise ValueError(f"shards must be at least 1, got {shards}")
+    key = endpoint.strip().rstrip("/").lower()
+    return max(range(shards),
+               key=lambda index: hashlib.sha256(f"{index}|{key}".encode()).digest())
+
 
 @dataclass
 class Service:
-    """The parts of a running service and their lifecycle."""
+    """The parts of a running service and their lifecycle.
+
+    ``scheduler`` and ``executor`` are None in processes that do not schedule
+    (roles ``api`` and ``ingest``).
+    """
 
     state: AppState
-    scheduler: AnalysisScheduler
-    executor: Executor
+    scheduler: AnalysisScheduler | None
+    executor: Executor | None
     feeder: DemoFeeder | None
     webhook: TicketWebhook | None
     admin_key: str
     key_generated: bool
     app: FastAPI
+    role: str = "all"
+    connectors: list[Connector] = field(default_factory=list)
 
     def start(self) -> None:
-        """Backfill the demo (if any), then start analysing."""
+        """Start feeding (the demo backfill first) and connectors, then scheduling."""
         if self.feeder is not None:
             self.feeder.start()
-        self.scheduler.start()
+        for connector in self.connectors:
+            connector.start()
+        if self.scheduler is not None:
+            self.scheduler.start()
 
     def stop(self) -> None:
-        """Stop feeding and analysing; release the pool and the database."""
+        """Stop feeding and analysing; release the leadership, the pool and the database."""
         if self.feeder is not None:
             self.feeder.stop()
-        self.scheduler.stop()
+        for connector in self.connectors:
+            connector.stop()
+        if self.scheduler is not None:
+            self.scheduler.stop()
         if self.webhook is not None:
             self.webhook.close()
-        self.executor.shutdown(wait=False, cancel_futures=True)
+        if self.executor is not None:
+            self.executor.shutdown(wait=False, cancel_futures=True)
         self.state.store.close()
+
+
+def _register(store: Store, plant: PlantConfig, admin_key: str, now: float) -> None:
+    """Write the plant and the bootstrap key; replicas starting together may collide once."""
+    for attempt in (1, 2):
+        try:
+            with store.session() as session:
+                sync_plant(session, plant, now)
+                ensure_bootstrap_key(session, admin_key, now)
+            return
+        except IntegrityError:
+            if attempt == 2:
+                raise
+            log.info("another process registered the plant at the same time; updating it")
 
 
 def build_service(
@@ -75,27 +187,29 @@ def build_service(
     *,
     executor: Executor | None = None,
     clock: Any = time.time,
+    connector_factory: ConnectorFactory | None = None,
 ) -> Service:
-    """Open the store (migrating it), rebuild the buffers, wire scheduler and API.
+    """Open the store (migrating it), then wire what ``settings.role`` runs.
 
-    ``plant`` None means the demo plant.
+    ``plant`` None means the demo plant.  ``executor`` replaces the one the
+    settings select (:func:`service.executors.make_executor`); processes that
+    schedule rebuild their rolling buffers from the store here.
     """
+    role = settings.role
     demo = plant is None
     plant = demo_plant_config() if plant is None else plant
     store = Store(settings.resolved_database_url)
     now = clock()
     admin_key, generated = settings.bootstrap_key()
-    with store.session() as session:
-        sync_plant(session, plant, now)
-        ensure_bootstrap_key(session, admin_key, now)
-    buffers = LoopBuffers(plant, horizon_s=settings.buffer_horizon_s)
-    with store.session() as session:
-        loaded = buffers.rebuild_from_store(session, now)
-    log.info("rolling buffers rebuilt from the store: %d samples", loaded)
+    _register(store, plant, admin_key, now)
+    # only a scheduling process analyses windows: the others keep no rolling buffers (ingest
+    # then leaves every sample to the store, and 10,000 loops save 2.4 GiB per process)
+    schedules = role in SCHEDULING_ROLES
+    buffers = LoopBuffers(plant if schedules else PlantConfig(),
+                          horizon_s=settings.buffer_horizon_s)
     metrics = Metrics()
     state = AppState(settings=settings, registry=PlantRegistry(plant), store=store,
                      buffers=buffers, metrics=metrics, clock=clock)
-    executor = executor or ProcessPoolExecutor(max_workers=settings.workers)
     webhook = TicketWebhook(settings.webhook_url) if settings.webhook_url else None
 
     def post_ticket(ticket_id: int) -> None:
@@ -103,14 +217,28 @@ def build_service(
         with store.session() as session:
             webhook.send(get_ticket(session, ticket_id))
 
-    scheduler = AnalysisScheduler(
-        store=store, registry=state.registry, buffers=buffers, settings=settings,
-        executor=executor, metrics=metrics, clock=clock,
-        on_ticket=post_ticket if webhook is not None else None,
-    )
-    feeder = DemoFeeder(DemoPlant(start=now), state.ingest, clock=clock) if demo else None
+    scheduler = None
+    if schedules:
+        executor = executor or make_executor(settings)
+        scheduler = AnalysisScheduler(
+            store=store, registry=state.registry, buffers=buffers, settings=settings,
+            executor=executor, metrics=metrics, clock=clock,
+            on_ticket=post_ticket if webhook is not None else None,
+            election=make_election(store, lease_s=settings.leader_lease_s),
+        )
+        loaded = scheduler.sync_buffers(now)
+        log.info("rolling buffers rebuilt from the store: %d samples", loaded)
+    connectors: list[Connector] = []
+    feeder = None
+    if role in INGEST_ROLES:
+        if demo and ingest_shard(DEMO_ENDPOINT, settings.ingest_shards) == settings.ingest_shard:
+            feeder = DemoFeeder(DemoPlant(start=now), state.ingest, clock=clock)
+        if connector_factory is not None:
+            def owns(endpoint: str) -> bool:
+                return ingest_shard(endpoint, settings.ingest_shards) == settings.ingest_shard
+            connectors = connector_factory(plant, owns, state.ingest)
     return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
-                   create_app(state))
+                   create_app(state), role=role, connectors=connectors)
 
 
 @contextmanager
@@ -128,14 +256,17 @@ DEMO_SETTINGS = {"analysis_interval_s": DEMO_INTERVAL_S, "window_s": 3600.0,
 """Demo defaults (a variable set in the environment wins)."""
 
 
-def serve(config: Path | None, *, host: str | None = None, port: int | None = None) -> None:
+def serve(config: Path | None, *, host: str | None = None, port: int | None = None,
+          role: str | None = None) -> None:
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     plant = load_plant_config(config) if config is not None else None
     settings = Settings()
-    updates: dict[str, Any] = {k: v for k, v in (("host", host), ("port", port)) if v is not None}
+    updates: dict[str, Any] = {
+        k: v for k, v in (("host", host), ("port", port), ("role", role)) if v is not None
+    }
     if plant is None:
         updates |= {k: v for k, v in DEMO_SETTINGS.items() if k not in settings.model_fields_set}
     settings = settings.model_copy(update=updates)
@@ -148,12 +279,13 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
 
     service.app.router.lifespan_context = lifespan
     url = f"http://{settings.host}:{settings.port}"
-    print(f"loopwatch: dashboard at {url}/  (API schema at {url}/openapi.json, with a key)")
+    print(f"loopwatch: role {settings.role}; dashboard at {url}/  (API schema at "
+          f"{url}/openapi.json, with a key)")
     if service.key_generated:
         print(f"loopwatch: admin API key for this run: {service.admin_key}")
         print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
         print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
     if plant is None:
         print("loopwatch: demo plant -- simulated loops, two with sticky valves "
-              f"(FIC-101, FIC-105); analyses every {DEMO_INTERVAL_S:g} s")
+              f"(FIC-101, FIC-105); analyses every {settings.analysis_interval_s:g} s")
     uvicorn.run(service.app, host=settings.host, port=settings.port, log_level="info")

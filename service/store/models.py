@@ -61,12 +61,17 @@ class Tag(Base):
 
 
 class Sample(Base):
-    """One value of one tag; the primary key makes every ingest idempotent."""
+    """One value of one tag; the primary key makes every ingest idempotent.
+
+    ``tag`` names a row of ``tags`` but has no foreign key (migration 0002):
+    checking one on every row halved the PostgreSQL insert rate, and ingest
+    already refuses samples of unknown tags.  Samples of a tag removed from
+    the plant stay until the retention purge.
+    """
 
     __tablename__ = "samples"
-    tag: Mapped[str] = mapped_column(
-        ForeignKey("tags.name", ondelete="CASCADE"), primary_key=True
-    )
+    __table_args__ = (Index("ix_samples_time", "time"),)
+    tag: Mapped[str] = mapped_column(String(200), primary_key=True)
     time: Mapped[float] = mapped_column(Float, primary_key=True)
     value: Mapped[float | None] = mapped_column(Float)
     good: Mapped[bool] = mapped_column(Boolean, default=True)
@@ -76,7 +81,11 @@ class AnalysisRun(Base):
     """One run of the diagnosis pipeline on one loop window."""
 
     __tablename__ = "analysis_runs"
-    __table_args__ = (Index("ix_analysis_runs_loop_started", "loop_id", "started_at"),)
+    __table_args__ = (
+        Index("ix_analysis_runs_loop_started", "loop_id", "started_at"),
+        Index("ix_analysis_runs_round_end", "round_end"),
+        UniqueConstraint("loop_id", "round_end", name="uq_analysis_runs_loop_round"),
+    )
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"))
     started_at: Mapped[float] = mapped_column(Float)
@@ -94,6 +103,11 @@ class AnalysisRun(Base):
     health: Mapped[float | None] = mapped_column(Float)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     error: Mapped[str | None] = mapped_column(Text)
+    round_end: Mapped[float | None] = mapped_column(Float)
+    """End of the scheduled round's window; None for an analysis run on demand.  At most
+    one run per loop and round (the constraint that keeps a failover from running twice)."""
+    scheduled_by: Mapped[str | None] = mapped_column(String(200))
+    """The scheduler process (host:pid:nonce) that stored the run."""
 
 
 class Alarm(Base):
@@ -181,3 +195,28 @@ class ApiKey(Base):
     prefix: Mapped[str] = mapped_column(String(12))
     created_at: Mapped[float] = mapped_column(Float)
     revoked_at: Mapped[float | None] = mapped_column(Float)
+
+
+class LeaderLease(Base):
+    """Who holds a leadership (the active scheduler) and until when; see service.leader."""
+
+    __tablename__ = "leader_leases"
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    holder: Mapped[str] = mapped_column(String(200))
+    acquired_at: Mapped[float] = mapped_column(Float)
+    expires_at: Mapped[float] = mapped_column(Float)
+
+
+class IngestLog(Base):
+    """One ingest transaction: when it was received and the time span of what it stored.
+
+    Schedulers in other processes read the samples of the spans received since
+    their last look (a historian backfill of old samples included).
+    """
+
+    __tablename__ = "ingest_log"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    received_at: Mapped[float] = mapped_column(Float, index=True)
+    first_time: Mapped[float] = mapped_column(Float)
+    last_time: Mapped[float] = mapped_column(Float)
+    samples: Mapped[int] = mapped_column(Integer)

@@ -179,7 +179,7 @@ def test_out_of_order_items_are_counted_and_stored_sorted(plant_store: Store) ->
     assert len(stored(plant_store)) == 4
 
 
-def test_large_batches_go_in_one_multi_row_insert_per_chunk(plant_store: Store) -> None:
+def test_large_batches_go_in_few_statements(plant_store: Store) -> None:
     statements: list[int] = []
 
     def record(conn: Any, cursor: Any, statement: str, parameters: Any, *_: Any) -> None:
@@ -196,7 +196,10 @@ def test_large_batches_go_in_one_multi_row_insert_per_chunk(plant_store: Store) 
     finally:
         event.remove(plant_store.engine, "before_cursor_execute", record)
     assert report.stored == n + 1 == len(stored(plant_store))
-    assert statements == [4 * INSERT_CHUNK, 4 * INSERT_CHUNK, 4 * 11]  # 4 columns a row
+    if plant_store.engine.dialect.name == "postgresql":
+        assert statements == [0]  # COPY into a stage table, then one INSERT ... SELECT
+    else:
+        assert statements == [4 * INSERT_CHUNK, 4 * INSERT_CHUNK, 4 * 11]  # 4 columns a row
 
 
 def test_a_row_written_by_another_writer_meanwhile_is_accounted_for(plant_store: Store) -> None:

@@ -1,0 +1,1 @@
+"""Scale-out: PostgreSQL at scale, the Dask executor, process roles and leadership."""
