@@ -1,6 +1,7 @@
 """docker-compose.yml and deploy/: valid for Docker, and consistent with loopwatch itself."""
 
 import os
+import shutil
 import stat
 import subprocess
 from pathlib import Path
@@ -11,6 +12,7 @@ import yaml
 
 from service.config import Settings, load_plant_config
 from service.server import ROLES, ingest_shard
+from tests.servers import require
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "docker-compose.yml"
@@ -39,6 +41,29 @@ def resolved(value: str) -> str:
         value = value.replace(f"${{{name}:?set {name}}}", secret)
         value = value.replace(f"${{{name}:?set {name} (16 characters or more)}}", secret)
     return value.replace("${LOOPWATCH_PLANT_FILE:-}", "")
+
+
+def compose_command() -> list[str] | None:
+    """``docker compose`` (v2) or ``docker-compose`` (v1, Debian's package), if installed."""
+    docker = shutil.which("docker")
+    if docker is not None and subprocess.run([docker, "compose", "version"],
+                                             capture_output=True).returncode == 0:
+        return [docker, "compose"]
+    legacy = shutil.which("docker-compose")
+    return None if legacy is None else [legacy]
+
+
+def test_docker_compose_accepts_the_file() -> None:
+    command = compose_command()
+    require(command is not None, "docker compose is not installed here")
+    assert command is not None
+    config = [*command, "-f", str(COMPOSE), "--project-directory", str(ROOT), "config", "--quiet"]
+    done = subprocess.run(config, capture_output=True, text=True,
+                          env={**os.environ, **SECRETS})
+    assert done.returncode == 0, done.stderr
+    missing = subprocess.run(config, capture_output=True, text=True,
+                             env={k: v for k, v in os.environ.items() if k not in SECRETS})
+    assert missing.returncode != 0 and "set POSTGRES_PASSWORD" in missing.stderr
 
 
 def test_every_role_runs_and_the_settings_of_each_container_are_valid(
