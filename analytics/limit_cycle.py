@@ -27,8 +27,9 @@ in ``2n`` unknowns, so solutions are isolated points.
 
 Method. For one moving valve (and, with the other valves held at a grid of
 amplitudes, for several) the equivalent loop ``L_eq(jw)`` is sampled on a
-dense log grid; ``-1/N(A)`` is a curve whose phase is monotone in ``A`` on
-each branch, so the phase condition picks ``A(w)`` and a sign change of the
+dense log grid (from the principal minors of ``P``, computed once);
+``-1/N(A)`` is a curve whose phase is monotone in ``A`` on each branch, so
+the phase condition picks ``A(w)`` and a sign change of the
 magnitude condition ``log|L_eq| - log|1/N(A(w))|`` brackets a crossing. Every
 bracket seeds a damped Gauss-Newton (Levenberg-Marquardt) solution of the
 square system, run for all seeds at once; converged points are deduplicated.
@@ -544,14 +545,26 @@ class _ValveDF:
         return result
 
 
+def _choudhury_slope(A: FloatArray, S: float, J: float) -> ComplexArray:
+    """``dN/dA`` of the (S, J) describing function (thesis Eq. 3.4, ERRATA item 1), A > S/2.
+
+    With ``u = S/A`` and ``c = cos(phi) = sqrt(u (2 - u))`` the DF reads
+    ``N = [(1 + u) c + pi/2 + asin(1 - u) - 2 (S - J) c / A] / pi
+    - j [S^2 + 2 (S - J)(A - S)] / (pi A^2)``; this is its derivative in closed form.
+    """
+    u = S / A
+    c = np.sqrt(u * (2.0 - u))
+    d_real_du = (2 * u * (1 - u) - 2 * (S - J) / S * u * (3 - 2 * u)) / (math.pi * c)
+    d_imag = (2 * (S**2 + 2 * (S - J) * (A - S)) / A - 2 * (S - J)) / (math.pi * A**2)
+    return np.asarray(-u / A * d_real_du + 1j * d_imag, dtype=np.complex128)
+
+
 def _choudhury(S: float, J: float, source: str) -> _ValveDF:
     def value(A: FloatArray) -> ComplexArray:
         return choudhury_df(np.maximum(A, S / 2 * (1 + 1e-15)), S, J)
 
     def slope(A: FloatArray) -> ComplexArray:
-        step = 1e-7 * A
-        upper, lower = value(A + step), value(np.maximum(A - step, S / 2 * (1 + 1e-15)))
-        return (upper - lower) / (A + step - np.maximum(A - step, S / 2 * (1 + 1e-15)))
+        return _choudhury_slope(np.maximum(A, S / 2 * (1 + 1e-15)), S, J)
 
     edge = table_5_1_limits(S, J)["A->S/2"] if J > 0 else None
     return _ValveDF(S / 2, value, slope, edge, source, np.geomspace(1e-9, 1e4, 1400))
@@ -664,8 +677,8 @@ class _HarmonicBalance:
             slopes[:, column] = self.dfs[k].slope(amplitudes[:, column])
         return gains, slopes
 
-    def evaluate(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Real residual (batch, 2n) and Jacobian (batch, 2n, 2n)."""
+    def evaluate(self, z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Real residual (batch, 2n), Jacobian (batch, 2n, 2n) and ``|x|`` (batch)."""
         cfg = self.config
         omega, amplitudes, x = self.unpack(z)
         gains, slopes = self.gains(amplitudes)
@@ -687,6 +700,7 @@ class _HarmonicBalance:
         return (
             np.concatenate([residual.real, residual.imag], axis=1),
             np.concatenate([jac.real, jac.imag], axis=1),
+            np.linalg.norm(x, axis=1),
         )
 
     def pack(self, omega: FloatArray, amplitudes: FloatArray, x: ComplexArray) -> FloatArray:
@@ -716,14 +730,13 @@ class _HarmonicBalance:
         :data:`RESIDUAL_TOLERANCE`) or stalled (damping above 1e8).
         """
         z = z.copy()
-        residual, jac = self.evaluate(z)
+        residual, jac, size = self.evaluate(z)
         cost = np.einsum("bi,bi->b", residual, residual)
         damping = np.full(z.shape[0], 1e-6)
         active = np.arange(z.shape[0])
         steps = 2 * len(self.config.moving)  # log omega, amplitudes, phases
         for _ in range(iterations):
-            _, _, x = self.unpack(z[active])
-            relative = np.sqrt(cost[active]) / np.linalg.norm(x, axis=1)
+            relative = np.sqrt(cost[active]) / size[active]
             keep = (relative >= RESIDUAL_TOLERANCE * 1e-3) & (damping[active] <= 1e8)
             active, residual, jac = active[keep], residual[keep], jac[keep]
             if active.size == 0:
@@ -738,16 +751,16 @@ class _HarmonicBalance:
             step *= np.minimum(1.0, 1.0 / np.maximum(biggest, 1e-300))[:, None]
             trial = z[active] + step
             with np.errstate(all="ignore"):  # a trial that overflows is rejected below
-                residual_t, jac_t = self.evaluate(trial)
+                residual_t, jac_t, size_t = self.evaluate(trial)
             cost_t = np.einsum("bi,bi->b", residual_t, residual_t)
             better = np.isfinite(cost_t) & (cost_t < cost[active])
             z[active[better]] = trial[better]
             cost[active[better]] = cost_t[better]
+            size[active[better]] = size_t[better]
             residual = np.where(better[:, None], residual_t, residual)
             jac = np.where(better[:, None, None], jac_t, jac)
             damping[active] = np.where(better, damping[active] / 3.0, damping[active] * 4.0)
-        _, _, x = self.unpack(z)
-        return z, np.sqrt(cost) / np.linalg.norm(x, axis=1)
+        return z, np.sqrt(cost) / size
 
 
 def _null_vectors(m: ComplexArray) -> ComplexArray:
@@ -787,6 +800,16 @@ def _equivalent_loop(pm: ComplexArray, gains: ComplexArray, loop: int) -> Comple
     m[..., :, loop] = pm[..., :, loop]
     d1 = _determinant(m)
     return np.asarray(d1 / d0, dtype=np.complex128)
+
+
+def _minor_coefficients(
+    gains: ComplexArray, members: NDArray[np.bool_], loop: int
+) -> ComplexArray:
+    """``prod_{k in T, k != loop} N_k`` for every set ``T`` of loops (rows of ``members``,
+    as in :attr:`_Predictor.minor_members`) and every row of ``gains`` (batch, n)."""
+    factors = np.where(members[None], gains[:, None, :], 1.0)
+    factors[:, :, loop] = 1.0
+    return np.asarray(factors.prod(axis=2), dtype=np.complex128)
 
 
 def _crossings(
@@ -863,6 +886,28 @@ class _Predictor:
         self.omega_small = omega_range[0] * 1e-4
         self.omega_large = linear.rolloff_frequency(omega_range[1] * 10)
 
+    @cached_property
+    def minor_members(self) -> NDArray[np.bool_]:
+        """Row ``T`` (a bit mask of loops): which loops belong to ``T``, shape (2^n, n)."""
+        masks = np.arange(1 << self.linear.size)
+        return np.asarray((masks[:, None] >> np.arange(self.linear.size)) & 1, dtype=bool)
+
+    @cached_property
+    def grid_minors(self) -> ComplexArray:
+        """Principal minors ``det P[T, T](jw)`` on the frequency grid, shape (2^n, grid);
+        the empty set's minor is 1.
+
+        ``det(I + P diag(N)) = sum_T prod_{k in T} N_k det P[T, T]`` (the expansion of
+        a determinant by its columns), so the equivalent loop of any valve for any
+        amplitudes of the others costs one small product (:func:`_minor_coefficients`)
+        instead of two determinants per frequency.
+        """
+        minors = np.ones((self.minor_members.shape[0], self.omega.size), dtype=np.complex128)
+        for mask, members in enumerate(self.minor_members[1:], start=1):
+            loops = np.flatnonzero(members)
+            minors[mask] = _determinant(self.grid_matrix[:, loops][:, :, loops])
+        return minors
+
     def unstable_roots(self, gains: ComplexArray) -> int | None:
         """Right-half-plane roots of ``det(I + P(s) diag(gains)) = 0``."""
         n = self.linear.size
@@ -894,9 +939,16 @@ class _Predictor:
             gains = np.tile(base, (grid.shape[0], 1))
             for column, k in enumerate(others):
                 gains[:, k] = self.dfs[k].value(fixed[:, column])
+            coefficients = _minor_coefficients(gains, self.minor_members, last)
+            contains_last = self.minor_members[:, last]
+            # det(I + P N) = d0 + N_last d1 (Eq. 3.20): the minors with and without `last`
+            # (einsum, not a BLAS product: a threaded BLAS crawls on a busy machine)
+            d0 = np.einsum("bt,tw->bw", coefficients[:, ~contains_last],
+                           self.grid_minors[~contains_last])
+            d1 = np.einsum("bt,tw->bw", coefficients[:, contains_last],
+                           self.grid_minors[contains_last])
             with np.errstate(divide="ignore", invalid="ignore"):  # no bracket where L_eq = 0
-                loop = _equivalent_loop(self.grid_matrix[None], gains[:, None, :], last)
-                row, omega, amplitude = _crossings(loop, self.omega, self.dfs[last])
+                row, omega, amplitude = _crossings(d1 / d0, self.omega, self.dfs[last])
             guess = np.empty((row.size, len(config.moving)))
             for column, k in enumerate(config.moving):
                 guess[:, column] = amplitude if k == last else fixed[row, others.index(k)]

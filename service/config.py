@@ -18,8 +18,10 @@ The plant file lists units and loops::
         importance: high
 
 Signals are converted to % of span with ``ranges`` before analysis, so S and J
-come out in % of valve travel.  An invalid file is refused at start with the
-key path (``loops[2].tags.pv``) and the reason.
+come out in % of valve travel.  A unit may carry its process matrix
+(:class:`UnitProcessConfig`) for the limit-cycle prediction of its loops.  An
+invalid file is refused at start with the key path (``loops[2].tags.pv``) and
+the reason.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
+from service.prediction import ModelError, check_matrix
+
 __all__ = [
     "ConfigError",
     "ControllerConfig",
@@ -52,6 +56,7 @@ __all__ = [
     "PlantConfig",
     "Settings",
     "UnitConfig",
+    "UnitProcessConfig",
     "load_plant_config",
 ]
 
@@ -130,11 +135,39 @@ class LoopConfig(_Strict):
         return ranges
 
 
+class UnitProcessConfig(_Strict):
+    """The unit's process as an n x n transfer-function matrix, for limit-cycle prediction.
+
+    ``matrix[i][j]`` is the transfer function from the valve (OP) of ``loops[j]``
+    to the PV of ``loops[i]``, in % of span per % of OP span, with entries as in
+    the ``loopwatch predict`` model file: ``{type: fopdt, K, tau, theta}``,
+    ``{type: integrating, K, theta}``, ``{num, den, theta}`` or null (no coupling).
+    """
+
+    loops: list[str] = Field(min_length=1, description="loop ids: the order of rows and columns")
+    matrix: list[list[dict[str, Any] | None]]
+
+    @model_validator(mode="after")
+    def _square_transfer_functions(self) -> UnitProcessConfig:
+        _no_duplicates(self.loops, "loops in the process matrix")
+        try:
+            n = check_matrix(self.matrix, "matrix")
+        except ModelError as exc:
+            raise ValueError(str(exc)) from None
+        if n != len(self.loops):
+            raise ValueError(
+                f"matrix is {n} x {n} but 'loops' names {len(self.loops)} loops "
+                "(one row and column per loop)"
+            )
+        return self
+
+
 class UnitConfig(_Strict):
     """A process unit: loops that interact (a column, a reactor)."""
 
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
     name: str = ""
+    process: UnitProcessConfig | None = None
 
 
 class PlantConfig(_Strict):
@@ -156,6 +189,14 @@ class PlantConfig(_Strict):
                 raise ValueError(
                     f"loops[{i}].unit: unknown unit {loop.unit!r} (units: {', '.join(unit_ids)})"
                 )
+        unit_of = {loop.id: loop.unit for loop in self.loops}
+        for i, unit in enumerate(self.units):
+            for j, loop_id in enumerate(unit.process.loops if unit.process else ()):
+                if unit_of.get(loop_id) != unit.id:
+                    raise ValueError(
+                        f"units[{i}].process.loops[{j}]: {loop_id!r} is not a loop of unit "
+                        f"{unit.id!r}"
+                    )
         return self
 
     def loop(self, loop_id: str) -> LoopConfig:

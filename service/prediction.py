@@ -21,7 +21,7 @@ from analytics.simulation import ClosedLoopModel, PIDController
 from analytics.tuning import excited_model
 from analytics.valves import valve_from_dict
 
-__all__ = ["ModelError", "check_model", "predict_spec"]
+__all__ = ["ModelError", "check_matrix", "check_model", "predict_spec"]
 
 
 class ModelError(ValueError):
@@ -53,6 +53,39 @@ def _per_loop(spec: dict[str, Any], key: str, n: int) -> list[Any]:
     return items
 
 
+def check_matrix(matrix: Any, where: str = "process.matrix") -> int:
+    """Validate an n x n process matrix (entries as in the model file) and return n.
+
+    Row ``i`` holds the transfer functions from every valve to the PV of loop
+    ``i``; null is no coupling, but never on the diagonal.
+
+    Raises
+    ------
+    ModelError
+        Naming the place, e.g. ``process.matrix[2][1]: missing key 'tau' for
+        model type 'fopdt'``, or a non-square matrix.
+    """
+    if not isinstance(matrix, list) or not matrix or not all(isinstance(r, list) for r in matrix):
+        raise ModelError(f"{where} must be a list of rows (lists)")
+    n = len(matrix)
+    for i, row in enumerate(matrix):
+        if len(row) != n:
+            raise ModelError(
+                f"{where} must be square ({n} x {n}, one row and column per "
+                f"loop): row {i + 1} has {len(row)} entries"
+            )
+        for j, entry in enumerate(row):
+            place = f"{where}[{i + 1}][{j + 1}]"
+            if entry is None:
+                if i == j:
+                    raise ModelError(f"{place} is null: loop {i + 1} has no effect on its PV")
+                continue
+            if not isinstance(entry, dict):
+                raise ModelError(f"{place} must be a transfer function object or null")
+            _located(place, TransferFunction.from_dict, entry)
+    return n
+
+
 def check_model(spec: Any) -> None:
     """Validate the keys ``predict`` needs, naming the place of every error.
 
@@ -70,29 +103,7 @@ def check_model(spec: Any) -> None:
             raise ModelError(f"the model lacks the required key '{key}'")
     process = spec["process"]
     if isinstance(process, dict) and "matrix" in process:
-        matrix = process["matrix"]
-        if (
-            not isinstance(matrix, list)
-            or not matrix
-            or not all(isinstance(r, list) for r in matrix)
-        ):
-            raise ModelError("process.matrix must be a list of rows (lists)")
-        n = len(matrix)
-        for i, row in enumerate(matrix):
-            if len(row) != n:
-                raise ModelError(
-                    f"process.matrix must be square ({n} x {n}, one row and column per "
-                    f"loop): row {i + 1} has {len(row)} entries"
-                )
-            for j, entry in enumerate(row):
-                where = f"process.matrix[{i + 1}][{j + 1}]"
-                if entry is None:
-                    if i == j:
-                        raise ModelError(f"{where} is null: loop {i + 1} has no effect on its PV")
-                    continue
-                if not isinstance(entry, dict):
-                    raise ModelError(f"{where} must be a transfer function object or null")
-                _located(where, TransferFunction.from_dict, entry)
+        n = check_matrix(process["matrix"])
     elif isinstance(process, dict):
         n = 1
         _located("process", TransferFunction.from_dict, process)

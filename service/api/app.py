@@ -26,7 +26,17 @@ from sqlalchemy.exc import DataError, DBAPIError
 
 from service.alarms import AlarmStateError
 from service.api.deps import Principal, require
-from service.api.routes import alarms, dashboard, ingest, keys, loops, plots, system, tickets
+from service.api.routes import (
+    alarms,
+    dashboard,
+    ingest,
+    keys,
+    loops,
+    plots,
+    system,
+    tickets,
+    unit_prediction,
+)
 from service.runtime import AppState
 from service.security import install_protections, retry_after
 from service.spool import StoreUnavailableError, is_store_outage
@@ -48,7 +58,8 @@ def create_app(state: AppState) -> FastAPI:
         redoc_url=None,
     )
     app.state.loopwatch = state
-    for module in (system, loops, plots, alarms, tickets, ingest, keys, dashboard):
+    for module in (system, loops, unit_prediction, plots, alarms, tickets, ingest, keys,
+                   dashboard):
         app.include_router(module.router)
 
     @app.get("/openapi.json", include_in_schema=False)

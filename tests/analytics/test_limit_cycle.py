@@ -28,6 +28,9 @@ from analytics.limit_cycle import (
     LimitCycle,
     LimitCycleReport,
     Prediction,
+    _choudhury_slope,
+    _minor_coefficients,
+    _predictor,
     compare,
     nyquist_curves,
     nyquist_model,
@@ -196,6 +199,67 @@ def test_harmonic_balance_holds_at_every_reported_cycle(case: str) -> None:
     for cycle in prediction.limit_cycles:
         assert_harmonic_balance(cycle, process, controllers, valves)
         assert prediction.omega_range[0] <= cycle.omega <= prediction.omega_range[1]
+
+
+def scaled_column_valves(scale: float, slip: float) -> list[TwoParameterValve]:
+    """Choudhury valves S = scale * (6, 4, 5) (thesis Table 2.3), J = slip * S."""
+    return [ChoudhuryValve(scale * s, slip * scale * s) for s in (6.0, 4.0, 5.0)]
+
+
+# Every solution over two decades, as found before the solver was sped up (seeds by
+# principal minors, analytic DF slope): (omega, OP amplitudes, moving, stable).
+PINNED_SOLUTIONS = {
+    "column-all-table-2.3": (
+        column_parts("3.26", (1, 2, 3))[2],
+        [(0.248593, (0.0083493, 0.012466, 2.6431), (False, False, True), False),
+         (0.303381, (0.80446, 2.1259, 53.703), (False, True, True), False)],
+    ),
+    "column-all-half-size-large-slip": (
+        scaled_column_valves(0.5, 0.7),
+        [(0.281907, (0.0043473, 0.0065467, 1.3284), (False, False, True), False),
+         (0.363918, (1.5266, 2.0048, 91.168), (True, True, True), False),
+         (0.424535, (0.50391, 1.4292, 39.707), (False, True, True), False),
+         (0.468731, (4.1417, 8.34, 319.75), (True, True, True), True)],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PINNED_SOLUTIONS))
+def test_three_sticky_valves_give_the_pinned_solution_set(case: str) -> None:
+    """Speed-ups of the solver must keep every solution (and find no new one)."""
+    valves, expected = PINNED_SOLUTIONS[case]
+    process, controllers, _ = column_parts("3.26", (1, 2, 3))
+    cycles = predict_limit_cycles(process, controllers, valves).limit_cycles
+    assert len(cycles) == len(expected)
+    for cycle, (omega, amplitudes, moving, stable) in zip(cycles, expected, strict=True):
+        assert cycle.omega == pytest.approx(omega, rel=1e-5)
+        np.testing.assert_allclose(cycle.op_amplitudes, amplitudes, rtol=1e-4)
+        assert (cycle.moving, cycle.stable) == (moving, stable)
+        assert_harmonic_balance(cycle, process, controllers, valves)
+
+
+def test_stiction_df_slope_is_the_derivative_of_the_df() -> None:
+    """The closed-form dN/dA used by the solver against central differences of Eq. 3.4."""
+    S, J = 4.0, 1.5
+    amplitudes = S / 2 * (1 + np.geomspace(1e-3, 1e4, 15))
+    step = 1e-6 * amplitudes
+    numerical = (choudhury_df(amplitudes + step, S, J) - choudhury_df(amplitudes - step, S, J)) / (
+        2 * step
+    )
+    np.testing.assert_allclose(_choudhury_slope(amplitudes, S, J), numerical, rtol=1e-5)
+
+
+def test_principal_minor_expansion_is_the_determinant() -> None:
+    """det(I + P diag(N)) = sum_T prod_{k in T} N_k det P[T, T] on the seeding grid."""
+    process, controllers, valves = column_parts("3.26", (1, 2, 3))
+    predictor = _predictor(process, controllers, valves, None, "model", 0.0)
+    gains = np.random.default_rng(1).normal(size=(4, 3)) + 1j
+    for row in gains:
+        direct = np.linalg.det(np.eye(3) + predictor.grid_matrix * row)
+        coefficients = _minor_coefficients(row[None], predictor.minor_members, loop=0)[0]
+        expanded = (coefficients * np.where(predictor.minor_members[:, 0], row[0], 1.0)
+                    ) @ predictor.grid_minors
+        np.testing.assert_allclose(expanded, direct, rtol=1e-10, atol=1e-12)
 
 
 def test_single_loop_meets_the_negative_inverse_df() -> None:

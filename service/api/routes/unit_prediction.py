@@ -1,0 +1,135 @@
+"""Limit cycles of a unit of interacting loops with sticky valves (thesis chapter 3).
+
+The model is the unit's process matrix from the plant file
+(:class:`service.config.UnitProcessConfig`), the loops' configured controllers
+and each loop's latest stiction estimate; :func:`service.prediction.predict_spec`
+predicts it by the describing function (thesis Eqs. 3.11-3.14, 3.20, 3.23 with
+the amplitude consistency of ERRATA item 9) and simulates it beside.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from analytics.errors import AnalyticsError
+from service.api.deps import Principal, SessionDep, StateDep, require
+from service.prediction import ModelError, predict_spec
+from service.store.models import AnalysisRun, Loop, Unit
+
+router = APIRouter(prefix="/api/v1", tags=["units"])
+Reader = Annotated[Principal, Depends(require("read"))]
+
+CONFIGURE_MATRIX = (
+    "add 'process: {loops: [...], matrix: [[...]]}' to the unit in the plant file: one "
+    "transfer function per row (PV) and column (valve) of the listed loops, entries as in "
+    "the 'loopwatch predict' model file"
+)
+
+
+@lru_cache(maxsize=64)
+def _prediction_for(spec: str) -> dict[str, Any]:
+    """The prediction is a pure function of the model: cache it by its JSON."""
+    _, report = predict_spec(json.loads(spec), source="unit model")
+    return report.to_dict()
+
+
+def _controller(loop: Loop) -> dict[str, Any]:
+    """The loop's configured controller in the model-file form (ideal PI/PID)."""
+    config = loop.config.get("controller")
+    if not config:
+        raise HTTPException(409, f"Prediction not available: loop {loop.id!r} has no "
+                                 "controller (Kc, Ti) in its configuration")
+    controller = {"Kc": config["Kc"], "Td": config.get("Td", 0.0),
+                  "action": config.get("action", "reverse")}
+    if config.get("type") != "P" and config.get("Ti") is not None:
+        controller["Ti"] = config["Ti"]
+    return controller
+
+
+def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
+    """The loop's valve from its latest analysis, and what is not known about it.
+
+    A stiction finding gives a Choudhury valve of the estimated S and J (or He's
+    fs, fd when only those were estimated); no finding gives a healthy valve.
+    """
+    run = session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(1)
+    ).first()
+    if run is None:
+        return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None},
+                f"{loop_id}: not analysed yet; its valve is taken as healthy")
+    entry = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
+    if run.verdict != "stiction":
+        unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
+                   "as healthy") if run.verdict == "undecided" else None
+        return entry, unknown
+    estimate = (run.result or {}).get("quantification") or {}
+    if estimate.get("S") is not None:
+        entry["valve"] = {"model": "choudhury", "S": estimate["S"], "J": estimate.get("J") or 0.0}
+    elif estimate.get("fs") is not None and estimate.get("fd") is not None:
+        entry["valve"] = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
+    else:
+        raise HTTPException(409, f"Prediction not available: loop {loop_id!r} has a stiction "
+                                 f"finding (analysis {run.id}) without a size estimate (S, J)")
+    return entry, None
+
+
+@router.get("/units/{unit_id}/prediction")
+async def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
+                          _: Reader) -> dict[str, Any]:
+    """The unit's stiction limit cycles: describing-function prediction and simulation.
+
+    Every limit cycle of the unit's loops (frequency, period, OP amplitude per
+    loop, stability) beside the cycle simulated with the same model, and the
+    DF error (``comparison``).  ``valves`` says where each valve comes from;
+    ``unknown`` lists what was assumed.  404 for an unknown unit; 409 when the
+    unit has no process matrix or a loop lacks a controller or a stiction size;
+    422 when the loops are unstable without stiction.
+    """
+    if session.get(Unit, unit_id) is None:
+        raise HTTPException(404, "Unit not found")
+    unit = next((u for u in state.registry.plant.units if u.id == unit_id), None)
+    if unit is None or unit.process is None:
+        raise HTTPException(409, f"Prediction not available: unit {unit_id!r} has no process "
+                                 f"matrix; {CONFIGURE_MATRIX}")
+    loops = []
+    for loop_id in unit.process.loops:
+        loop = session.get(Loop, loop_id)
+        if loop is None:  # the plant file and the store disagree (another replica's file)
+            raise HTTPException(409, f"Prediction not available: the process matrix of unit "
+                                     f"{unit_id!r} names loop {loop_id!r}, which is not in "
+                                     "the store")
+        loops.append(loop)
+    controllers = [_controller(loop) for loop in loops]
+    valves, unknown = [], []
+    for loop in loops:
+        entry, note = _valve(session, loop.id)
+        valves.append(entry)
+        if note:
+            unknown.append(note)
+    intervals = sorted({float(loop.config["ts"]) for loop in loops})
+    if len(intervals) > 1:
+        unknown.append(f"the loops are sampled every {intervals} s; the model is predicted "
+                       f"and simulated at the shortest, {intervals[0]} s")
+    answer = {"unit_id": unit_id, "loops": unit.process.loops, "dt": intervals[0],
+              "valves": valves, "unknown": unknown}
+    if all(v["valve"] is None for v in valves):
+        return {**answer, "limit_cycles": [], "simulated": None, "comparison": None,
+                "note": "no valve of the unit has a stiction finding: no stiction limit "
+                        "cycle to predict"}
+    spec = {"dt": intervals[0], "process": {"matrix": unit.process.matrix},
+            "controllers": controllers, "valves": [v["valve"] for v in valves],
+            "names": unit.process.loops}
+    try:
+        prediction = await run_in_threadpool(_prediction_for, json.dumps(spec, sort_keys=True))
+    except (ModelError, AnalyticsError) as exc:
+        raise HTTPException(422, f"Prediction not available: {exc}") from None
+    return {**answer, **prediction}
