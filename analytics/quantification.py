@@ -81,7 +81,7 @@ from scipy.optimize import minimize_scalar
 
 from analytics.errors import DataError
 from analytics.oscillation import bandpass, detect_loop_oscillation
-from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd
+from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
 __all__ = [
     "MIN_FIT_R2",
@@ -349,6 +349,40 @@ def _fit_at_shift(
 
 
 @njit(cache=True)
+def _cross_products(x: FloatArray, lo: int, targets: FloatArray, n_q: int) -> FloatArray:
+    """``out[t, q] = sum_i x[lo + q + i] targets[t, i]`` for ``q < n_q``.
+
+    Each sum runs over ``i`` in order, as a single dot product would; four
+    shifts at a time share the loads and keep four sums in flight.
+    """
+    n_t, m = targets.shape
+    out = np.empty((n_t, n_q))
+    for t in range(n_t):
+        y = targets[t]
+        q = 0
+        while q + 4 <= n_q:
+            xs = x[lo + q :]
+            s0 = s1 = s2 = s3 = 0.0
+            for i in range(m):
+                s0 += xs[i] * y[i]
+                s1 += xs[i + 1] * y[i]
+                s2 += xs[i + 2] * y[i]
+                s3 += xs[i + 3] * y[i]
+            out[t, q] = s0
+            out[t, q + 1] = s1
+            out[t, q + 2] = s2
+            out[t, q + 3] = s3
+            q += 4
+        for r in range(q, n_q):
+            xs = x[lo + r :]
+            s0 = 0.0
+            for i in range(m):
+                s0 += xs[i] * y[i]
+            out[t, r] = s0
+    return out
+
+
+@njit(cache=True)
 def _best_linear_fits(
     cm: FloatArray,
     factor: int,
@@ -362,8 +396,9 @@ def _best_linear_fits(
 
     Delays of ``1 + j factor`` raw samples (``j`` from ``limits[2]`` to
     ``limits[3]``) are tried with every pole ``limits[0]..limits[1]``, using
-    running sums so that a delay costs one pass of ``r y`` products; for each
-    target's best pole the raw delay is then refined by halving steps.
+    running sums so that a delay costs one pass of ``r y`` products
+    (:func:`_cross_products`); for each target's best pole the raw delay is
+    then refined by halving steps.
     Returns the residual, pole index and raw delay per target.
     """
     n_t, m = targets.shape
@@ -377,22 +412,26 @@ def _best_linear_fits(
     p1 = np.empty(n_blocks + 1)
     p2 = np.empty(n_blocks + 1)
     pk = np.empty(n_blocks + 1)
+    p1[0] = p2[0] = pk[0] = 0.0
+    lo_min = start - limits[3]
     for ip in range(limits[0], limits[1] + 1):
         x = _lag_response(base, poles[ip])
-        p1[0] = p2[0] = pk[0] = 0.0
+        c1 = c2 = ck = 0.0
         for k in range(n_blocks):
-            p1[k + 1] = p1[k] + x[k]
-            p2[k + 1] = p2[k] + x[k] * x[k]
-            pk[k + 1] = pk[k] + k * x[k]
+            c1 += x[k]
+            c2 += x[k] * x[k]
+            ck += k * x[k]
+            p1[k + 1] = c1
+            p2[k + 1] = c2
+            pk[k + 1] = ck
+        cross = _cross_products(x, lo_min, targets, limits[3] - limits[2] + 1)
         for j in range(limits[2], limits[3] + 1):
             lo = start - j
             s_r = p1[lo + m] - p1[lo]
             s_rr = p2[lo + m] - p2[lo]
             s_tr = pk[lo + m] - pk[lo] - (lo + t_mean) * s_r
             for t in range(n_t):
-                s_ry = 0.0
-                for i in range(m):
-                    s_ry += x[lo + i] * targets[t, i]
+                s_ry = cross[t, lo - lo_min]
                 sse = _residual(s_r, s_rr, s_tr, s_ry, s_yy[t], m, sign)[0]
                 if sse < best[t]:
                     best[t] = sse
@@ -413,6 +452,63 @@ def _best_linear_fits(
                         best_delay[t] = delay
             step //= 2
     return best, best_pole, best_delay
+
+
+@njit(cache=True)
+def _valve_cumsum(
+    code: int,
+    params: FloatArray,
+    state: FloatArray,
+    valve_input: FloatArray,
+    first_turn: int,
+    op0: float,
+    dt: float,
+) -> FloatArray:
+    """Cumulative sum (leading 0) of the model MV less ``op0`` (see :meth:`_Window.valve_cumsum`).
+
+    The valve runs from a copy of ``state`` over ``valve_input`` (three
+    lead-in samples, then OP from ``first_turn``); before ``first_turn`` its
+    MV is held at the position after the lead-in.
+    """
+    run = valve_series(code, params, state.copy(), valve_input, dt)
+    n = first_turn + run.shape[0] - 3
+    cm = np.empty(n + 1)
+    cm[0] = total = 0.0
+    for k in range(n):
+        total += (run[3] if k < first_turn else run[3 + k - first_turn]) - op0
+        cm[k + 1] = total
+    return cm
+
+
+@njit(cache=True)
+def _score_candidates(
+    code: int,
+    params: FloatArray,
+    state: FloatArray,
+    valve_run: tuple[FloatArray, int, float, float],
+    factor: int,
+    targets: FloatArray,
+    start: int,
+    poles: FloatArray,
+    limits: NDArray[np.int64],
+    sign: float,
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64]]:
+    """:func:`_best_linear_fits` of the valve of each row of ``params``.
+
+    ``valve_run`` holds the last four arguments of :func:`_valve_cumsum`.
+    Returns arrays of shape ``(candidates, targets)``.
+    """
+    shape = (params.shape[0], targets.shape[0])
+    sse = np.empty(shape)
+    pole = np.empty(shape, dtype=np.int64)
+    delay = np.empty(shape, dtype=np.int64)
+    valve_input, first_turn, op0, dt = valve_run
+    for c in range(shape[0]):
+        cm = _valve_cumsum(code, params[c], state, valve_input, first_turn, op0, dt)
+        sse[c], pole[c], delay[c] = _best_linear_fits(
+            cm, factor, targets, start, poles, limits, sign
+        )
+    return sse, pole, delay
 
 
 # ----------------------------------------------------------------------------
@@ -504,16 +600,18 @@ class _Window:
         limits: tuple[int, int, int, int],
     ) -> list[list[Score]]:
         """Scores of each ``(S, J)`` candidate for each target row in ``rows``."""
-        targets = np.ascontiguousarray(self.targets[list(rows)])
-        limit_array = np.array(limits, dtype=np.int64)
-        scores = []
-        for S, J in candidates:
-            sse, pole, delay = _best_linear_fits(
-                self.valve_cumsum(valve_model, S, J), self.factor, targets, self.start,
-                self.poles, limit_array, self.gain_sign,
-            )
-            scores.append([(float(sse[t]), int(pole[t]), int(delay[t])) for t in range(len(rows))])
-        return scores
+        if not candidates:
+            return []
+        code, params, state = self._valve_kernel_args(valve_model, candidates)
+        sse, pole, delay = _score_candidates(
+            code, params, state, self._valve_run(), self.factor,
+            np.ascontiguousarray(self.targets[list(rows)]), self.start, self.poles,
+            np.array(limits, dtype=np.int64), self.gain_sign,
+        )
+        return [
+            [(float(sse[c, t]), int(pole[c, t]), int(delay[c, t])) for t in range(len(rows))]
+            for c in range(len(candidates))
+        ]
 
     def valve_cumsum(self, valve_model: str, S: float, J: float) -> FloatArray:
         """Cumulative sum (leading 0) of the model MV, relative to the first OP sample.
@@ -522,9 +620,24 @@ class _Window:
         lead-in (see :func:`_first_turning_point`); before it MV is held
         (those samples are not scored).
         """
-        run = VALVE_MODELS[valve_model](S, J).simulate(self.valve_input, dt=self.ts)
-        mv = np.concatenate([np.full(self.first_turn, run[3]), run[3:]])
-        return np.concatenate([[0.0], np.cumsum(mv - self.op[0])])
+        code, params, state = self._valve_kernel_args(valve_model, [(S, J)])
+        return _valve_cumsum(code, params[0], state, *self._valve_run())
+
+    def _valve_kernel_args(
+        self, valve_model: str, candidates: Sequence[tuple[float, float]]
+    ) -> tuple[int, FloatArray, FloatArray]:
+        """Model code, parameter rows and initial state for the compiled valve kernels.
+
+        The models validate their parameters here; the kernels check nothing
+        (the valve input is finite, as ``quantify_stiction`` checked OP).
+        """
+        models = [VALVE_MODELS[valve_model](S, J) for S, J in candidates]
+        params = np.array([m.params_array() for m in models])
+        return models[0].code, params, models[0].initial_state(float(self.valve_input[0]))
+
+    def _valve_run(self) -> tuple[FloatArray, int, float, float]:
+        """Valve input, first turning point, first OP sample, ts: see :func:`_valve_cumsum`."""
+        return self.valve_input, self.first_turn, float(self.op[0]), self.ts
 
 
 def _detrend_line(y: FloatArray) -> FloatArray:

@@ -3,15 +3,16 @@
 Every model maps the controller output OP (``u``, % of valve travel) to the
 valve position MV (``y``, same units) and is usable two ways:
 
-* over a whole OP series at once with :meth:`ValveModel.simulate` (used by
-  quantification, which runs a model thousands of times), and
+* over a whole OP series at once with :meth:`ValveModel.simulate`, and
 * one sample at a time with :meth:`ValveModel.stepper` (used by closed-loop
   simulation).
 
-Both paths run the same compiled kernel, :func:`valve_step`, so they cannot
-drift apart. The closed-loop simulator calls :func:`valve_step` directly from
-its own compiled loop with the arrays of :meth:`ValveModel.params_array` and
-:meth:`ValveModel.initial_state`.
+Both paths run the same compiled update of each model (the series loop of
+:func:`valve_series` keeps the state in locals, the step of :func:`valve_step`
+in the state vector), so they cannot drift apart. Compiled callers use the
+kernels directly with the arrays of :meth:`ValveModel.params_array` and
+:meth:`ValveModel.initial_state`: the closed-loop simulator :func:`valve_step`,
+quantification (which runs a model thousands of times) :func:`valve_series`.
 
 Units: all parameters are in % of valve travel (the thesis's "% lift"), like
 the signals. Positions are not clipped to 0-100 %; the controller limits OP.
@@ -119,8 +120,19 @@ def _sign(x: float) -> float:
     return 0.0
 
 
-@njit(cache=True)
-def _band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> float:
+@njit(cache=True, inline="always")
+def _band_update(
+    S: float,
+    J: float,
+    choudhury: bool,
+    y: float,
+    last_input: float,
+    stick_point: float,
+    stuck: float,
+    motion: float,
+    input_slope: float,
+    u: float,
+) -> tuple[float, float, float, float, float]:
     """Choudhury [2] and Kano [3]: stick band S and slip jump J.
 
     A stuck valve moves once OP has travelled more than ``S`` from the stick
@@ -131,35 +143,52 @@ def _band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> fl
     (so noise keeps a stuck valve stuck); Kano's keeps the point where the
     valve stopped until it moves again, which is the difference Kano et al.
     introduced to handle stochastic inputs.
+
+    Works on scalars (the state entries of the same names) so that a series
+    keeps them in registers; returns the new position, stick point, stuck
+    flag, motion and input slope.
     """
-    S = params[0]
-    J = params[1]
-    slope = _sign(u - state[LAST_INPUT])
-    if state[STUCK] == 0.0:
-        if slope != state[MOTION]:
-            state[STUCK] = 1.0
-            state[STICK_POINT] = state[LAST_INPUT]
-    elif code == CHOUDHURY and slope != 0.0 and slope != state[INPUT_SLOPE]:
-        state[STICK_POINT] = state[LAST_INPUT]
-    if state[STUCK] == 1.0 and slope != 0.0:
-        travel = slope * (u - state[STICK_POINT])
-        if state[MOTION] == 0.0:
+    slope = _sign(u - last_input)
+    if stuck == 0.0:
+        if slope != motion:
+            stuck = 1.0
+            stick_point = last_input
+    elif choudhury and slope != 0.0 and slope != input_slope:
+        stick_point = last_input
+    if stuck == 1.0 and slope != 0.0:
+        travel = slope * (u - stick_point)
+        if motion == 0.0:
             threshold = 0.5 * (S + J)
-        elif slope == state[MOTION]:
+        elif slope == motion:
             threshold = J
         else:
             threshold = S
         # A slip never carries the valve against OP (Choudhury's moving stick
         # point could otherwise throw it backwards after two OP reversals).
-        ahead = slope * (u - slope * 0.5 * (S - J) - state[POSITION]) > 0.0
+        ahead = slope * (u - slope * 0.5 * (S - J) - y) > 0.0
         if travel > threshold and ahead:
-            state[STUCK] = 0.0
-            state[MOTION] = slope
-    if state[STUCK] == 0.0:
-        state[POSITION] = u - state[MOTION] * 0.5 * (S - J)
+            stuck = 0.0
+            motion = slope
+    if stuck == 0.0:
+        y = u - motion * 0.5 * (S - J)
     if slope != 0.0:
-        state[INPUT_SLOPE] = slope
-    return state[POSITION]
+        input_slope = slope
+    return y, stick_point, stuck, motion, input_slope
+
+
+@njit(cache=True)
+def _band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> float:
+    """:func:`_band_update` on a state vector (updated in place); returns the position."""
+    y, stick_point, stuck, motion, input_slope = _band_update(
+        params[0], params[1], code == CHOUDHURY, state[POSITION], state[LAST_INPUT],
+        state[STICK_POINT], state[STUCK], state[MOTION], state[INPUT_SLOPE], u,
+    )
+    state[POSITION] = y
+    state[STICK_POINT] = stick_point
+    state[STUCK] = stuck
+    state[MOTION] = motion
+    state[INPUT_SLOPE] = input_slope
+    return y
 
 
 @njit(cache=True)
@@ -243,10 +272,16 @@ def valve_step(code: int, params: np.ndarray, state: np.ndarray, u: float, dt: f
 
 
 @njit(cache=True)
-def _simulate_series(
+def valve_series(
     code: int, params: np.ndarray, state: np.ndarray, op: np.ndarray, dt: float
 ) -> np.ndarray:
-    """Run a valve over a series; the memoryless-state models get a tight loop."""
+    """Positions of a valve over an OP series, starting from ``state``.
+
+    The compiled kernel behind :meth:`ValveModel.simulate`, for callers that
+    run many models from their own compiled code: it checks nothing.  The
+    state is updated in place by the models that need more than the position
+    (the band and physics models); the others keep their state in a local.
+    """
     n = op.shape[0]
     out = np.empty(n)
     if code == HE:
@@ -259,6 +294,21 @@ def _simulate_series(
         for k in range(n):
             y = _stenman_update(params[0], y, op[k])
             out[k] = y
+    elif code == CHOUDHURY or code == KANO:  # noqa: SIM109 (plain compares compile in numba)
+        S, J, choudhury = params[0], params[1], code == CHOUDHURY
+        y, last_input = state[POSITION], state[LAST_INPUT]
+        stick_point, stuck = state[STICK_POINT], state[STUCK]
+        motion, input_slope = state[MOTION], state[INPUT_SLOPE]
+        for k in range(n):
+            u = op[k]
+            y, stick_point, stuck, motion, input_slope = _band_update(
+                S, J, choudhury, y, last_input, stick_point, stuck, motion, input_slope, u
+            )
+            last_input = u
+            out[k] = y
+        state[POSITION], state[LAST_INPUT] = y, last_input
+        state[STICK_POINT], state[STUCK] = stick_point, stuck
+        state[MOTION], state[INPUT_SLOPE] = motion, input_slope
     else:
         for k in range(n):
             out[k] = valve_step(code, params, state, op[k], dt)
@@ -330,7 +380,7 @@ class ValveModel(ABC):
                 f"OP holds {bad.size} non-finite value(s), first at index {bad[0]}"
             )
         start = float(series[0]) if initial_position is None else float(initial_position)
-        return _simulate_series(
+        return valve_series(
             self.code, self.params_array(), self.initial_state(start), series, float(dt)
         )
 

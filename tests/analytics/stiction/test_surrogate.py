@@ -21,6 +21,7 @@ from analytics.stiction.surrogate import (
     resample_whole_cycles,
     surrogate_nonlinearity_index,
 )
+from analytics.synthetic_cases import synthetic_library
 from analytics.valves import HeValve, IdealValve, KanoValve, ValveModel
 from tests.shared_data import isdb_labels, load_isdb_loop
 
@@ -313,3 +314,52 @@ def test_isdb_loops() -> None:
     assert undecided == {"CHEM2", "CHEM10", "CHEM11", "CHEM12", "PAP7"}
     assert {"CHEM1", "CHEM23", "PAP2"} <= {n for n, d in decisions.items() if d == STICTION}
     assert decisions["PAP9"] == NO_STICTION
+
+
+# Recorded from the reference implementation at commit 67886dc: one-hour
+# windows at 1 s of the synthetic library, with the period diagnose_loop
+# analyses.  (index, test error, surrogate mean, surrogate std) per signal.
+REFERENCE_INDICES = {
+    ("flow-noise-ts1", "pv"): (
+        -0.10707784364058959, 347.24970787547005, 342.241612136416, 15.59020232004889
+    ),
+    ("flow-noise-ts1", "op"): (
+        -0.5538840141256749, 339.70249715983505, 304.87344178975434, 20.960498637402498
+    ),
+    ("flow-kano-S4-J2-ts1", "pv"): (
+        1.5067333260889844, 22.67399367172763, 51.914160967856795, 6.468777363106811
+    ),
+    ("flow-kano-S4-J2-ts1", "op"): (
+        1.5051674533633714, 11.66254586179657, 42.58367536398584, 6.847771750820697
+    ),
+    ("flow-sine60s-ts1", "pv"): (
+        -0.2910234653538019, 1.330401811768076, 1.2956969833440493, 0.039750320914083405
+    ),
+    ("flow-sine60s-ts1", "op"): (
+        -0.2621311005746994, 0.699951591181643, 0.6835596264601823, 0.02084448670343797
+    ),
+    ("level-aggressive-ts1", "pv"): (
+        -0.05202003073497627, 190.59605350546772, 188.47825791434974, 13.5703853637163
+    ),
+    ("level-aggressive-ts1", "op"): (
+        -0.03428040596653068, 189.6051555274768, 188.22439720883878, 13.426117920794216
+    ),
+}
+REFERENCE_PERIODS = {
+    "flow-noise-ts1": 47.891699896715494,
+    "flow-kano-S4-J2-ts1": 102.36633974375195,
+    "flow-sine60s-ts1": 60.001207268069585,
+    "level-aggressive-ts1": 19.763654309315406,
+}
+
+
+@pytest.mark.parametrize(("name", "label"), sorted(REFERENCE_INDICES))
+def test_index_matches_the_reference_implementation(name: str, label: str) -> None:
+    """A faster neighbour search leaves the prediction errors and the index as they were."""
+    case = next(c for c in synthetic_library(3600) if c.name == name)
+    res = case.simulate()
+    x = res.pv[0] if label == "pv" else res.op[0]
+    got = surrogate_nonlinearity_index(x, REFERENCE_PERIODS[name] / case.ts)
+    assert (got.index, got.test_error, got.surrogate_mean, got.surrogate_std) == pytest.approx(
+        REFERENCE_INDICES[name, label], rel=1e-9
+    )
