@@ -18,6 +18,7 @@ $(VENV)/.installed-test: pyproject.toml | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@ $(VENV)/.installed-run
 
+# The service and the simulated plant it reads over OPC UA and Modbus TCP on loopback.
 run: $(VENV)/.installed-run
 	$(VENV)/bin/loopwatch serve
 

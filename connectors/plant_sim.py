@@ -1,10 +1,10 @@
 """The simulated plant: closed loops with known faults, served over OPC UA and Modbus TCP.
 
-The plant has two units.  Six single loops (:data:`SINGLE_LOOPS`, the
-catalogue of the demo) are cases of :mod:`analytics.synthetic_cases`: two
-sticky valves (Kano and He models), an over-tuned controller, an external
-oscillating disturbance, and two healthy loops.  The multi-loop unit
-(:data:`COLUMN_LOOPS`) is the 3x3 ethanol-water column of thesis Eq. 2.10
+The plant has six single loops (:data:`SINGLE_LOOPS`), cases of
+:mod:`analytics.synthetic_cases` in no unit: two sticky valves (Kano and He
+models), an over-tuned controller, an external oscillating disturbance, and
+two healthy loops.  Its one unit, ``column`` (:data:`COLUMN_LOOPS`), is the
+3x3 ethanol-water column of thesis Eq. 2.10
 (:func:`analytics.scenarios.column3x3`) with ONE sticky valve, the side-draw
 valve of loop 2 (He model, fs = 3, fd = 1, thesis Table 2.3): its cycle
 spreads to the other loops, and only one valve is to blame.  Column signals
@@ -13,10 +13,14 @@ are deviations from the operating point, as in the thesis.
 Every loop is simulated ahead for ``horizon_s`` of plant time and its
 samples are released as time passes, ``speed`` times faster than real time
 (after the horizon the runs start over, with a jump).  Sample ``k`` of a
-loop sampled every ``ts`` seconds is stamped ``start + k ts / speed``: the
+loop sampled every ``ts`` seconds is stamped ``origin + k ts / speed``: the
 time stamps are wall-clock UTC, so in accelerated time the plant is simply a
 faster plant, and :meth:`PlantSimulator.plant_config` divides sampling
-intervals and integral times by ``speed`` to match.
+intervals and integral times by ``speed`` to match.  The origin is the start
+of serving unless given earlier: the plant has then been running since, and
+:meth:`PlantSimulator.history` gives the samples stamped before the start as
+ingest batches, for a back-fill that the served samples continue without a
+seam.
 
 OP, PV, SP and MV of every loop are served
 
@@ -25,6 +29,9 @@ OP, PV, SP and MV of every loop are served
   stamp, so a subscriber with a queue gets every sample;
 * over Modbus TCP (:class:`connectors.modbus_server.ModbusRegisterServer`),
   one float32 in two holding registers per tag, holding the latest sample.
+
+The plant configuration it writes watches OP, PV and SP of every loop; MV
+(the valve position, which few plants measure) is served but not watched.
 
 :meth:`PlantSimulator.set_bad` turns a tag into a failed measurement (OPC
 UA status BadSensorFailure, Modbus NaN) for fault tests.
@@ -44,11 +51,14 @@ import asyncio
 import contextlib
 import logging
 import math
+import socket
+import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC
-from typing import Any
+from functools import cached_property
+from typing import Any, Literal
 
 import numpy as np
 from asyncua import Server, ua
@@ -64,8 +74,10 @@ __all__ = [
     "COLUMN_LOOPS",
     "DEFAULT_MODBUS_LOOPS",
     "NAMESPACE_URI",
+    "PLANT_LOOPS",
     "SIGNALS",
     "SINGLE_LOOPS",
+    "WATCHED_SIGNALS",
     "PlantLoop",
     "PlantSimulator",
     "TagAddress",
@@ -75,6 +87,11 @@ log = logging.getLogger(__name__)
 
 SIGNALS = ("OP", "PV", "SP", "MV")
 """The signals served for every loop; tag ``<loop id>.<signal>``."""
+
+WATCHED_SIGNALS = ("OP", "PV", "SP")
+"""The signals :meth:`PlantSimulator.plant_config` has the service watch (not MV: a sticky
+valve's position is held between slips, which data-quality screening takes for a
+compressed archive, and few plants measure it)."""
 
 NAMESPACE_URI = "urn:loopwatch:plant-sim"
 NAMESPACE_INDEX = 2
@@ -93,12 +110,13 @@ class PlantLoop:
     """One loop of the simulated plant: its configuration entry and what it should show.
 
     ``source`` is the name of an :mod:`analytics.synthetic_cases` case, or
-    ``"column:<i>"`` for loop ``i`` (0-based) of the 3x3 column.
+    ``"column:<i>"`` for loop ``i`` (0-based) of the 3x3 column.  ``unit`` is
+    None for a loop that interacts with no other.
     """
 
     id: str
     name: str
-    unit: str
+    unit: str | None
     source: str
     valve_asset: str
     importance: str
@@ -109,16 +127,16 @@ class PlantLoop:
 
 
 SINGLE_LOOPS = (
-    PlantLoop("FIC-101", "Feed flow", "loops", "flow-kano-S4-J2-ts1", "FV-101", "high",
+    PlantLoop("FIC-101", "Feed flow", None, "flow-kano-S4-J2-ts1", "FV-101", "high",
               "sticky valve (Kano S=4 %, J=2 %): alarm and ticket"),
-    PlantLoop("FIC-102", "Reflux flow", "loops", "flow-aggressive-ts1", "FV-102", "medium",
+    PlantLoop("FIC-102", "Reflux flow", None, "flow-aggressive-ts1", "FV-102", "medium",
               "over-tuned controller: oscillation alarm, no ticket"),
-    PlantLoop("TIC-201", "Reactor temperature", "loops", "temp-sine500s-ts2", "TV-201", "high",
+    PlantLoop("TIC-201", "Reactor temperature", None, "temp-sine500s-ts2", "TV-201", "high",
               "upstream disturbance (500 s): oscillation alarm, no ticket"),
-    PlantLoop("LIC-301", "Drum level", "loops", "level-noise-ts1", "LV-301", "medium", "healthy"),
-    PlantLoop("FIC-105", "Steam flow", "loops", "flow-he-S8-J4-ts1", "FV-105", "critical",
+    PlantLoop("LIC-301", "Drum level", None, "level-noise-ts1", "LV-301", "medium", "healthy"),
+    PlantLoop("FIC-105", "Steam flow", None, "flow-he-S8-J4-ts1", "FV-105", "critical",
               "sticky valve (He fs=6 %, fd=2 %): alarm and ticket"),
-    PlantLoop("PIC-401", "Header pressure", "loops", "flow-noise-ts0.5", "PV-401", "low",
+    PlantLoop("PIC-401", "Header pressure", None, "flow-noise-ts0.5", "PV-401", "low",
               "healthy"),
 )
 """The single loops (the demo's catalogue): case names of :mod:`analytics.synthetic_cases`."""
@@ -137,8 +155,10 @@ COLUMN_LOOPS = (
 )
 """The 3x3 column of thesis Eq. 2.10 [1], valve 2 sticky (thesis Table 2.3)."""
 
+PLANT_LOOPS = SINGLE_LOOPS + COLUMN_LOOPS
+"""Every loop of the simulated plant, in address-map order."""
+
 UNITS = (
-    {"id": "loops", "name": "Single loops (simulated)"},
     {"id": "column", "name": "Ethanol-water column, 3x3 (simulated, thesis Eq. 2.10)"},
 )
 
@@ -155,42 +175,61 @@ class TagAddress:
 
 
 @dataclass(frozen=True)
-class _Run:
-    """A loop's precomputed samples (``values[signal]`` over ``ts``-spaced plant time)."""
+class _LoopModel:
+    """What the configuration needs of a simulated loop: sampling, process type, controller."""
 
     ts: float
-    values: dict[str, np.ndarray]
     process_type: str
     controller: PIDController
-
-    @property
-    def samples(self) -> int:
-        return len(self.values["OP"])
 
 
 def _case(name: str, samples: int) -> SyntheticCase:
     return next(c for c in synthetic_library(samples) if c.name == name)
 
 
+def _column_index(loop: PlantLoop) -> int:
+    return int(loop.source.split(":")[1])
+
+
+def _models() -> dict[str, _LoopModel]:
+    """The model of every loop of the plant (cheap: nothing is simulated)."""
+    models = {}
+    for loop in SINGLE_LOOPS:
+        case = _case(loop.source, 100)
+        models[loop.id] = _LoopModel(case.ts, case.process_type, case.controller)
+    column = column3x3(sticky=(2,))
+    for loop in COLUMN_LOOPS:
+        controller = column.loops[_column_index(loop)].controller
+        models[loop.id] = _LoopModel(column.dt, "self-regulating", controller)
+    return models
+
+
 def _signals(result: SimulationResult, i: int) -> dict[str, np.ndarray]:
     return {"OP": result.op[i], "PV": result.pv[i], "SP": result.sp[i], "MV": result.mv[i]}
 
 
-def _simulate(horizon_s: float) -> dict[str, _Run]:
-    """Simulate every loop of the plant for ``horizon_s`` of plant time."""
-    runs: dict[str, _Run] = {}
+def _simulate(horizon_s: float) -> dict[str, dict[str, np.ndarray]]:
+    """Every loop's signals over ``horizon_s`` of plant time (``values[loop][signal]``)."""
+    values: dict[str, dict[str, np.ndarray]] = {}
     for loop in SINGLE_LOOPS:
-        case = _case(loop.source, 100)
-        result = _case(loop.source, max(int(horizon_s / case.ts), 2)).simulate()
-        runs[loop.id] = _Run(case.ts, _signals(result, 0), case.process_type, case.controller)
-    column = column3x3(sticky=(2,), duration=horizon_s)
-    result = column.run()
+        ts = _case(loop.source, 100).ts
+        result = _case(loop.source, max(int(horizon_s / ts), 2)).simulate()
+        values[loop.id] = _signals(result, 0)
+    result = column3x3(sticky=(2,), duration=horizon_s).run()
     for loop in COLUMN_LOOPS:
-        i = int(loop.source.split(":")[1])
-        runs[loop.id] = _Run(
-            column.dt, _signals(result, i), "self-regulating", column.loops[i].controller
-        )
-    return runs
+        values[loop.id] = _signals(result, _column_index(loop))
+    return values
+
+
+def _watched_tags(loop_id: str) -> list[str]:
+    return [f"{loop_id}.{signal}" for signal in WATCHED_SIGNALS]
+
+
+def _free_port(host: str) -> int:
+    """A TCP port free on ``host`` now."""
+    with socket.socket() as probe:
+        probe.bind((host, 0))
+        return int(probe.getsockname()[1])
 
 
 def _controller_config(controller: PIDController, speed: float) -> dict[str, Any]:
@@ -215,11 +254,16 @@ class PlantSimulator:
         Address both servers listen on.
     opcua_port : int
     modbus_port : int or None
-        None serves OPC UA only.
+        None serves OPC UA only.  Port 0 takes a port that is free when the
+        simulator is made, so :meth:`plant_config` can name it before serving.
     speed : float
         Plant seconds per wall-clock second.
     horizon_s : float
         Plant time simulated ahead; the runs start over after it.
+    origin : float or None
+        UNIX time of sample 0, at or before the start of serving (None: the
+        start).  Samples stamped before the start are not served; they are
+        the plant's history (:meth:`history`).
     word_order : {"ABCD", "CDAB", "BADC", "DCBA"}
         Word order of the Modbus float32 registers.
     clock : callable
@@ -237,6 +281,7 @@ class PlantSimulator:
         modbus_port: int | None = 5020,
         speed: float = 1.0,
         horizon_s: float = 12 * 3600.0,
+        origin: float | None = None,
         word_order: WordOrder = "ABCD",
         clock: Callable[[], float] = time.time,
     ) -> None:
@@ -245,21 +290,29 @@ class PlantSimulator:
         if not horizon_s > 0:
             raise ValueError(f"horizon_s must be positive, got {horizon_s!r}")
         self.host = host
-        self.opcua_port = opcua_port
-        self.modbus_port = modbus_port
+        self.opcua_port = opcua_port or _free_port(host)
+        self.modbus_port = None if modbus_port is None else modbus_port or _free_port(host)
         self.speed = float(speed)
+        self.horizon_s = horizon_s
         self.word_order = word_order
         self.clock = clock
-        self.loops = SINGLE_LOOPS + COLUMN_LOOPS
-        self._runs = _simulate(horizon_s)
+        self.loops = PLANT_LOOPS
+        self._models = _models()
         self._bad: set[str] = set()
         self._opcua: Server | None = None
         self._variables: dict[str, ua.NodeId] = {}
         self._modbus: ModbusRegisterServer | None = None
         self._released: dict[str, int] = {}
-        self.start_time: float | None = None
+        self.origin = origin
+        """UNIX time of sample 0; None until the start when not given."""
         self._releaser: asyncio.Task[None] | None = None
+        self._serving = threading.Event()
         self._runner = ThreadedRunner(self.run, name="plant-sim")
+
+    @cached_property
+    def _values(self) -> dict[str, dict[str, np.ndarray]]:
+        """The simulated signals, computed when first needed (the configuration needs none)."""
+        return _simulate(self.horizon_s)
 
     # --- what is served where -------------------------------------------------
 
@@ -306,8 +359,9 @@ class PlantSimulator:
         """The plant configuration the service needs to watch this plant.
 
         Loops with ids in ``modbus_loops`` are read over Modbus (when this
-        plant serves Modbus), the others over OPC UA; sampling intervals and
-        integral times are divided by ``speed``.
+        plant serves Modbus), the others over OPC UA; every loop's
+        :data:`WATCHED_SIGNALS` are watched.  Sampling intervals and integral
+        times are divided by ``speed``.
         """
         known = {loop.id for loop in self.loops}
         unknown = sorted(set(modbus_loops) - known)
@@ -316,20 +370,20 @@ class PlantSimulator:
         over_modbus = set(modbus_loops) if self.modbus_port is not None else set()
         loops = []
         for loop in self.loops:
-            run = self._runs[loop.id]
+            model = self._models[loop.id]
             loops.append({
                 "id": loop.id, "name": loop.name, "unit": loop.unit,
-                "tags": {s.lower(): f"{loop.id}.{s}" for s in SIGNALS},
+                "tags": {s.lower(): f"{loop.id}.{s}" for s in WATCHED_SIGNALS},
                 "ranges": {signal: list(span) for signal, span in loop.ranges},
-                "ts": run.ts / self.speed,
-                "process_type": run.process_type,
+                "ts": model.ts / self.speed,
+                "process_type": model.process_type,
                 "valve_asset": loop.valve_asset,
                 "importance": loop.importance,
-                "controller": _controller_config(run.controller, self.speed),
+                "controller": _controller_config(model.controller, self.speed),
             })
         addresses = {a.tag: a for a in self.address_map()}
-        opcua_tags = [t for t in self.tags if t.split(".")[0] not in over_modbus]
-        fastest_ms = min(self._runs[t.split(".")[0]].ts for t in opcua_tags) / self.speed * 1000
+        over_opcua = [loop.id for loop in self.loops if loop.id not in over_modbus]
+        fastest_ms = min(self.sample_interval(loop_id) for loop_id in over_opcua) * 1000
         connectors: dict[str, Any] = {"opcua": [{
             "url": self.opcua_url,
             "sampling_interval_ms": fastest_ms,
@@ -337,7 +391,8 @@ class PlantSimulator:
             # the samples one publishing interval can hold, with room for a late publish
             "queue_size": max(10, math.ceil(4 * max(fastest_ms, 100.0) / fastest_ms)),
             "watchdog_s": 30.0,
-            "nodes": [{"tag": t, "node_id": addresses[t].node_id} for t in opcua_tags],
+            "nodes": [{"tag": tag, "node_id": addresses[tag].node_id}
+                      for loop_id in over_opcua for tag in _watched_tags(loop_id)],
         }]}
         if over_modbus:
             connectors["modbus"] = [self._modbus_section(sorted(over_modbus), addresses)]
@@ -346,25 +401,33 @@ class PlantSimulator:
     def _modbus_section(
         self, loop_ids: list[str], addresses: dict[str, TagAddress]
     ) -> dict[str, Any]:
-        """A :class:`connectors.modbus.ModbusConnectorConfig`: one register group per loop."""
+        """A :class:`connectors.modbus.ModbusConnectorConfig`: one register group per loop.
+
+        The registers hold the latest sample and the connector stamps a value
+        when it polls, so it polls twice per sampling interval: every point of
+        an analysis window's grid then has a value polled within half an
+        interval of it, also when a poll is late.
+        """
         groups = []
         for loop_id in loop_ids:
-            first = addresses[f"{loop_id}.{SIGNALS[0]}"].modbus_address
+            tags = _watched_tags(loop_id)
+            first = addresses[tags[0]].modbus_address
+            last = addresses[tags[-1]].modbus_address
             groups.append({
                 "function": "holding",
                 "start": first,
-                "count": REGISTER_COUNT["float32"] * len(SIGNALS),
+                "count": last + REGISTER_COUNT["float32"] - first,
                 "tags": [
-                    {"tag": f"{loop_id}.{s}", "data_type": "float32",
-                     "offset": addresses[f"{loop_id}.{s}"].modbus_address - first,
+                    {"tag": tag, "data_type": "float32",
+                     "offset": addresses[tag].modbus_address - first,
                      "word_order": self.word_order}
-                    for s in SIGNALS
+                    for tag in tags
                 ],
             })
         return {
             "host": self.host,
             "port": self.modbus_port,
-            "poll_interval_s": min(self._runs[loop_id].ts for loop_id in loop_ids) / self.speed,
+            "poll_interval_s": min(self.sample_interval(loop_id) for loop_id in loop_ids) / 2,
             "groups": groups,
         }
 
@@ -372,19 +435,63 @@ class PlantSimulator:
 
     def sample_interval(self, loop_id: str) -> float:
         """Wall-clock seconds between the samples of ``loop_id`` (``ts / speed``)."""
-        return self._runs[loop_id].ts / self.speed
+        return self._models[loop_id].ts / self.speed
 
     def value(self, tag: str, k: int) -> float:
-        """Sample ``k`` of ``tag`` (counted from the start; the runs repeat after the horizon)."""
+        """Sample ``k`` of ``tag`` (counted from the origin; the runs repeat after the horizon)."""
         loop_id, signal = tag.rsplit(".", 1)
-        run = self._runs[loop_id]
-        return float(run.values[signal][k % run.samples])
+        values = self._values[loop_id][signal]
+        return float(values[k % len(values)])
 
     def sample_index(self, loop_id: str, timestamp: float) -> int:
         """The sample number of ``loop_id`` stamped ``timestamp`` (nearest)."""
-        if self.start_time is None:
+        if self.origin is None:
             raise RuntimeError("the plant has not started")
-        return round((timestamp - self.start_time) / self.sample_interval(loop_id))
+        return round((timestamp - self.origin) / self.sample_interval(loop_id))
+
+    def history(
+        self, since: float, until: Mapping[str, float], *, max_samples: int = 100_000
+    ) -> Iterator[list[dict[str, Any]]]:
+        """The samples of each tag of ``until`` stamped from ``since`` to before ``until[tag]``.
+
+        As ingest batches of the PI Web API shape, of at most ``max_samples``
+        items, oldest first; none later than the newest sample released.
+
+        Raises
+        ------
+        RuntimeError
+            The plant has not started.
+        KeyError
+            A tag the plant does not serve.
+        """
+        if self.origin is None or not self._released:
+            raise RuntimeError("the plant has not started")
+        served = set(self.tags)
+        batch: list[dict[str, Any]] = []
+        room = max_samples
+        for tag, before in until.items():
+            if tag not in served:
+                raise KeyError(f"tag {tag!r} is not served by the plant")
+            loop_id, signal = tag.rsplit(".", 1)
+            interval = self.sample_interval(loop_id)
+            last = min(math.ceil((before - self.origin) / interval - 1e-9) - 1,
+                       self._released[loop_id])
+            values = self._values[loop_id][signal]
+            k = max(math.ceil((since - self.origin) / interval - 1e-9), 0)
+            while k <= last:
+                numbers = np.arange(k, min(last + 1, k + room))
+                stamps = (self.origin + numbers * interval).tolist()
+                batch.append({"tag": tag, "items": [
+                    {"timestamp": t, "value": v, "good": True}
+                    for t, v in zip(stamps, values[numbers % len(values)].tolist(), strict=True)
+                ]})
+                k += len(numbers)
+                room -= len(numbers)
+                if room == 0:
+                    yield batch
+                    batch, room = [], max_samples
+        if batch:
+            yield batch
 
     def set_bad(self, tag: str, bad: bool = True) -> None:
         """Serve ``tag`` as a failed measurement from its next sample on (or again as good)."""
@@ -398,7 +505,10 @@ class PlantSimulator:
     # --- serving ----------------------------------------------------------------
 
     async def start(self) -> None:
-        """Start the servers and release the first samples."""
+        """Start the servers and serve the sample of now (earlier ones are history)."""
+        if self.origin is not None and self.origin > self.clock():
+            raise ValueError(f"the origin {self.origin} is after the start {self.clock()}")
+        self._values  # noqa: B018 -- simulate before serving, not in the first release
         self._opcua = await self._start_opcua()
         if self.modbus_port is not None:
             self._modbus = ModbusRegisterServer(
@@ -407,8 +517,10 @@ class PlantSimulator:
                  for a in self.address_map()},
             )
             await self._modbus.start()
-        self.start_time = self.clock()
-        self._released = {loop.id: -1 for loop in self.loops}
+        now = self.clock()
+        if self.origin is None:
+            self.origin = now
+        self._released = {loop.id: self._due(loop.id, now) - 1 for loop in self.loops}
         await self.release()
         log.info("plant-sim: serving %d tags on %s%s at %g x real time", len(self.tags),
                  self.opcua_url, f" and modbus port {self.modbus_port}" if self._modbus else "",
@@ -429,24 +541,30 @@ class PlantSimulator:
             folder = await plant.add_object(index, loop.id)
             for signal in SIGNALS:
                 tag = f"{loop.id}.{signal}"
+                latest = max(self._released.get(loop.id, 0), 0)
                 node = await folder.add_variable(
                     ua.NodeId.from_string(addresses[tag].node_id), signal,
-                    ua.Variant(self.value(tag, 0), ua.VariantType.Double),
+                    ua.Variant(self.value(tag, latest), ua.VariantType.Double),
                 )
                 self._variables[tag] = node.nodeid
         await server.start()
         return server
 
+    def _due(self, loop_id: str, now: float) -> int:
+        """The number of the newest sample of ``loop_id`` stamped by ``now``."""
+        assert self.origin is not None
+        return math.floor((now - self.origin) / self.sample_interval(loop_id) + 1e-9)
+
     async def release(self) -> int:
         """Serve every sample due by now; returns the number of samples written."""
-        assert self._opcua is not None and self.start_time is not None
-        elapsed = self.clock() - self.start_time
+        assert self.origin is not None
+        now = self.clock()
         written = 0
         for loop in self.loops:
             interval = self.sample_interval(loop.id)
-            due = math.floor(elapsed / interval + 1e-9)
+            due = self._due(loop.id, now)
             for k in range(self._released[loop.id] + 1, due + 1):
-                stamp = ua.DateTime.fromtimestamp(self.start_time + k * interval, UTC)
+                stamp = ua.DateTime.fromtimestamp(self.origin + k * interval, UTC)
                 for signal in SIGNALS:
                     await self._serve(f"{loop.id}.{signal}", k, stamp)
                     written += 1
@@ -454,7 +572,6 @@ class PlantSimulator:
         return written
 
     async def _serve(self, tag: str, k: int, stamp: ua.DateTime) -> None:
-        assert self._opcua is not None
         now = ua.DateTime.now(UTC)
         if tag in self._bad:
             data_value = ua.DataValue(
@@ -471,7 +588,8 @@ class PlantSimulator:
             )
             if self._modbus is not None:
                 self._modbus.set(tag, value)
-        await self._opcua.write_attribute_value(self._variables[tag], data_value)
+        if self._opcua is not None:  # None while taken down
+            await self._opcua.write_attribute_value(self._variables[tag], data_value)
 
     async def stop(self) -> None:
         """Stop both servers."""
@@ -481,6 +599,32 @@ class PlantSimulator:
         if self._opcua is not None:
             await self._opcua.stop()
             self._opcua = None
+
+    async def take_down(self, server: Literal["opcua", "modbus"]) -> None:
+        """Stop one of the servers, as a fault; the plant runs on and the other serves on."""
+        if server == "opcua":
+            if self._opcua is not None:
+                await self._opcua.stop()
+                self._opcua = None
+        elif self._modbus is not None:
+            await self._modbus.stop()  # its registers keep being written
+
+    async def bring_back(self, server: Literal["opcua", "modbus"]) -> None:
+        """Start a server taken down again, on its port, serving the latest samples.
+
+        Raises
+        ------
+        RuntimeError
+            The server is up, or the plant serves no Modbus.
+        """
+        if server == "opcua":
+            if self._opcua is not None:
+                raise RuntimeError("the OPC UA server is up")
+            self._opcua = await self._start_opcua()
+        elif self._modbus is None:
+            raise RuntimeError("the plant serves no Modbus")
+        else:
+            await self._modbus.start()  # RuntimeError if it is up
 
     async def _release_forever(self) -> None:
         tick = min(min(self.sample_interval(loop.id) for loop in self.loops) / 2, 0.5)
@@ -502,9 +646,11 @@ class PlantSimulator:
     async def __aenter__(self) -> PlantSimulator:
         await self.start()
         self._releaser = asyncio.create_task(self._release_forever(), name="plant-sim-release")
+        self._serving.set()
         return self
 
     async def __aexit__(self, *exc_info: object) -> None:
+        self._serving.clear()
         if self._releaser is not None:
             self._releaser.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -512,9 +658,24 @@ class PlantSimulator:
             self._releaser = None
         await self.stop()
 
-    def start_in_thread(self) -> None:
-        """Serve from a background thread with its own event loop."""
+    def start_in_thread(self, timeout: float = 60.0) -> None:
+        """Serve from a background thread with its own event loop; returns once serving.
+
+        Raises
+        ------
+        RuntimeError
+            The servers could not start (a port in use...): the reason is given.
+        TimeoutError
+            Not serving after ``timeout`` seconds (the thread is stopped).
+        """
         self._runner.start()
+        deadline = time.monotonic() + timeout
+        while not self._serving.wait(0.05):
+            if not self._runner.running:
+                raise RuntimeError(f"the simulated plant could not start: {self._runner.error}")
+            if time.monotonic() > deadline:
+                self._runner.stop()
+                raise TimeoutError(f"the simulated plant was not serving after {timeout:g} s")
 
     def stop_thread(self, timeout: float = 10.0) -> None:
         """Stop serving and join the background thread."""

@@ -1,20 +1,38 @@
-"""The work one analysis worker does for one loop window.
+"""The work one analysis worker does for one loop window or one unit.
 
-:func:`analyse_window` runs in a worker process (local pool or Dask), so it
-takes and returns plain data: the loop's configuration as a dict and the
-window's arrays; it returns the JSON-ready diagnosis with a health score.
+:func:`analyse_window` and :func:`analyse_unit` run in a worker process
+(local pool or Dask), so they take and return plain data: the loop's
+configuration as a dict and the window's arrays; they return JSON-ready
+diagnoses.  :func:`unit_windows` cuts a unit's windows from the rolling
+buffers, for the scheduler and for the unit diagnosis route alike.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from analytics.diagnosis import diagnose_loop
+from analytics.plantwide import diagnose_unit
 
-__all__ = ["analyse_window", "health_score", "to_percent_of_span"]
+if TYPE_CHECKING:
+    from service.buffer import LoopBuffers
+    from service.config import LoopConfig
+
+__all__ = [
+    "UnitWindows",
+    "UnitWindowsError",
+    "analyse_unit",
+    "analyse_window",
+    "health_score",
+    "to_percent_of_span",
+    "unit_windows",
+    "valve_decisions",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -80,3 +98,92 @@ def analyse_window(
     ).to_dict()
     diagnosis["health"] = health_score(diagnosis)
     return diagnosis
+
+
+class UnitWindowsError(ValueError):
+    """The complete windows of a unit's loops cannot be diagnosed together."""
+
+
+@dataclass(frozen=True)
+class UnitWindows:
+    """The latest OP and PV windows of a unit's loops, in % of span.
+
+    Attributes
+    ----------
+    signals : dict
+        ``loop id -> (OP, PV)`` for each loop whose window is complete (every
+        point finite), as :func:`analytics.plantwide.diagnose_unit` takes them.
+    intervals : dict
+        ``loop id -> sampling interval`` of the same loops.
+    incomplete : tuple of str
+        The unit's loops left out: no OP or PV tag, a gap in the window, or
+        no buffer in this process.
+    """
+
+    signals: dict[str, tuple[FloatArray, FloatArray]]
+    intervals: dict[str, float]
+    incomplete: tuple[str, ...]
+
+    @property
+    def ts(self) -> float:
+        """The sampling interval the windows share.
+
+        Raises
+        ------
+        UnitWindowsError
+            They do not share one (or there is no window).
+        """
+        distinct = sorted(set(self.intervals.values()))
+        if len(distinct) != 1:
+            raise UnitWindowsError("a unit diagnosis needs one sampling interval for all "
+                                   f"loops; the unit has {distinct}")
+        return distinct[0]
+
+
+def unit_windows(buffers: LoopBuffers, loops: Sequence[LoopConfig], window_s: float,
+                 now: float) -> UnitWindows:
+    """The windows ending at ``now`` of the unit made of ``loops`` (thesis chapter 2 needs
+    the OP and PV of every loop over one common stretch of time)."""
+    signals: dict[str, tuple[FloatArray, FloatArray]] = {}
+    intervals: dict[str, float] = {}
+    incomplete: list[str] = []
+    for loop in loops:
+        try:
+            window = buffers.window(loop.id, window_s, now)
+        except KeyError:  # a process that keeps no buffers (role api)
+            incomplete.append(loop.id)
+            continue
+        op = to_percent_of_span(window.op, loop.ranges.get("op"))
+        pv = to_percent_of_span(window.pv, loop.ranges.get("pv"))
+        if op is None or pv is None or not (np.isfinite(op).all() and np.isfinite(pv).all()):
+            incomplete.append(loop.id)
+            continue
+        signals[loop.id] = (op, pv)
+        intervals[loop.id] = window.ts
+    return UnitWindows(signals, intervals, tuple(incomplete))
+
+
+def analyse_unit(signals: dict[str, tuple[FloatArray, FloatArray]], ts: float
+                 ) -> dict[str, Any]:
+    """Which valves of a unit stick (:func:`analytics.plantwide.diagnose_unit`, thesis
+    chapter 2), JSON-ready; ``signals`` as in :class:`UnitWindows`."""
+    return diagnose_unit(signals, ts).to_dict()
+
+
+def valve_decisions(diagnosis: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """The loops whose valves a unit diagnosis names sticky, and those it clears.
+
+    A valve is cleared when the own-valve test of its loop ran on a shared
+    oscillation (``own_valve_gain`` known) and did not name it: its loop
+    cycles because a neighbour's sticky valve drives it (thesis chapter 2,
+    section 2.3.5).  Loops in no diagnosed oscillation are neither.
+
+    >>> valve_decisions({"sticky_valves": [{"loop": "b"}], "groups": [{"evidence": [
+    ...     {"loop": "a", "own_valve_gain": 0.0}, {"loop": "b", "own_valve_gain": 0.2},
+    ...     {"loop": "c", "own_valve_gain": None}]}]})
+    (['b'], ['a'])
+    """
+    sticky = [finding["loop"] for finding in diagnosis["sticky_valves"]]
+    tested = {e["loop"] for group in diagnosis["groups"] for e in group["evidence"]
+              if e["own_valve_gain"] is not None}
+    return sticky, sorted(tested - set(sticky))

@@ -1,12 +1,17 @@
-"""The simulated demo plant: loops with known faults, fed in through the ingest path.
+"""The demo: the simulated plant served over OPC UA and Modbus on loopback, and back-filled.
 
-Each demo loop is a closed loop of :mod:`analytics.synthetic_cases` with a
-known cause: two sticky valves (tickets expected), an over-tuned loop and a
-loop shaken by an upstream disturbance (oscillation alarms, but no valve to
-blame), and healthy loops.  The first ``history_s`` of every simulation is
-stamped in the past and ingested at once -- as a historian backfill would be
--- so the first analysis already has a full window; the rest is released in
-real time by :class:`DemoFeeder`.
+``loopwatch serve`` without a plant file watches the plant of
+:mod:`connectors.plant_sim` (six single loops with known faults and a 3x3
+column with one sticky valve).  :class:`DemoFeeder` serves it on free
+loopback ports from a thread of the service, and the service reads it
+through its connectors like any plant.  So that the first analysis has a
+full window, the last ``history_s`` of the plant is ingested at start, as a
+historian back-fill would be, and once the connectors deliver, each tag's
+samples up to its first live one: the window runs on from history to live
+data without a gap.
+
+The simulation starts ``history_s`` before the service, so the first
+analyses of every start see the same simulated hour.
 """
 
 from __future__ import annotations
@@ -15,144 +20,117 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
-from analytics.synthetic_cases import SyntheticCase, synthetic_library
+from connectors.base import SampleSink
+from connectors.plant_sim import PLANT_LOOPS, PlantSimulator
 from service.config import PlantConfig
 
-__all__ = ["DEMO_LOOPS", "DemoFeeder", "DemoPlant", "demo_plant_config"]
+__all__ = ["DEMO_LOOPS", "DemoFeeder", "demo_plant_config"]
 
 log = logging.getLogger(__name__)
 
+DEMO_LOOPS = PLANT_LOOPS
+"""The loops of the demo plant."""
 
-@dataclass(frozen=True)
-class DemoLoop:
-    """A demo loop: its configuration entry and the simulated case behind it."""
-
-    id: str
-    name: str
-    case: str  # name of the analytics.synthetic_cases case
-    valve_asset: str
-    importance: str
-    expected: str  # what the diagnosis should find
-
-
-DEMO_LOOPS = (
-    DemoLoop("FIC-101", "Feed flow", "flow-kano-S4-J2-ts1", "FV-101", "high",
-             "sticky valve (Kano S=4 %, J=2 %): alarm and ticket"),
-    DemoLoop("FIC-102", "Reflux flow", "flow-aggressive-ts1", "FV-102", "medium",
-             "over-tuned controller: oscillation alarm, no ticket"),
-    DemoLoop("TIC-201", "Reactor temperature", "temp-sine500s-ts2", "TV-201", "high",
-             "upstream disturbance (500 s): oscillation alarm, no ticket"),
-    DemoLoop("LIC-301", "Drum level", "level-noise-ts1", "LV-301", "medium", "healthy"),
-    DemoLoop("FIC-105", "Steam flow", "flow-he-S8-J4-ts1", "FV-105", "critical",
-             "sticky valve (He fs=6 %, fd=2 %): alarm and ticket"),
-    DemoLoop("PIC-401", "Header pressure", "flow-noise-ts0.5", "PV-401", "low", "healthy"),
-)
-
-
-def _case(name: str, samples: int) -> SyntheticCase:
-    return next(c for c in synthetic_library(samples) if c.name == name)
+LIVE_HORIZON_S = 12 * 3600.0
+"""Plant time simulated beyond the history before the runs start over."""
 
 
 def demo_plant_config() -> PlantConfig:
-    """The plant configuration of the demo loops (signals already in % of span)."""
-    loops = []
-    for d in DEMO_LOOPS:
-        case = _case(d.case, 100)
-        loops.append({
-            "id": d.id, "name": d.name, "unit": "demo",
-            "tags": {s: f"{d.id}.{s.upper()}" for s in ("op", "pv", "sp")},
-            "ranges": {"op": (0.0, 100.0), "pv": (0.0, 100.0)},
-            "ts": case.ts, "process_type": case.process_type, "valve_asset": d.valve_asset,
-            "location": f"DEMO-{d.id[:3]}", "importance": d.importance,
-            "controller": {"type": "PI", "Kc": case.controller.kp,
-                           "Ti": case.controller.kp / case.controller.ki},
-        })
-    return PlantConfig.model_validate(
-        {"units": [{"id": "demo", "name": "Demo plant (simulated)"}], "loops": loops}
-    )
-
-
-class DemoPlant:
-    """Precomputed simulations of the demo loops mapped onto wall-clock time.
-
-    Sample ``k`` of a loop is stamped ``origin + k ts`` with ``origin = start
-    - history_s``: the first ``history_s`` lie in the past at ``start``.
-    """
-
-    def __init__(self, *, start: float, history_s: float = 3600.0,
-                 live_s: float = 6 * 3600.0) -> None:
-        self.origin = start - history_s
-        self.duration_s = history_s + live_s
-        self._series: dict[str, tuple[float, dict[str, np.ndarray]]] = {}
-        for d in DEMO_LOOPS:
-            probe = _case(d.case, 100)
-            samples = int(self.duration_s / probe.ts)
-            result = _case(d.case, samples).simulate()
-            self._series[d.id] = (
-                probe.ts, {"OP": result.op[0], "PV": result.pv[0], "SP": result.sp[0]}
-            )
-
-    def batch(self, t0: float, t1: float) -> list[dict[str, Any]]:
-        """Samples stamped in ``(t0, t1]`` as an ingest batch (PI Web API shape)."""
-        batch = []
-        for loop_id, (ts, signals) in self._series.items():
-            k0 = max(int(np.floor((t0 - self.origin) / ts)) + 1, 0)
-            k1 = min(int(np.floor((t1 - self.origin) / ts)), len(signals["OP"]) - 1)
-            if k1 < k0:
-                continue
-            times = self.origin + ts * np.arange(k0, k1 + 1)
-            for signal, values in signals.items():
-                batch.append({
-                    "tag": f"{loop_id}.{signal}",
-                    "items": [{"timestamp": float(t), "value": float(v)}
-                              for t, v in zip(times, values[k0: k1 + 1], strict=True)],
-                })
-        return batch
+    """The demo plant's units and loops, without connectors: for processes not serving it."""
+    spec = PlantSimulator(modbus_port=None).plant_config()
+    del spec["connectors"]
+    return PlantConfig.model_validate(spec)
 
 
 class DemoFeeder:
-    """Releases the demo plant's samples into ``ingest`` as wall-clock time passes."""
+    """Serves the demo plant on free loopback ports and back-fills its history.
 
-    def __init__(self, plant: DemoPlant, ingest: Callable[[list[dict[str, Any]]], object],
-                 *, clock: Callable[[], float] = time.time, period_s: float = 1.0) -> None:
-        self.plant = plant
-        self.ingest = ingest
+    :meth:`start` serves the plant and ingests its last ``history_s`` before
+    the connectors start, so the back-fill's load does not delay their first
+    polls.  The connectors deliver through a :meth:`live_sink`, which notes
+    each tag's first live sample; :meth:`close_seam` waits for them and
+    ingests what the plant served between the back-fill and them.
+
+    Parameters
+    ----------
+    history_s : float
+        Seconds of plant history back-filled (the analysis window).
+    max_batch_samples : int
+        The most samples one ingest batch may hold.
+    clock : callable
+        Wall clock, UNIX seconds.
+    live_wait_s : float
+        How long :meth:`close_seam` waits for the first live samples.
+    """
+
+    def __init__(self, *, history_s: float, max_batch_samples: int,
+                 clock: Callable[[], float] = time.time, live_wait_s: float = 30.0) -> None:
+        self.history_s = history_s
+        self.max_batch_samples = max_batch_samples
         self.clock = clock
-        self.period_s = period_s
-        self._released = plant.origin - 1.0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self.live_wait_s = live_wait_s
+        self.plant = PlantSimulator(opcua_port=0, modbus_port=0, origin=clock() - history_s,
+                                    clock=clock, horizon_s=history_s + LIVE_HORIZON_S)
+        spec = self.plant.plant_config()
+        self.plant_config = PlantConfig.model_validate(spec)
+        self.tags = [tag for loop in spec["loops"] for tag in loop["tags"].values()]
+        self.backfilled_until: float | None = None
+        """UNIX time up to which :meth:`start` back-filled."""
+        self._first_live: dict[str, float] = {}
+        self._lock = threading.Lock()
 
-    def release(self) -> int:
-        """Ingest everything stamped up to now; returns the number of samples."""
+    def live_sink(self, ingest: SampleSink) -> SampleSink:
+        """The connectors' sink: notes each tag's first live sample, then calls ``ingest``."""
+
+        def sink(batch: list[dict[str, Any]]) -> object:
+            with self._lock:
+                for entry in batch:
+                    stamps = [item["timestamp"] for item in entry["items"]]
+                    if stamps and entry["tag"] not in self._first_live:
+                        self._first_live[entry["tag"]] = min(stamps)
+            return ingest(batch)
+
+        return sink
+
+    def start(self, ingest: SampleSink) -> int:
+        """Serve the plant and ingest its last ``history_s``; the number of samples."""
+        self.plant.start_in_thread()
         now = self.clock()
-        batch = self.plant.batch(self._released, now)
-        if batch:
-            self.ingest(batch)
-        self._released = now  # only once ingested: a failed release is retried
-        return sum(len(entry["items"]) for entry in batch)
+        samples = self._ingest_history(ingest, now - self.history_s, dict.fromkeys(self.tags, now))
+        self.backfilled_until = now
+        log.info("demo plant: back-filled %d samples of the last %g s", samples, self.history_s)
+        return samples
 
-    def start(self) -> None:
-        """Backfill the history, then release new samples every ``period_s``."""
-        self.release()
+    def close_seam(self, ingest: SampleSink) -> int:
+        """Ingest what was served between the back-fill and each tag's first live sample.
 
-        def run() -> None:
-            while not self._stop.wait(self.period_s):
-                try:
-                    self.release()
-                except Exception:  # a failed release is retried with the next one
-                    log.exception("demo feeder: ingest failed")
+        Waits up to ``live_wait_s`` for a live sample of every tag; a tag
+        still without one is back-filled up to now (and named in a warning).
+        Returns the number of samples ingested.
+        """
+        if self.backfilled_until is None:
+            raise RuntimeError("the demo plant has not started")
+        deadline = time.monotonic() + self.live_wait_s
+        while len(self._first_live) < len(self.tags) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        now = self.clock()
+        with self._lock:
+            until = {tag: self._first_live.get(tag, now) for tag in self.tags}
+        silent = sorted(tag for tag in self.tags if tag not in self._first_live)
+        if silent:
+            log.warning("demo plant: no live sample of %s after %g s; back-filled up to now",
+                        ", ".join(silent), self.live_wait_s)
+        return self._ingest_history(ingest, self.backfilled_until, until)
 
-        self._thread = threading.Thread(target=run, name="loopwatch-demo-feeder", daemon=True)
-        self._thread.start()
+    def _ingest_history(self, ingest: SampleSink, since: float, until: dict[str, float]) -> int:
+        samples = 0
+        for batch in self.plant.history(since, until, max_samples=self.max_batch_samples):
+            ingest(batch)
+            samples += sum(len(entry["items"]) for entry in batch)
+        return samples
 
     def stop(self) -> None:
-        """Stop releasing samples."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        """Stop serving the plant."""
+        self.plant.stop_thread()

@@ -6,6 +6,15 @@ returning a future with ``result(timeout)`` and ``cancel()``, and
 that, so the same scheduler code ships :func:`service.analysis.analyse_window`
 (a module-level function of plain arguments) to the workers of a cluster;
 workers need the ``loopwatch`` package installed, as the Docker image has.
+
+Faults (issue 10).  A local pool whose worker process dies is broken for
+good (``BrokenProcessPool`` for every job in it), and a hung analysis holds
+its worker until it ends; :func:`end_executor` kills the workers, and the
+scheduler builds a new pool with :func:`make_executor`.  A Dask cluster
+needs neither: the nanny restarts a worker that dies and the scheduler of the
+cluster runs its tasks again elsewhere (``distributed.scheduler.allowed-failures``,
+3 by default, after which the task fails with ``KilledWorker``); a hung task
+cannot be killed from the client.
 """
 
 from __future__ import annotations
@@ -16,7 +25,14 @@ from typing import ParamSpec, TypeVar
 
 from service.config import Settings
 
-__all__ = ["DaskExecutor", "ExecutorError", "executor_slots", "make_executor"]
+__all__ = [
+    "DaskExecutor",
+    "ExecutorError",
+    "end_executor",
+    "executor_slots",
+    "kills_workers",
+    "make_executor",
+]
 
 P = ParamSpec("P")
 T = TypeVar("T")
@@ -93,3 +109,21 @@ def executor_slots(executor: Executor, default: int) -> int:
     if isinstance(executor, DaskExecutor):
         return max(1, sum(executor.client.nthreads().values()))
     return default
+
+
+def kills_workers(executor: Executor) -> bool:
+    """True when :func:`end_executor` ends ``executor``'s running jobs: a local process pool.
+
+    Threads cannot be killed, and a Dask cluster's workers are not ours to kill.
+    """
+    return isinstance(executor, ProcessPoolExecutor)
+
+
+def end_executor(executor: Executor) -> None:
+    """Shut ``executor`` down without waiting; a process pool's workers are killed first,
+    so a hung analysis ends with them (its futures fail with ``BrokenProcessPool``)."""
+    if isinstance(executor, ProcessPoolExecutor):
+        # Python 3.14 has ProcessPoolExecutor.kill_workers(); 3.11 only the private map
+        for process in list((executor._processes or {}).values()):
+            process.kill()
+    executor.shutdown(wait=False, cancel_futures=True)

@@ -4,9 +4,23 @@ Windows are cut from the rolling buffers and submitted to an executor (a
 local process pool by default, or a Dask cluster: :mod:`service.executors`).
 At most two analyses per worker are in flight, so each loop's result is
 awaited with its own time limit counted from its submission, and one slow
-or failing analysis never holds up the others; its run is stored as
-``timeout`` or ``failed`` with the reason.  Results become analysis runs,
-alarms and tickets in one transaction per loop.
+or failing analysis never holds up the others.  An analysis that raises is
+stored as ``failed`` with the reason.  One whose worker process dies or that
+outlives its time limit is tried once more with the same limit (issue 10):
+a dead worker leaves a local pool broken, and a hung one holds its process,
+so the scheduler kills the pool's workers, builds a new pool with its
+executor factory and submits again what the old pool held.  When a worker
+died, every job the pool held has lost a try (the pool does not say which
+one killed it); after a hang only the hung job has.  A second loss stores
+the run as ``failed`` or ``timeout`` with the reason.  Results become
+analysis runs, alarms and tickets in one transaction per loop.
+
+After each round's loop analyses every unit with two or more complete loop
+windows is diagnosed as a whole (:func:`analytics.plantwide.diagnose_unit`,
+thesis chapter 2) on the same executor and stored as a unit analysis run.
+Tickets of the loops of a unit of two or more loops are decided only then,
+so that the unit's diagnosis can withhold the tickets of valves it clears
+(:mod:`service.tickets`).
 
 Scheduled rounds sit on a fixed grid: round ``k`` analyses the windows
 ending at ``k * analysis_interval_s`` (UNIX s).  Only the process holding
@@ -18,7 +32,8 @@ the newest round in the store (a leader that died mid-round leaves loops
 without a run) and runs every later round, oldest first; a round whose window
 has already left the buffer horizon can no longer be run and is counted in
 ``loopwatch_rounds_missed_total`` with a warning.  So a failover neither
-loses an analysis nor runs one twice.  :meth:`AnalysisScheduler.run_once` is
+loses an analysis nor runs one twice; the same holds for unit analyses
+(``unit_analysis_runs.round_end``).  :meth:`AnalysisScheduler.run_once` is
 the on-demand analysis outside the grid (``round_end`` NULL).
 """
 
@@ -29,12 +44,12 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
-from concurrent.futures import TimeoutError as FutureTimeout
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, Executor, Future, wait
+from dataclasses import dataclass, replace
+from functools import partial
 from operator import itemgetter
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from sqlalchemy import delete, func, select
@@ -42,19 +57,26 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.alarms import expire_shelves, update_alarms_from_analysis
-from service.analysis import analyse_window
+from service.analysis import (
+    UnitWindows,
+    UnitWindowsError,
+    analyse_unit,
+    analyse_window,
+    unit_windows,
+    valve_decisions,
+)
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
-from service.executors import executor_slots
+from service.executors import end_executor, executor_slots, kills_workers
 from service.ingest import purge_samples
 from service.leader import Election, instance_name
 from service.metrics import Metrics
 from service.plant import PlantRegistry
 from service.store.db import Store
-from service.store.models import AnalysisRun, IngestLog, Sample
+from service.store.models import AnalysisRun, IngestLog, Sample, UnitAnalysisRun
 from service.tickets import evidence_from_run, update_ticket_from_analysis
 
-__all__ = ["SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
+__all__ = ["MAX_TRIES", "SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +90,9 @@ previous sync: one that committed up to two minutes after its time stamp is stil
 IN_FLIGHT_PER_SLOT = 2
 """Analyses submitted per worker slot: one running, one queued, so no worker idles."""
 
+MAX_TRIES = 2
+"""Tries of an analysis whose worker died or hung: the first and one retry (issue 10)."""
+
 
 @dataclass(frozen=True)
 class RunSummary:
@@ -78,6 +103,28 @@ class RunSummary:
     status: str
     verdict: str | None
     ticket_id: int | None
+
+
+@dataclass(frozen=True)
+class JobOutcome:
+    """How one analysis ended: ``ok`` with its result, or ``failed``/``timeout`` with why."""
+
+    status: str
+    result: dict[str, Any] | None = None
+    error: str | None = None
+
+
+@dataclass(eq=False)
+class AnalysisJob:
+    """One analysis for the executor, its tries lost to a dead or hung worker, and where
+    its outcome goes."""
+
+    label: str
+    fn: Callable[..., dict[str, Any]]
+    args: tuple[Any, ...]
+    finish: Callable[[JobOutcome], None]
+    lost_tries: int = 0
+    deadline: float = math.inf
 
 
 def grid_rounds(last: float | None, now: float, interval_s: float) -> list[float]:
@@ -97,6 +144,8 @@ def grid_rounds(last: float | None, now: float, interval_s: float) -> list[float
 class AnalysisScheduler:
     """Runs the pipeline on every loop each ``settings.analysis_interval_s``.
 
+    ``executor_factory`` builds the executor, and a new one whenever a dead or
+    hung worker has cost the current one (:func:`service.executors.make_executor`);
     ``election`` None means this process always leads (a single process);
     ``instance`` names the process in ``analysis_runs.scheduled_by``.
     """
@@ -108,7 +157,7 @@ class AnalysisScheduler:
         registry: PlantRegistry,
         buffers: LoopBuffers,
         settings: Settings,
-        executor: Executor,
+        executor_factory: Callable[[], Executor],
         metrics: Metrics,
         clock: Callable[[], float] = time.time,
         on_ticket: Callable[[int], None] | None = None,
@@ -119,7 +168,8 @@ class AnalysisScheduler:
         self.registry = registry
         self.buffers = buffers
         self.settings = settings
-        self.executor = executor
+        self.executor_factory = executor_factory
+        self.executor = executor_factory()
         self.metrics = metrics
         self.clock = clock
         self.on_ticket = on_ticket
@@ -197,19 +247,23 @@ class AnalysisScheduler:
         return read
 
     def run_once(self, now: float | None = None) -> list[RunSummary]:
-        """Analyse every loop once on the window ending at ``now`` (on demand, off the grid)."""
+        """Analyse every loop and unit once on the windows ending at ``now`` (on demand, off
+        the grid)."""
         now = self.clock() if now is None else now
         self.maintain(now)
-        return self._analyse(self.registry.plant.loops, now, round_end=None)
+        summaries = self._analyse(self.registry.plant.loops, now, round_end=None)
+        return self._analyse_units(summaries, now, round_end=None)
 
     def run_round(self, round_end: float) -> list[RunSummary]:
-        """Run the scheduled round ending at ``round_end`` for the loops that have no run of it.
+        """Run the scheduled round ending at ``round_end`` for the loops and units that have no
+        run of it, then decide the tickets of the units' loops.
 
         A loop whose run of this round another scheduler stores first is left
         out of the summaries (the store refuses the second run).
         """
         loops = [loop for loop in self.registry.plant.loops if loop.id not in self._done(round_end)]
-        return self._analyse(loops, round_end, round_end=round_end)
+        summaries = self._analyse(loops, round_end, round_end=round_end)
+        return self._analyse_units(summaries, round_end, round_end=round_end)
 
     def _done(self, round_end: float) -> set[str]:
         """The loops that have a run of the round ending at ``round_end``."""
@@ -257,83 +311,151 @@ class AnalysisScheduler:
             summaries += self.run_round(round_end)
         return summaries
 
-    def _submit(self, loop: LoopConfig, now: float) -> Future[dict[str, Any]] | None:
-        """Submit the loop's window ending at ``now``; None when it holds no sample."""
+    def _window_args(self, loop: LoopConfig, now: float) -> tuple[Any, ...] | None:
+        """The arguments of :func:`analyse_window` for the loop's window ending at ``now``;
+        None when the window holds no sample."""
         window = self.buffers.window(loop.id, self.settings.window_s, now)
         signals = {"op": window.op, "pv": window.pv, "sp": window.sp, "mv": window.mv}
         if window.t.size == 0 or all(x is None or not np.isfinite(x).any()
                                      for x in signals.values()):
             return None
-        return self.executor.submit(
-            analyse_window, loop.model_dump(mode="json"), window.ts, window.t, signals
-        )
+        return loop.model_dump(mode="json"), window.ts, window.t, signals
+
+    def _units(self) -> dict[str, list[LoopConfig]]:
+        """The plant's units of two or more loops, each with its loops in plant order."""
+        units: dict[str, list[LoopConfig]] = {}
+        for loop in self.registry.plant.loops:
+            if loop.unit is not None:
+                units.setdefault(loop.unit, []).append(loop)
+        return {unit: loops for unit, loops in units.items() if len(loops) >= 2}
 
     def _analyse(self, loops: Iterable[LoopConfig], now: float,
                  round_end: float | None) -> list[RunSummary]:
-        """Analyse ``loops`` on the windows ending at ``now``, a bounded number at a time."""
-        queue = list(loops)
-        order = {loop.id: i for i, loop in enumerate(queue)}
-        queue.reverse()  # pop() takes the plant's first loop first
-        limit = IN_FLIGHT_PER_SLOT * executor_slots(self.executor, self.settings.workers)
-        in_flight: dict[Future[dict[str, Any]], tuple[LoopConfig, float]] = {}
+        """Analyse ``loops`` on the windows ending at ``now``; the tickets of loops in units
+        of two or more loops wait for their unit's diagnosis (:meth:`_analyse_units`)."""
+        loops = list(loops)
+        order = {loop.id: i for i, loop in enumerate(loops)}
+        in_units = {loop.id for members in self._units().values() for loop in members}
         summaries: list[RunSummary] = []
 
-        def finish(loop: LoopConfig, future: Future[dict[str, Any]] | None,
-                   deadline: float) -> None:
-            summary = self._finish(loop, now - self.settings.window_s, now, future, now,
-                                   deadline, round_end)
+        def finish(loop: LoopConfig, outcome: JobOutcome) -> None:
+            summary = self._finish_loop(loop, now, round_end, outcome,
+                                        ticketed=loop.id not in in_units)
             if summary is not None:
                 summaries.append(summary)
 
-        while queue or in_flight:
-            if self._stop.is_set() or (round_end is not None and not self.leading):
-                queue.clear()  # stopping or deposed: the next leader completes the round
-            while queue and len(in_flight) < limit:
-                loop = queue.pop()
-                future = self._submit(loop, now)
-                deadline = time.monotonic() + self.settings.analysis_timeout_s
-                if future is None:
-                    finish(loop, None, deadline)
-                else:
-                    in_flight[future] = (loop, deadline)
-            if not in_flight:
-                continue
-            first_deadline = min(deadline for _, deadline in in_flight.values())
-            done, _ = wait(in_flight, timeout=max(0.0, first_deadline - time.monotonic()),
-                           return_when=FIRST_COMPLETED)
-            expired = [f for f, (_, deadline) in in_flight.items()
-                       if f not in done and deadline <= time.monotonic()]
-            for future in [*done, *expired]:
-                loop, deadline = in_flight.pop(future)
-                finish(loop, future, deadline)
+        def jobs() -> Iterator[AnalysisJob]:
+            for loop in loops:
+                args = self._window_args(loop, now)
+                if args is None:
+                    finish(loop, JobOutcome("no_data", error="no samples in the analysis window"))
+                    continue
+                yield AnalysisJob(f"loop {loop.id}", analyse_window, args, partial(finish, loop))
+
+        self._run_jobs(jobs(), scheduled=round_end is not None)
         return sorted(summaries, key=lambda s: order[s.loop_id])
 
-    def _finish(self, loop: LoopConfig, start: float, end: float,
-                future: Future[dict[str, Any]] | None, now: float,
-                deadline: float, round_end: float | None) -> RunSummary | None:
-        diagnosis: dict[str, Any] | None = None
-        error = None
-        if future is None:
-            status, error = "no_data", "no samples in the analysis window"
-        else:
-            try:
-                diagnosis = future.result(timeout=max(0.0, deadline - time.monotonic()))
-                status = "ok"
-            except FutureTimeout:
+    def _run_jobs(self, jobs: Iterator[AnalysisJob], *, scheduled: bool) -> None:
+        """Run ``jobs`` on the executor, at most :data:`IN_FLIGHT_PER_SLOT` per worker slot at
+        a time, each with the time limit from its submission; a job whose worker died or hung
+        is tried once more (see the module docstring).  ``jobs`` is drawn as room frees up,
+        so only the windows in flight are held in memory."""
+        limit = IN_FLIGHT_PER_SLOT * executor_slots(self.executor, self.settings.workers)
+        again: list[AnalysisJob] = []  # retried or restarted: submitted before new jobs
+        in_flight: dict[Future[dict[str, Any]], AnalysisJob] = {}
+        drawing = True
+        while True:
+            if self._stop.is_set() or (scheduled and not self.leading):
+                drawing = False  # stopping or deposed: the next leader completes the round
+                again.clear()
+            while len(in_flight) < limit and (again or drawing):
+                job = again.pop(0) if again else next(jobs, None)
+                if job is None:
+                    drawing = False
+                    break
+                job.deadline = time.monotonic() + self.settings.analysis_timeout_s
+                in_flight[self.executor.submit(job.fn, *job.args)] = job
+            if not in_flight:
+                return
+            first_deadline = min(job.deadline for job in in_flight.values())
+            done, _ = wait(in_flight, timeout=max(0.0, first_deadline - time.monotonic()),
+                           return_when=FIRST_COMPLETED)
+            broken = [job for future in done
+                      if (job := self._collect(future, in_flight.pop(future))) is not None]
+            if broken:  # the pool is broken for good: whatever else it held is lost too
+                broken += self._take_unfinished(in_flight)
+                self._replace_executor("a worker process died")
+                for job in broken:
+                    self._lose(job, "worker_died", "its worker process died", again)
+                continue
+            hung = [future for future, job in in_flight.items()
+                    if job.deadline <= time.monotonic()]
+            if not hung:
+                continue
+            timed_out = [in_flight.pop(future) for future in hung]
+            for future in hung:
                 future.cancel()
-                status = "timeout"
-                error = f"analysis took longer than {self.settings.analysis_timeout_s:g} s"
-            except Exception as exc:  # a worker's failure must not stop the other loops
-                status, error = "failed", f"{type(exc).__name__}: {exc}"
-                log.warning("analysis of loop %s failed: %s", loop.id, error)
+            if kills_workers(self.executor):  # end the hung worker with its pool
+                again += self._take_unfinished(in_flight)  # not their fault: no try lost
+                self._replace_executor(f"{', '.join(job.label for job in timed_out)} hung")
+            for job in timed_out:
+                self._lose(job, "timeout", "analysis took longer than "
+                                           f"{self.settings.analysis_timeout_s:g} s", again)
+
+    @staticmethod
+    def _collect(future: Future[dict[str, Any]], job: AnalysisJob) -> AnalysisJob | None:
+        """Pass a finished job's outcome on; the job back if its worker process died."""
+        try:
+            result = future.result(timeout=0)
+        except BrokenExecutor:
+            return job
+        except Exception as exc:  # a failing analysis must not stop the others
+            error = f"{type(exc).__name__}: {exc}"
+            log.warning("analysis of %s failed: %s", job.label, error)
+            job.finish(JobOutcome("failed", error=error))
+        else:
+            job.finish(JobOutcome("ok", result))
+        return None
+
+    def _take_unfinished(self, in_flight: dict[Future[dict[str, Any]], AnalysisJob]
+                         ) -> list[AnalysisJob]:
+        """Empty ``in_flight`` of a pool about to be replaced: jobs that have finished pass
+        their outcome on, the others are returned to be submitted again."""
+        unfinished = [job for future, job in in_flight.items()
+                      if not future.done() or self._collect(future, job) is not None]
+        in_flight.clear()
+        return unfinished
+
+    def _replace_executor(self, why: str) -> None:
+        """Kill the executor's workers and build a new executor with the factory."""
+        end_executor(self.executor)
+        self.executor = self.executor_factory()
+        self.metrics.inc("loopwatch_executor_replacements_total")
+        log.warning("analysis executor replaced: %s", why)
+
+    def _lose(self, job: AnalysisJob, cause: Literal["worker_died", "timeout"], reason: str,
+              again: list[AnalysisJob]) -> None:
+        """A try of ``job`` lost to a dead or hung worker: try once more, or store why not."""
+        job.lost_tries += 1
+        if job.lost_tries < MAX_TRIES:
+            self.metrics.inc("loopwatch_analysis_retries_total", cause=cause)
+            log.warning("%s: %s; trying it once more", job.label, reason)
+            again.append(job)
+            return
+        status = "timeout" if cause == "timeout" else "failed"
+        log.warning("%s: %s, on its retry too", job.label, reason)
+        job.finish(JobOutcome(status, error=f"{reason}, on its retry too"))
+
+    def _finish_loop(self, loop: LoopConfig, now: float, round_end: float | None,
+                outcome: JobOutcome, *, ticketed: bool) -> RunSummary | None:
+        """Store the loop's run (and, if ``ticketed``, its ticket); None when it is dropped."""
         if round_end is not None and not self.leading:
             log.warning("leadership lost: the result of loop %s for round %.0f is left to the "
                         "new leader", loop.id, round_end)
             return None
-        self.metrics.inc("loopwatch_analyses_total", status=status)
+        self.metrics.inc("loopwatch_analyses_total", status=outcome.status)
         try:
-            summary = self._store_run(loop, start, end, now, status, error, diagnosis,
-                                      round_end)
+            summary = self._store_run(loop, now, outcome, round_end, ticketed=ticketed)
         except IntegrityError:
             if round_end is None or not self._round_stored(loop.id, round_end):
                 raise
@@ -352,14 +474,15 @@ class AnalysisScheduler:
                 .where(AnalysisRun.loop_id == loop_id, AnalysisRun.round_end == round_end)
             ) is not None
 
-    def _store_run(self, loop: LoopConfig, start: float, end: float, now: float, status: str,
-                   error: str | None, diagnosis: dict[str, Any] | None,
-                   round_end: float | None) -> RunSummary:
-        """The run, its alarms and its ticket in one transaction."""
+    def _store_run(self, loop: LoopConfig, now: float, outcome: JobOutcome,
+                   round_end: float | None, *, ticketed: bool) -> RunSummary:
+        """The run, its alarms and (if ``ticketed``) its ticket in one transaction."""
+        diagnosis = outcome.result
         with self.store.session() as session:
             run = AnalysisRun(
                 loop_id=loop.id, started_at=now, finished_at=self.clock(),
-                window_start=start, window_end=end, status=status, error=error,
+                window_start=now - self.settings.window_s, window_end=now,
+                status=outcome.status, error=outcome.error,
                 round_end=round_end, scheduled_by=None if round_end is None else self.instance,
             )
             if diagnosis is not None:
@@ -381,15 +504,133 @@ class AnalysisScheduler:
                     oscillating=bool(run.oscillating), usable=bool(run.usable),
                     importance=loop.importance, message=self._message(diagnosis), now=now,
                 )
-                ticket = update_ticket_from_analysis(
-                    session, loop.id,
-                    valve_asset=loop.valve_asset or loop.id, location=loop.location or loop.unit,
-                    verdict=str(run.verdict), evidence=evidence_from_run(run),
-                    importance=loop.importance,
-                    confirmations_needed=self.settings.ticket_confirmations, now=now,
-                )
-                ticket_id = None if ticket is None else ticket.id
-            return RunSummary(loop.id, run.id, status, run.verdict, ticket_id)
+                if ticketed:
+                    ticket_id = self._update_ticket(session, loop, run, now, unit_id=None)
+            return RunSummary(loop.id, run.id, outcome.status, run.verdict, ticket_id)
+
+    def _update_ticket(self, session: Session, loop: LoopConfig, run: AnalysisRun, now: float,
+                       unit_id: str | None) -> int | None:
+        """The ticket rule (:func:`service.tickets.update_ticket_from_analysis`) for ``run``;
+        the id of the ticket opened or updated."""
+        ticket = update_ticket_from_analysis(
+            session, loop.id,
+            valve_asset=loop.valve_asset or loop.id, location=loop.location or loop.unit,
+            verdict=str(run.verdict), evidence=evidence_from_run(run),
+            importance=loop.importance,
+            confirmations_needed=self.settings.ticket_confirmations, now=now, unit_id=unit_id,
+        )
+        return None if ticket is None else ticket.id
+
+    def _analyse_units(self, summaries: list[RunSummary], now: float,
+                       round_end: float | None) -> list[RunSummary]:
+        """Diagnose each unit of two or more loops (thesis chapter 2) on the windows ending at
+        ``now``, unless this round's diagnosis is stored already, then decide the tickets of
+        the units' loops; ``summaries`` with the ticket ids filled in.
+
+        Tickets are decided for the units that have a loop run or a diagnosis stored by
+        this call (once per round, so a ticket closed since is not opened again from the
+        same run): a scheduler completing a round whose unit diagnosis its predecessor
+        left undone decides them on the round's stored loop runs.
+        """
+        units = self._units()
+        scheduled = round_end is not None
+        if not units or (scheduled and not self.leading):
+            return summaries
+        done = set() if round_end is None else self._units_done(round_end)
+        self._run_jobs(self._unit_jobs(units, done, now, round_end), scheduled=scheduled)
+        if self._stop.is_set() or (scheduled and not self.leading):
+            return summaries  # the next leader decides the tickets of this round
+        analysed = {s.loop_id for s in summaries}
+        fresh = {unit for unit, loops in units.items() if any(x.id in analysed for x in loops)}
+        if round_end is not None:
+            fresh |= self._units_done(round_end) - done
+        tickets: dict[str, int] = {}
+        runs = self._runs_of_units(units, summaries, round_end)
+        for unit_id, loops in units.items():
+            if unit_id not in fresh:
+                continue
+            for loop in loops:
+                if loop.id not in runs:
+                    continue
+                with self.store.session() as session:
+                    run = session.get(AnalysisRun, runs[loop.id])
+                    if run is None or run.result is None:
+                        continue
+                    ticket_id = self._update_ticket(session, loop, run, now, unit_id=unit_id)
+                if ticket_id is not None:
+                    tickets[loop.id] = ticket_id
+                    if self.on_ticket is not None:
+                        self.on_ticket(ticket_id)
+        return [replace(s, ticket_id=tickets[s.loop_id]) if s.loop_id in tickets else s
+                for s in summaries]
+
+    def _units_done(self, round_end: float) -> set[str]:
+        """The units that have a diagnosis of the round ending at ``round_end``."""
+        with self.store.session() as session:
+            return set(session.scalars(
+                select(UnitAnalysisRun.unit_id).where(UnitAnalysisRun.round_end == round_end)
+            ))
+
+    def _runs_of_units(self, units: dict[str, list[LoopConfig]], summaries: list[RunSummary],
+                       round_end: float | None) -> dict[str, int]:
+        """The run of each unit loop to decide its ticket on: the scheduled round's, stored by
+        whichever scheduler ran it, or the on-demand run just made."""
+        if round_end is None:
+            return {s.loop_id: s.run_id for s in summaries}
+        loop_ids = [loop.id for loops in units.values() for loop in loops]
+        with self.store.session() as session:
+            rows = session.execute(
+                select(AnalysisRun.loop_id, AnalysisRun.id)
+                .where(AnalysisRun.round_end == round_end, AnalysisRun.loop_id.in_(loop_ids))
+            )
+            return {loop_id: run_id for loop_id, run_id in rows}
+
+    def _unit_jobs(self, units: dict[str, list[LoopConfig]], done: set[str], now: float,
+                   round_end: float | None) -> Iterator[AnalysisJob]:
+        """A diagnosis job for each unit not in ``done`` with two or more complete windows;
+        a unit whose windows cannot go together is stored as failed at once."""
+        for unit_id, loops in units.items():
+            if unit_id in done:
+                continue
+            windows = unit_windows(self.buffers, loops, self.settings.window_s, now)
+            if len(windows.signals) < 2:
+                continue
+            try:
+                ts = windows.ts
+            except UnitWindowsError as exc:
+                self._finish_unit(unit_id, windows, now, round_end,
+                                  JobOutcome("failed", error=str(exc)))
+                continue
+            yield AnalysisJob(f"unit {unit_id}", analyse_unit, (windows.signals, ts),
+                              partial(self._finish_unit, unit_id, windows, now, round_end))
+
+    def _finish_unit(self, unit_id: str, windows: UnitWindows, now: float,
+                     round_end: float | None, outcome: JobOutcome) -> None:
+        """Store the unit's diagnosis (dropped if another scheduler stored it first)."""
+        if round_end is not None and not self.leading:
+            return
+        self.metrics.inc("loopwatch_unit_analyses_total", status=outcome.status)
+        sticky, cleared = ([], []) if outcome.result is None else valve_decisions(outcome.result)
+        try:
+            with self.store.session() as session:
+                session.add(UnitAnalysisRun(
+                    unit_id=unit_id, started_at=now, finished_at=self.clock(),
+                    window_start=now - self.settings.window_s, window_end=now,
+                    status=outcome.status, loops=list(windows.signals),
+                    incomplete_loops=list(windows.incomplete), sticky_loops=sticky,
+                    cleared_loops=cleared, result=outcome.result, error=outcome.error,
+                    round_end=round_end,
+                    scheduled_by=None if round_end is None else self.instance,
+                ))
+        except IntegrityError:
+            if round_end is None or unit_id not in self._units_done(round_end):
+                raise
+            self.metrics.inc("loopwatch_analyses_duplicate_total")
+            log.warning("unit %s, round %.0f: another scheduler stored its diagnosis first; "
+                        "this result is dropped", unit_id, round_end)
+            return
+        if outcome.status != "ok":
+            log.info("diagnosis of unit %s: %s (%s)", unit_id, outcome.status, outcome.error)
 
     @staticmethod
     def _message(diagnosis: dict[str, Any]) -> str:

@@ -1,9 +1,10 @@
 """``loopwatch serve``: build the service, start its background work, run the API.
 
-With no plant file the service runs the demo: the simulated plant of
-:mod:`service.demo` is fed in-process, the analysis interval is short and
-the window one hour, so alarms and a ticket for each sticky valve appear
-within about a minute of start.
+With no plant file the service runs the demo (:mod:`service.demo`): the
+simulated plant is served over OPC UA and Modbus TCP on loopback and read
+through the connectors, its last hour back-filled at start; the analysis
+interval is short and the window one hour, so alarms and a ticket for each
+sticky valve appear within about a minute of start.
 
 A process has a role (``--role`` or ``LOOPWATCH_ROLE``); the roles share
 nothing but the store, so any number of each can run:
@@ -12,8 +13,9 @@ nothing but the store, so any number of each can run:
     The REST API only: stateless, run as many replicas as the load needs.
 ``ingest``
     The connectors whose endpoint falls in this process's shard
-    (:func:`ingest_shard`; the demo feeder counts as one endpoint), plus
-    the API (health, metrics, historian push).
+    (:func:`ingest_shard`), plus the API (health, metrics, historian push).
+    The demo plant counts as one endpoint: the process that owns it serves
+    the plant, reads both its servers and back-fills its history.
 ``scheduler``
     The analysis scheduler: one process leads (:mod:`service.leader`), the
     others stand by and take over when it dies.
@@ -42,7 +44,8 @@ from service.api.app import create_app
 from service.auth import ensure_bootstrap_key
 from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings, load_plant_config
-from service.demo import DemoFeeder, DemoPlant, demo_plant_config
+from service.connector_setup import build_connectors
+from service.demo import DemoFeeder, demo_plant_config
 from service.executors import make_executor
 from service.leader import make_election
 from service.metrics import Metrics
@@ -69,7 +72,7 @@ log = logging.getLogger(__name__)
 DEMO_INTERVAL_S = 15.0
 
 DEMO_ENDPOINT = "demo://loopwatch"
-"""The demo plant's feeder counts as one endpoint: one ingest process runs it."""
+"""The demo plant counts as one endpoint: one ingest process serves, reads and back-fills it."""
 
 ROLES = ("api", "ingest", "scheduler", "all")
 INGEST_ROLES = frozenset({"ingest", "all"})
@@ -129,7 +132,9 @@ class Service:
     """The parts of a running service and their lifecycle.
 
     ``scheduler`` and ``executor`` are None in processes that do not schedule
-    (roles ``api`` and ``ingest``).
+    (roles ``api`` and ``ingest``); ``executor`` is the scheduler's first
+    executor (it builds a new one when a worker dies or hangs).  ``feeder`` is
+    the demo plant, in the process that serves it.
     """
 
     state: AppState
@@ -144,26 +149,28 @@ class Service:
     connectors: list[Connector] = field(default_factory=list)
 
     def start(self) -> None:
-        """Start feeding (the demo backfill first) and connectors, then scheduling."""
+        """Start the demo plant with its back-fill, the connectors, then scheduling."""
         if self.feeder is not None:
-            self.feeder.start()
+            self.feeder.start(self.state.ingest)
         for connector in self.connectors:
             connector.start()
+        if self.feeder is not None:
+            self.feeder.close_seam(self.state.ingest)
         if self.scheduler is not None:
             self.scheduler.start()
 
     def stop(self) -> None:
-        """Stop feeding and analysing; release the leadership, the pool and the database."""
-        if self.feeder is not None:
-            self.feeder.stop()
+        """Stop reading and analysing; release the leadership, the pool and the database."""
         for connector in self.connectors:
             connector.stop()
+        if self.feeder is not None:
+            self.feeder.stop()
         if self.scheduler is not None:
             self.scheduler.stop()
         if self.webhook is not None:
             self.webhook.close()
-        if self.executor is not None:
-            self.executor.shutdown(wait=False, cancel_futures=True)
+        if self.scheduler is not None:
+            self.scheduler.executor.shutdown(wait=False, cancel_futures=True)
         self.state.store.close()
 
 
@@ -186,18 +193,33 @@ def build_service(
     plant: PlantConfig | None,
     *,
     executor: Executor | None = None,
+    executor_factory: Callable[[], Executor] | None = None,
     clock: Any = time.time,
     connector_factory: ConnectorFactory | None = None,
 ) -> Service:
     """Open the store (migrating it), then wire what ``settings.role`` runs.
 
-    ``plant`` None means the demo plant.  ``executor`` replaces the one the
-    settings select (:func:`service.executors.make_executor`); processes that
-    schedule rebuild their rolling buffers from the store here.
+    ``plant`` None means the demo plant, served by the ingest process that
+    owns :data:`DEMO_ENDPOINT` when there is a ``connector_factory``.  The
+    scheduler builds its executor, and a new one after a worker died or hung,
+    with ``executor_factory`` (default: :func:`service.executors.make_executor`
+    of ``settings``); a fixed ``executor`` (a thread pool in tests) is never
+    replaced.  Processes that schedule rebuild their rolling buffers from the
+    store here.
     """
     role = settings.role
-    demo = plant is None
-    plant = demo_plant_config() if plant is None else plant
+
+    def owns(endpoint: str) -> bool:
+        return ingest_shard(endpoint, settings.ingest_shards) == settings.ingest_shard
+
+    reads_plant = role in INGEST_ROLES and connector_factory is not None
+    feeder = None
+    if plant is None and reads_plant and owns(DEMO_ENDPOINT):
+        feeder = DemoFeeder(history_s=settings.window_s,
+                            max_batch_samples=settings.max_batch_samples, clock=clock)
+        plant = feeder.plant_config
+    elif plant is None:
+        plant = demo_plant_config()
     store = Store(settings.resolved_database_url)
     now = clock()
     admin_key, generated = settings.bootstrap_key()
@@ -219,23 +241,23 @@ def build_service(
 
     scheduler = None
     if schedules:
-        executor = executor or make_executor(settings)
+        given = executor
         scheduler = AnalysisScheduler(
             store=store, registry=state.registry, buffers=buffers, settings=settings,
-            executor=executor, metrics=metrics, clock=clock,
+            executor_factory=executor_factory or (
+                lambda: given if given is not None else make_executor(settings)),
+            metrics=metrics, clock=clock,
             on_ticket=post_ticket if webhook is not None else None,
             election=make_election(store, lease_s=settings.leader_lease_s),
         )
+        executor = scheduler.executor
         loaded = scheduler.sync_buffers(now)
         log.info("rolling buffers rebuilt from the store: %d samples", loaded)
     connectors: list[Connector] = []
-    feeder = None
-    if role in INGEST_ROLES:
-        if demo and ingest_shard(DEMO_ENDPOINT, settings.ingest_shards) == settings.ingest_shard:
-            feeder = DemoFeeder(DemoPlant(start=now), state.ingest, clock=clock)
-        if connector_factory is not None:
-            def owns(endpoint: str) -> bool:
-                return ingest_shard(endpoint, settings.ingest_shards) == settings.ingest_shard
+    if reads_plant and connector_factory is not None:
+        if feeder is not None:  # the demo plant's servers are this process's
+            connectors = connector_factory(plant, lambda _: True, feeder.live_sink(state.ingest))
+        else:
             connectors = connector_factory(plant, owns, state.ingest)
     return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
                    create_app(state), role=role, connectors=connectors)
@@ -270,7 +292,7 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
     if plant is None:
         updates |= {k: v for k, v in DEMO_SETTINGS.items() if k not in settings.model_fields_set}
     settings = settings.model_copy(update=updates)
-    service = build_service(settings, plant)
+    service = build_service(settings, plant, connector_factory=build_connectors)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> Any:
@@ -285,7 +307,11 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
         print(f"loopwatch: admin API key for this run: {service.admin_key}")
         print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
         print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
-    if plant is None:
-        print("loopwatch: demo plant -- simulated loops, two with sticky valves "
-              f"(FIC-101, FIC-105); analyses every {settings.analysis_interval_s:g} s")
+    if service.feeder is not None:
+        simulated = service.feeder.plant
+        print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
+              f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
+              f"{simulated.modbus_port}), the last {settings.window_s:g} s back-filled; "
+              "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
+              f"{settings.analysis_interval_s:g} s")
     uvicorn.run(service.app, host=settings.host, port=settings.port, log_level="info")

@@ -10,6 +10,14 @@ of opening another.  A ticket that is ``done`` or ``cancelled`` does not block
 a new one.  A verdict other than stiction never closes a ticket: maintenance
 does that.
 
+Units.  In a unit of interacting loops one sticky valve makes its neighbours
+cycle, and their own analyses then find stiction too (thesis chapter 2).  So
+for a loop of a unit, the unit's latest ``ok`` diagnosis
+(:class:`~service.store.models.UnitAnalysisRun`) has the last word: a valve
+it clears opens no ticket, whatever the loop's own findings (they stay
+recorded in its analysis runs); a valve it names sticky, or one it has not
+decided on, follows the rule above.
+
 Lifecycle (:data:`TICKET_TRANSITIONS`)::
 
     open -> acknowledged -> scheduled -> done
@@ -43,7 +51,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from analytics.valves import sj_to_fsfd
 from service.config import Importance
-from service.store.models import AnalysisRun, Ticket, TicketEvent
+from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
 
 __all__ = [
     "ACTIVE_STATES",
@@ -60,6 +68,7 @@ __all__ = [
     "check_transition",
     "evidence_from_run",
     "get_ticket",
+    "latest_unit_run",
     "list_tickets",
     "ticket_payload",
     "ticket_priority",
@@ -260,6 +269,17 @@ def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[Analys
     return streak
 
 
+def latest_unit_run(session: Session, unit_id: str, *, ok_only: bool = False
+                    ) -> UnitAnalysisRun | None:
+    """The unit's newest stored diagnosis (by window end), or its newest ``ok`` one."""
+    query = select(UnitAnalysisRun).where(UnitAnalysisRun.unit_id == unit_id)
+    if ok_only:
+        query = query.where(UnitAnalysisRun.status == "ok")
+    return session.scalars(
+        query.order_by(UnitAnalysisRun.window_end.desc(), UnitAnalysisRun.id.desc()).limit(1)
+    ).first()
+
+
 def _utc(t: float) -> datetime:
     return datetime.fromtimestamp(t, UTC)
 
@@ -302,12 +322,15 @@ def update_ticket_from_analysis(
     importance: Importance,
     confirmations_needed: int,
     now: float,
+    unit_id: str | None = None,
 ) -> Ticket | None:
     """Open or update the valve's ticket after an analysis; the ticket, or None if untouched.
 
     Call it after the analysis run is stored.  ``evidence`` has the keys of
     :data:`EVIDENCE_KEYS` (:func:`evidence_from_run` builds it).  A loop
-    without a valve asset is ticketed under its loop id.  The ticket's
+    without a valve asset is ticketed under its loop id.  ``unit_id``, for a
+    loop of a unit of interacting loops, lets the unit's latest diagnosis
+    clear the valve (see the module docstring).  The ticket's
     ``malfunction_start`` is the window start of the oldest confirming run.
     Calling twice for the same run changes nothing the second time.
     """
@@ -320,6 +343,13 @@ def update_ticket_from_analysis(
     stored = _checked_evidence(loop_id, asset, evidence, len(streak))
     if len(streak) < confirmations_needed:
         return None
+    if unit_id is not None:
+        unit_run = latest_unit_run(session, unit_id, ok_only=True)
+        if unit_run is not None and loop_id in unit_run.cleared_loops:
+            logger.info("loop %s: stiction found, but unit %s's diagnosis (run %d) clears "
+                        "valve %s and names %s: no ticket", loop_id, unit_id, unit_run.id,
+                        asset, ", ".join(unit_run.sticky_loops) or "no valve")
+            return None
     priority = ticket_priority(S=stored["S"], amplitude_pv=stored["amplitude_pv"],
                                importance=importance)
     ticket = session.scalars(

@@ -110,6 +110,42 @@ class AnalysisRun(Base):
     """The scheduler process (host:pid:nonce) that stored the run."""
 
 
+class UnitAnalysisRun(Base):
+    """One multi-loop diagnosis of a unit (thesis chapter 2) on its loops' windows.
+
+    The scheduler stores one after each round's loop analyses for every unit
+    with two or more complete windows; the ticket rule reads the latest
+    ``ok`` one (:func:`service.tickets.update_ticket_from_analysis`).
+    """
+
+    __tablename__ = "unit_analysis_runs"
+    __table_args__ = (
+        Index("ix_unit_analysis_runs_unit_started", "unit_id", "started_at"),
+        UniqueConstraint("unit_id", "round_end", name="uq_unit_analysis_runs_unit_round"),
+    )
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    unit_id: Mapped[str] = mapped_column(ForeignKey("units.id", ondelete="CASCADE"))
+    started_at: Mapped[float] = mapped_column(Float)
+    finished_at: Mapped[float | None] = mapped_column(Float)
+    window_start: Mapped[float] = mapped_column(Float)
+    window_end: Mapped[float] = mapped_column(Float)
+    status: Mapped[str] = mapped_column(String(16))  # ok | failed | timeout
+    loops: Mapped[list[str]] = mapped_column(JSON)
+    """The loops diagnosed (those with a complete window)."""
+    incomplete_loops: Mapped[list[str]] = mapped_column(JSON)
+    """The unit's other loops: no complete OP and PV window."""
+    sticky_loops: Mapped[list[str]] = mapped_column(JSON)
+    """Loops whose valves the diagnosis names sticky."""
+    cleared_loops: Mapped[list[str]] = mapped_column(JSON)
+    """Loops of a diagnosed oscillation whose own valve the diagnosis clears
+    (:func:`service.analysis.valve_decisions`)."""
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+    round_end: Mapped[float | None] = mapped_column(Float)
+    """As in ``analysis_runs``: at most one diagnosis per unit and scheduled round."""
+    scheduled_by: Mapped[str | None] = mapped_column(String(200))
+
+
 class Alarm(Base):
     """An operator alarm of one loop and kind, with its ISA-18.2 state."""
 

@@ -4,6 +4,7 @@ configuration, and the ``loopwatch plant-sim`` command."""
 import argparse
 import asyncio
 import math
+import socket
 import subprocess
 import sys
 import threading
@@ -51,8 +52,7 @@ class Sink:
 
 
 def plant(**options: Any) -> PlantSimulator:
-    return PlantSimulator(opcua_port=free_port(), modbus_port=free_port(), horizon_s=HORIZON_S,
-                          **options)
+    return PlantSimulator(opcua_port=0, modbus_port=0, horizon_s=HORIZON_S, **options)
 
 
 def opcua_connector(sim: PlantSimulator, sink: Sink) -> OpcUaConnector:
@@ -116,9 +116,9 @@ def test_every_sample_arrives_over_opcua_with_its_time_stamp_and_value():
         loop_id = tag.split(".")[0]
         interval = sim.sample_interval(loop_id)
         numbers = [sim.sample_index(loop_id, i["timestamp"]) for i in items]
-        assert sim.start_time is not None
+        assert sim.origin is not None
         for k, i in zip(numbers, items, strict=True):
-            assert i["timestamp"] == pytest.approx(sim.start_time + k * interval, abs=1e-6)
+            assert i["timestamp"] == pytest.approx(sim.origin + k * interval, abs=1e-6)
             assert i["value"] == sim.value(tag, k) and i["good"]
         # one sample per interval, none missing, from the first to the last received
         assert numbers == list(range(numbers[0], numbers[0] + len(numbers))), tag
@@ -142,7 +142,7 @@ def test_modbus_registers_hold_the_latest_sample_and_bad_tags_go_bad_on_both():
         task = asyncio.create_task(connector.run())
         client = AsyncModbusTcpClient("127.0.0.1", port=sim.modbus_port)
         try:
-            await until(lambda: connector.stats.received >= 28)  # subscribed: initial values
+            await until(lambda: connector.stats.received >= 21)  # subscribed: initial values
             await client.connect()
             clock.now = start + 5.2
             await sim.release()
@@ -167,6 +167,66 @@ def test_modbus_registers_hold_the_latest_sample_and_bad_tags_go_bad_on_both():
     assert quality[6.0] == quality[7.0] == (None, False)
 
 
+def test_history_is_the_samples_before_the_start_and_serving_goes_on_from_it():
+    start = round(time.time())
+    clock = Clock(start)
+    sim = plant(clock=clock, origin=start - 100)
+    sink = Sink()
+
+    async def scenario() -> list[list[dict[str, Any]]]:
+        await sim.start()
+        connector = opcua_connector(sim, sink)
+        task = asyncio.create_task(connector.run())
+        try:
+            await until(lambda: connector.stats.received >= 21)  # the initial values
+            clock.now = start + 3.2
+            await sim.release()
+            await until(lambda: len(sink.items["FIC-101.PV"]) >= 4)
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            await sim.stop()
+        # later samples are not history: nothing stamped after the latest release
+        return list(sim.history(start - 50.5, {"FIC-101.PV": start + 60, "AIC-502.OP": start},
+                                max_samples=40))
+
+    batches = asyncio.run(scenario())
+    assert [sum(len(e["items"]) for e in batch) for batch in batches] == [40, 40, 40, 35]
+    history: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for batch in batches:
+        for entry in batch:
+            history[entry["tag"]].extend(entry["items"])
+    # FIC-101 (1 s): samples 50..103, to the latest released; AIC-502 (0.5 s): 99..199
+    for tag, first, last in (("FIC-101.PV", 50, 103), ("AIC-502.OP", 99, 199)):
+        interval = sim.sample_interval(tag.split(".")[0])
+        assert [(i["timestamp"], i["value"], i["good"]) for i in history[tag]] == [
+            (start - 100 + k * interval, sim.value(tag, k), True) for k in range(first, last + 1)]
+    # over OPC UA the plant goes on from the sample of the start (number 100): no seam
+    live = [sim.sample_index("FIC-101", i["timestamp"]) for i in sink.items["FIC-101.PV"]]
+    assert live == [100, 101, 102, 103]
+
+
+def test_start_in_thread_reports_a_port_in_use():
+    sim = plant()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", sim.opcua_port))
+        taken.listen()
+        with pytest.raises(RuntimeError, match="the simulated plant could not start"):
+            sim.start_in_thread()
+
+
+def test_an_origin_after_the_start_and_a_server_up_are_refused():
+    async def scenario() -> None:
+        with pytest.raises(ValueError, match=r"the origin .* is after the start"):
+            await plant(origin=time.time() + 60).start()
+        async with plant() as sim:
+            for server in ("opcua", "modbus"):
+                with pytest.raises(RuntimeError, match=r"is up|already running"):
+                    await sim.bring_back(server)
+
+    asyncio.run(scenario())
+
+
 # --- configuration and address map ---------------------------------------------------
 
 
@@ -180,7 +240,12 @@ def test_the_plant_configuration_is_one_the_service_and_the_connectors_accept():
     modbus_tags = {tag.tag for tag in modbus.tags()}
     loop_tags = {tag for loop in plant_config.loops for _, tag in loop.tags.items()}
     assert not opcua_tags & modbus_tags and opcua_tags | modbus_tags == loop_tags
+    assert {t.split(".")[1] for t in loop_tags} == {"OP", "PV", "SP"}  # MV is not watched
     assert {t.split(".")[0] for t in modbus_tags} == {"FIC-105", "LIC-301"}
+    assert modbus.poll_interval_s == pytest.approx(0.05)  # twice per sampling interval
+    assert [u.id for u in plant_config.units] == ["column"]  # the single loops interact not
+    assert {loop.id for loop in plant_config.loops if loop.unit == "column"} == {
+        "AIC-501", "AIC-502", "TIC-503"}
     assert plant_config.loop("FIC-101").ts == pytest.approx(0.1)  # ts 1 s, 10 x faster
     assert plant_config.loop("AIC-502").controller is not None
     assert plant_config.loop("AIC-502").controller.action == "direct"  # Kp < 0, Eq. 2.12
@@ -200,6 +265,14 @@ def test_the_address_map_gives_every_tag_its_own_node_and_registers():
     assert len(set(registers)) == len(registers)
     text = sim.format_address_map()
     assert "AIC-502.MV     ns=2;s=AIC-502.MV" in text
+
+
+def test_port_0_takes_free_ports_the_configuration_names():
+    sim = plant()
+    assert 0 not in (sim.opcua_port, sim.modbus_port) and sim.opcua_port != sim.modbus_port
+    config = sim.plant_config()["connectors"]
+    assert config["opcua"][0]["url"] == f"opc.tcp://127.0.0.1:{sim.opcua_port}"
+    assert config["modbus"][0]["port"] == sim.modbus_port
 
 
 def test_unknown_loops_for_modbus_are_refused():

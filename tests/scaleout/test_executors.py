@@ -10,6 +10,7 @@ import os
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -18,7 +19,13 @@ from pydantic import ValidationError
 from analytics.synthetic_cases import synthetic_library
 from service.analysis import analyse_window
 from service.config import Settings
-from service.executors import DaskExecutor, ExecutorError, executor_slots, make_executor
+from service.executors import (
+    DaskExecutor,
+    ExecutorError,
+    executor_slots,
+    kills_workers,
+    make_executor,
+)
 from tests.servers import free_port, require
 
 HAS_DASK = importlib.util.find_spec("distributed") is not None
@@ -47,6 +54,7 @@ def test_the_default_is_a_local_process_pool_of_the_configured_size() -> None:
     try:
         assert isinstance(executor, ProcessPoolExecutor)
         assert executor_slots(executor, 3) == 3
+        assert kills_workers(executor)  # the scheduler replaces it after a dead or hung worker
         assert executor.submit(os.getpid).result(timeout=60) != os.getpid()
     finally:
         executor.shutdown()
@@ -94,3 +102,26 @@ def test_shutdown_cancels_what_is_queued_and_leaves_the_cluster_running(cluster:
         assert again.submit(sum, [1, 2, 3]).result(timeout=60) == 6
     finally:
         again.shutdown()
+
+
+def die_once(marker: str) -> int:
+    """Kill the worker process that runs it the first time; later, its process id."""
+    if not os.path.exists(marker):
+        Path(marker).touch()
+        os._exit(1)
+    return os.getpid()
+
+
+def test_a_task_whose_dask_worker_dies_is_run_again_by_dask(cluster: Any, tmp_path: Path
+                                                           ) -> None:
+    """Why the scheduler leaves a Dask cluster alone: its nanny restarts the dead worker and
+    the cluster's scheduler runs the task again (``allowed-failures``)."""
+    executor = DaskExecutor(cluster.scheduler_address)
+    try:
+        assert not kills_workers(executor)
+        marker = tmp_path / "died"
+        assert executor.submit(die_once, str(marker)).result(timeout=120) > 0
+        assert marker.exists()  # it did die once
+        executor.client.wait_for_workers(2, timeout=60)
+    finally:
+        executor.shutdown()

@@ -6,8 +6,10 @@ from connectors.modbus import ModbusConnector
 from connectors.opcua import OpcUaConnector
 from connectors.plant_sim import PlantSimulator
 from connectors.replay import ReplayConnector
-from service.config import ConfigError, PlantConfig
+from service.config import ConfigError, PlantConfig, Settings
 from service.connector_setup import build_connectors, endpoint_of
+from service.demo import DEMO_LOOPS, demo_plant_config
+from service.server import DEMO_ENDPOINT, build_service, ingest_shard
 from tests.shared_data import SHARED_DATA, require_file
 
 
@@ -57,3 +59,51 @@ def test_endpoints_name_what_a_connector_talks_to():
     from connectors.opcua import OpcUaEndpointConfig
 
     assert endpoint_of("opcua", OpcUaEndpointConfig.model_validate(opcua)) == opcua["url"]
+
+
+# --- the demo plant (``loopwatch serve`` without a plant file) ----------------------------
+
+
+def demo_settings(tmp_path, **changes) -> Settings:
+    return Settings(database_url=f"sqlite:///{tmp_path / 'demo.db'}",
+                    api_key="connector-setup-admin-0123", **changes)
+
+
+def test_the_demo_is_read_over_the_servers_of_the_plant_this_process_serves(tmp_path):
+    svc = build_service(demo_settings(tmp_path, role="ingest"), None,
+                        connector_factory=build_connectors)
+    try:
+        assert svc.feeder is not None
+        served = svc.feeder.plant
+        opcua, modbus = sorted(svc.connectors, key=lambda c: type(c).__name__, reverse=True)
+        assert isinstance(opcua, OpcUaConnector) and opcua.config.url == served.opcua_url
+        assert isinstance(modbus, ModbusConnector)
+        assert (modbus.config.host, modbus.config.port) == (served.host, served.modbus_port)
+        registered = svc.state.registry.plant
+        assert registered == svc.feeder.plant_config
+        assert registered.model_dump(exclude={"connectors"}) == demo_plant_config().model_dump(
+            exclude={"connectors"})  # what processes that do not serve the demo watch
+        assert {loop.id for loop in registered.loops} == {loop.id for loop in DEMO_LOOPS}
+    finally:
+        svc.state.store.close()
+
+
+def test_only_the_ingest_process_owning_the_demo_serves_it(tmp_path):
+    owner = ingest_shard(DEMO_ENDPOINT, 2)
+    for shard in (0, 1):
+        svc = build_service(demo_settings(tmp_path, role="ingest", ingest_shard=shard,
+                                          ingest_shards=2), None,
+                            connector_factory=build_connectors)
+        try:
+            assert (svc.feeder is not None) == (shard == owner)
+            assert bool(svc.connectors) == (shard == owner)
+        finally:
+            svc.state.store.close()
+
+
+def test_without_a_connector_factory_the_demo_is_not_served(tmp_path):
+    svc = build_service(demo_settings(tmp_path, role="ingest"), None)
+    try:
+        assert svc.feeder is None and svc.connectors == []
+    finally:
+        svc.state.store.close()

@@ -1,4 +1,4 @@
-"""Faults: the store goes away and comes back, the service is killed, a worker dies.
+"""Faults: the store goes away and comes back, the service is killed, a worker dies or hangs.
 
 The store outage is real: on PostgreSQL the test database stops accepting
 connections and its sessions are terminated (what a server restart or a
@@ -34,9 +34,10 @@ from sqlalchemy.engine import make_url
 
 from service.analysis import analyse_window
 from service.config import Settings
+from service.executors import end_executor
 from service.server import Service, build_service
 from service.store.db import Store
-from service.store.models import Sample
+from service.store.models import AnalysisRun, Sample, UnitAnalysisRun
 from tests.servers import free_port, require
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
@@ -288,52 +289,83 @@ def test_a_killed_service_keeps_every_acknowledged_sample_and_its_window(store, 
 # ----------------------------------------------------------------------------- worker death
 
 
-def analyse_or_fail(mode: str, marker: str, loop: dict[str, Any], *args: Any
+def analyse_or_fail(fault: str, marker: str, loop: dict[str, Any], *args: Any
                     ) -> dict[str, Any]:
     """:func:`analyse_window`, except that FIC-2's first analysis kills its worker process
-    (``mode`` "die") or hangs for a minute ("hang")."""
-    if loop["id"] == "FIC-2" and not os.path.exists(marker):
-        Path(marker).touch()
-        if mode == "die":
-            os._exit(1)
-        time.sleep(60)
+    (``fault`` "die") or hangs for a minute ("hang"), and every one of them dies with
+    "die-always"; the sabotaged worker writes its process id to ``marker``."""
+    if loop["id"] == "FIC-2" and (fault == "die-always" or not os.path.exists(marker)):
+        Path(marker).write_text(str(os.getpid()))
+        if fault == "hang":
+            time.sleep(60)
+        os._exit(1)
     return analyse_window(loop, *args)
 
 
 class SabotagedPool(ProcessPoolExecutor):
-    """A real process pool of one worker that dies or hangs on FIC-2's first analysis."""
+    """A real process pool of one worker whose analyses of FIC-2 die or hang."""
 
-    def __init__(self, mode: str, marker: Path) -> None:
+    def __init__(self, fault: str, marker: Path) -> None:
         super().__init__(max_workers=1)
-        self.mode, self.marker = mode, str(marker)
+        self.fault, self.marker = fault, str(marker)
 
     def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
-        return super().submit(analyse_or_fail, self.mode, self.marker, *args, **kwargs)
-
-    def kill(self) -> None:
-        """End the workers now (a hung one would keep the test run waiting a minute)."""
-        for process in list((self._processes or {}).values()):
-            process.kill()
-        self.shutdown(wait=False, cancel_futures=True)
+        if fn is analyse_window:
+            return super().submit(analyse_or_fail, self.fault, self.marker, *args, **kwargs)
+        return super().submit(fn, *args, **kwargs)
 
 
-@pytest.mark.xfail(strict=True, reason="scheduler: a dead or hung worker takes the process pool "
-                                       "with it for every later round (issue 10 report: "
-                                       "replace the pool, retry once)")
-@pytest.mark.parametrize("mode", ["die", "hang"])
+def process_ended(pid: int) -> bool:
+    """True once the process is gone or a zombie (killed, not yet reaped)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.parametrize(("fault", "fic2"), [
+    pytest.param("die", ("ok", None), id="dies-once"),
+    pytest.param("hang", ("ok", None), id="hangs-once"),
+    pytest.param("die-always", ("failed", "its worker process died, on its retry too"),
+                 id="dies-every-time"),
+])
 def test_a_dead_or_hung_worker_costs_one_loop_one_round_and_the_others_go_on(
-        store, tmp_path, mode):
+        store, tmp_path, fault, fic2):
     settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                        buffer_horizon_s=7200, analysis_timeout_s=30 if mode == "die" else 8)
-    pool = SabotagedPool(mode, tmp_path / "sabotaged")
-    svc = build_service(settings, plant(), executor=pool, clock=lambda: T0)
+                        buffer_horizon_s=7200, analysis_timeout_s=8 if fault == "hang" else 30)
+    marker = tmp_path / "sabotaged"
+    pools: list[SabotagedPool] = []
+
+    def new_pool() -> SabotagedPool:
+        pools.append(SabotagedPool(fault, marker))
+        return pools[-1]
+
+    svc = build_service(settings, plant(), executor_factory=new_pool, clock=lambda: T0)
     try:
         svc.state.ingest(simulated_batch())
         assert svc.scheduler is not None
-        first = {r.loop_id: r.status for r in svc.scheduler.run_once(T0)}
-        assert first["FIC-1"] == "ok"
+        first = svc.scheduler.run_once(T0)
+        sabotaged_worker = int(marker.read_text())
+        assert [(r.loop_id, r.status) for r in first] == [("FIC-1", "ok"), ("FIC-2", fic2[0])]
+        with svc.state.store.session() as session:
+            assert session.get(AnalysisRun, first[1].run_id).error == fic2[1]
+            unit_run = session.scalars(select(UnitAnalysisRun)).one()  # the unit goes on too
+            assert (unit_run.status, unit_run.sticky_loops) == ("ok", ["FIC-1"])
+        # the broken or hung pool was replaced, its worker killed
+        assert len(pools) == (3 if fault == "die-always" else 2)
+        assert svc.scheduler.executor is pools[-1]
+        for _ in range(50):
+            if process_ended(sabotaged_worker):
+                break
+            time.sleep(0.1)
+        assert process_ended(sabotaged_worker)
+        metrics = svc.state.metrics
+        assert metrics.value("loopwatch_analysis_retries_total",
+                             cause="timeout" if fault == "hang" else "worker_died") == 1
+        assert metrics.value("loopwatch_executor_replacements_total") == len(pools) - 1
         second = {r.loop_id: r.status for r in svc.scheduler.run_once(T0)}
-        assert second == {"FIC-1": "ok", "FIC-2": "ok"}
+        assert second == {"FIC-1": "ok", "FIC-2": fic2[0]}
     finally:
-        pool.kill()
+        for pool in pools:
+            end_executor(pool)
         svc.state.store.close()

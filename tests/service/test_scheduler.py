@@ -6,6 +6,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import pytest
 from sqlalchemy import func, select
 
+from service.analysis import analyse_window
 from service.store.models import AnalysisRun, Sample
 from tests.service.test_api import T0, simulated_batch
 
@@ -14,12 +15,12 @@ class SabotagingExecutor(ThreadPoolExecutor):
     """A real thread pool that makes the analysis of one loop fail or hang."""
 
     def __init__(self, loop_id: str, mode: str) -> None:
-        super().__init__(2)
+        super().__init__(3)  # a hung job and its retry hold two threads till the test ends
         self.loop_id, self.mode = loop_id, mode
         self.release = threading.Event()  # ends the hang when the test is over
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
-        if args and args[0]["id"] == self.loop_id:
+        if fn is analyse_window and args[0]["id"] == self.loop_id:
             if self.mode == "fail":
                 def fail(*_a, **_k):
                     raise RuntimeError("worker crashed")
@@ -28,15 +29,16 @@ class SabotagingExecutor(ThreadPoolExecutor):
         return super().submit(fn, *args, **kwargs)
 
 
-@pytest.mark.parametrize(("mode", "status", "error"), [
-    ("fail", "failed", "RuntimeError: worker crashed"),
-    ("hang", "timeout", "analysis took longer than 20 s"),
+@pytest.mark.parametrize(("mode", "status", "error", "retries"), [
+    ("fail", "failed", "RuntimeError: worker crashed", 0),  # an analysis error: no retry
+    ("hang", "timeout", "analysis took longer than 15 s, on its retry too", 1),
 ])
 def test_one_loop_failing_or_hanging_does_not_stop_the_others(make_service, mode, status,
-                                                              error):
+                                                              error, retries):
     # The limit leaves the healthy loop ample time even with a cold JIT on a busy machine;
-    # the hanging one waits until the test ends, so only the limit can end its wait.
-    svc = make_service(SabotagingExecutor("FIC-2", mode), analysis_timeout_s=20.0)
+    # the hanging one waits until the test ends, so only the limit can end its wait (a
+    # thread cannot be killed: the retry runs in the pool's other thread).
+    svc = make_service(SabotagingExecutor("FIC-2", mode), analysis_timeout_s=15.0)
     svc.state.ingest(simulated_batch())
     runs = {r.loop_id: r for r in svc.scheduler.run_once(T0)}
     assert runs["FIC-1"].status == "ok" and runs["FIC-1"].verdict == "stiction"
@@ -45,6 +47,8 @@ def test_one_loop_failing_or_hanging_does_not_stop_the_others(make_service, mode
         stored = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "FIC-2")).one()
         assert stored.error == error and stored.result is None
     assert svc.state.metrics.value("loopwatch_analyses_total", status=status) == 1
+    assert svc.state.metrics.value("loopwatch_analysis_retries_total", cause="timeout") == retries
+    assert svc.state.metrics.value("loopwatch_executor_replacements_total") == 0
 
 
 def test_samples_past_the_retention_period_are_purged(make_service):

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 
 from analytics.errors import AnalyticsError
-from analytics.plantwide import diagnose_unit
+from service.analysis import UnitWindowsError, analyse_unit, unit_windows
 from service.api.deps import Principal, SessionDep, StateDep, require
+from service.config import LoopConfig
 from service.store.models import Loop, Unit
+from service.tickets import latest_unit_run
 
 router = APIRouter(tags=["units"])  # included by the loops router under /api/v1
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -24,35 +25,33 @@ async def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
     """Which valves of the unit stick: oscillation groups, the shape decomposition, the
     surrogate ranking of every OP and PV, and the named valves with their confidence.
 
-    Runs on each loop's latest analysis window (``LOOPWATCH_WINDOW_S``) from the
-    rolling buffers; the loops must share one sampling interval.  404 without
-    loops or data; 422 when the windows cannot be analysed together.
+    The scheduler's latest diagnosis of the unit (``source`` "scheduler", with
+    its ``round_end``; 422 with the reason if it failed).  Only when none is
+    stored is it computed now (``source`` "on_demand") from each loop's
+    latest window (``LOOPWATCH_WINDOW_S``) in the rolling buffers; the loops
+    must share one sampling interval.  404 without loops or data; 422 when
+    the windows cannot be analysed together.
     """
     if session.get(Unit, unit_id) is None:
         raise HTTPException(404, "Unit not found")
-    loops = list(session.scalars(select(Loop).where(Loop.unit_id == unit_id)
-                                 .order_by(Loop.id)))
+    stored = latest_unit_run(session, unit_id)
+    if stored is not None:
+        if stored.result is None:
+            raise HTTPException(422, "Unit diagnosis not available: the scheduler's latest "
+                                     f"attempt ended '{stored.status}': {stored.error}")
+        return {"unit_id": unit_id, "source": "scheduler", "round_end": stored.round_end,
+                "window_end": stored.window_end,
+                "loops_without_complete_window": stored.incomplete_loops, **stored.result}
+    loops = [LoopConfig.model_validate(loop.config) for loop in session.scalars(
+        select(Loop).where(Loop.unit_id == unit_id).order_by(Loop.id))]
     now = state.clock()
-    signals: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    intervals = set()
-    for loop in loops:
-        window = state.buffers.window(loop.id, state.settings.window_s, now)
-        op, pv = window.op, window.pv
-        if op is not None and pv is not None and np.isfinite(op).all() and np.isfinite(pv).all():
-            signals[loop.id] = (op, pv)
-            intervals.add(window.ts)
-    if not signals:
+    windows = unit_windows(state.buffers, loops, state.settings.window_s, now)
+    if not windows.signals:
         raise HTTPException(404, "Unit diagnosis not available: no loop of the unit has a "
                                  "complete OP and PV window in the buffers")
-    if len(intervals) > 1:
-        raise HTTPException(422, "Unit diagnosis needs one sampling interval for all loops; "
-                                 f"the unit has {sorted(intervals)}")
     try:
-        result = await run_in_threadpool(
-            diagnose_unit, signals, intervals.pop()
-        )
-    except AnalyticsError as exc:
+        result = await run_in_threadpool(analyse_unit, windows.signals, windows.ts)
+    except (UnitWindowsError, AnalyticsError) as exc:
         raise HTTPException(422, f"Unit diagnosis not available: {exc}") from None
-    skipped = sorted({loop.id for loop in loops} - set(signals))
-    return {"unit_id": unit_id, "window_end": now, "loops_without_complete_window": skipped,
-            **result.to_dict()}
+    return {"unit_id": unit_id, "source": "on_demand", "round_end": None, "window_end": now,
+            "loops_without_complete_window": list(windows.incomplete), **result}

@@ -1,0 +1,199 @@
+"""The scheduler diagnoses every unit after the loop analyses of a round (thesis chapter 2).
+
+The unit is the demo plant's column (:data:`connectors.plant_sim.COLUMN_LOOPS`):
+the 3x3 ethanol-water column of thesis Eq. 2.10 with the side-draw valve
+FV-502 (loop AIC-502) sticky, simulated by :func:`analytics.scenarios.column3x3`
+as the plant simulator serves it.  The loop battery alone finds stiction in
+all three loops (the other two cycle with their sticky neighbour, the
+motivation of thesis chapter 2); the unit diagnosis clears their valves, so
+only FV-502 gets a ticket.
+"""
+
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from analytics.scenarios import column3x3
+from connectors.plant_sim import COLUMN_LOOPS
+from service.config import PlantConfig, Settings
+from service.server import Service, build_service
+from service.store.db import Store
+from service.store.models import AnalysisRun, Ticket, UnitAnalysisRun
+from service.tickets import change_ticket_state
+from tests.service.test_api import ADMIN, T0, plant, simulated_batch
+
+INTERVAL = 500.0  # rounds end at T0 - 500 and T0
+WINDOW = 3600.0
+VIEWER_HEADERS = {"X-API-Key": ADMIN}
+
+
+def column_plant(unit: str | None) -> PlantConfig:
+    """The column's loops as the plant simulator configures them, in ``unit``."""
+    column = column3x3(sticky=(2,))
+    return PlantConfig.model_validate({
+        "units": [{"id": "column", "name": "Ethanol-water column, 3x3"}],
+        "loops": [{
+            "id": loop.id, "name": loop.name, "unit": unit, "ts": column.dt,
+            "tags": {s: f"{loop.id}.{s.upper()}" for s in ("op", "pv", "sp")},
+            "ranges": {signal: list(span) for signal, span in loop.ranges},
+            "process_type": "self-regulating", "valve_asset": loop.valve_asset,
+            "importance": loop.importance,
+        } for loop in COLUMN_LOOPS],
+    })
+
+
+def column_batch() -> list[dict[str, Any]]:
+    """The column's OP, PV and SP over the windows of both rounds, ending at T0."""
+    column = column3x3(sticky=(2,), duration=2000.0 + WINDOW + INTERVAL)
+    run = column.run()
+    late = run.t > run.t[-1] - WINDOW - INTERVAL  # after the start-up transient
+    times = T0 - run.t[-1] + run.t[late]
+    batch = []
+    for i, loop in enumerate(COLUMN_LOOPS):
+        for signal, values in (("OP", run.op[i]), ("PV", run.pv[i]), ("SP", run.sp[i])):
+            batch.append({"tag": f"{loop.id}.{signal}", "items": [
+                {"timestamp": float(t), "value": float(v)}
+                for t, v in zip(times, values[late], strict=True)]})
+    return batch
+
+
+@pytest.fixture
+def make_service(store: Store) -> Iterator[Callable[..., Service]]:
+    made: list[Service] = []
+
+    def make(plant_config: PlantConfig, **overrides: Any) -> Service:
+        settings = Settings(**{
+            "database_url": store.url, "api_key": ADMIN, "window_s": WINDOW,
+            "buffer_horizon_s": 7200, "analysis_interval_s": INTERVAL,
+            "ticket_confirmations": 2, **overrides,
+        })
+        svc = build_service(settings, plant_config, executor=ThreadPoolExecutor(2),
+                            clock=lambda: T0)
+        made.append(svc)
+        assert svc.scheduler is not None
+        svc.scheduler.election = None  # the only scheduler: it leads without a lease
+        return svc
+
+    yield make
+    for svc in made:
+        svc.stop()
+
+
+def tickets(svc: Service) -> list[tuple[str, str]]:
+    with svc.state.store.session() as session:
+        return sorted((asset, loop) for asset, loop in session.execute(
+            select(Ticket.valve_asset, Ticket.loop_id)))
+
+
+@pytest.fixture(scope="module")
+def batch() -> list[dict[str, Any]]:
+    return column_batch()
+
+
+def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
+    svc = make_service(column_plant(unit="column"))
+    client = TestClient(svc.app)
+    svc.state.ingest(batch)
+    on_demand = client.get("/api/v1/units/column/diagnosis", headers=VIEWER_HEADERS).json()
+    assert (on_demand["source"], on_demand["round_end"]) == ("on_demand", None)
+    first = svc.scheduler.run_round(T0 - INTERVAL)
+    second = svc.scheduler.run_round(T0)
+
+    # the loop battery blames every valve of the column, in both rounds
+    assert [s.verdict for s in first + second] == ["stiction"] * 6
+    assert [s.ticket_id is not None for s in first] == [False, False, False]
+    assert [(s.loop_id, s.ticket_id is not None) for s in second] == [
+        ("AIC-501", False), ("AIC-502", True), ("TIC-503", False)]
+    assert tickets(svc) == [("FV-502", "AIC-502")]
+    with svc.state.store.session() as session:
+        units = session.scalars(select(UnitAnalysisRun).order_by(UnitAnalysisRun.round_end))
+        assert [(u.round_end, u.status, u.loops, u.sticky_loops, u.incomplete_loops)
+                for u in units] == [
+            (T0 - INTERVAL, "ok", ["AIC-501", "AIC-502", "TIC-503"], ["AIC-502"], []),
+            (T0, "ok", ["AIC-501", "AIC-502", "TIC-503"], ["AIC-502"], [])]
+        latest = session.scalars(select(UnitAnalysisRun)
+                                 .where(UnitAnalysisRun.round_end == T0)).one()
+        assert latest.cleared_loops == ["AIC-501", "TIC-503"]
+        # the loops' own findings stay recorded
+        assert session.scalars(select(AnalysisRun.verdict).where(
+            AnalysisRun.loop_id != "AIC-502")).all() == ["stiction"] * 4
+
+    stored = client.get("/api/v1/units/column/diagnosis", headers=VIEWER_HEADERS).json()
+    assert (stored["source"], stored["round_end"], stored["window_end"]) == (
+        "scheduler", T0, T0)
+    assert [v["loop"] for v in stored["sticky_valves"]] == ["AIC-502"]
+    assert svc.state.metrics.value("loopwatch_unit_analyses_total", status="ok") == 2
+
+    # a scheduler taking over finds the round's unit diagnosis stored: nothing runs twice
+    assert svc.scheduler.run_round(T0) == []
+    with svc.state.store.session() as session:
+        assert len(session.scalars(select(UnitAnalysisRun)).all()) == 2
+    assert tickets(svc) == [("FV-502", "AIC-502")]
+
+
+def test_without_the_unit_the_loop_battery_tickets_the_neighbours_too(make_service, batch):
+    svc = make_service(column_plant(unit=None))
+    svc.state.ingest(batch)
+    svc.scheduler.run_round(T0 - INTERVAL)
+    svc.scheduler.run_round(T0)
+    assert tickets(svc) == [("FV-501", "AIC-501"), ("FV-502", "AIC-502"),
+                            ("PV-503", "TIC-503")]
+    with svc.state.store.session() as session:
+        assert session.scalars(select(UnitAnalysisRun)).all() == []
+
+
+def test_a_unit_whose_loops_differ_in_sampling_is_stored_as_failed(make_service):
+    """The unit cannot be diagnosed; its loops' tickets follow the loop battery alone."""
+    two_rates = plant().model_dump()
+    two_rates["loops"][1]["ts"] = 2.0
+    svc = make_service(PlantConfig.model_validate(two_rates), ticket_confirmations=1)
+    svc.state.ingest(simulated_batch())
+    summaries = svc.scheduler.run_round(T0)
+    assert [(s.loop_id, s.verdict, s.ticket_id is not None) for s in summaries] == [
+        ("FIC-1", "stiction", True), ("FIC-2", "no_stiction", False)]
+    with svc.state.store.session() as session:
+        unit = session.scalars(select(UnitAnalysisRun)).one()
+        assert (unit.status, unit.result, unit.sticky_loops) == ("failed", None, [])
+        assert unit.error == ("a unit diagnosis needs one sampling interval for all loops; "
+                              "the unit has [1.0, 2.0]")
+    response = TestClient(svc.app).get("/api/v1/units/u1/diagnosis", headers=VIEWER_HEADERS)
+    assert (response.status_code, response.json()) == (422, {
+        "detail": f"Unit diagnosis not available: the scheduler's latest attempt ended "
+                  f"'failed': {unit.error}"})
+
+
+def test_a_new_leader_diagnoses_the_unit_its_predecessor_left_and_decides_the_tickets(
+        make_service):
+    """The old leader stored the loop runs of the round, then died: the unit diagnosis and
+    the tickets of the unit's loops are still due, and come from the stored runs."""
+    svc = make_service(plant(), ticket_confirmations=1)
+    svc.state.ingest(simulated_batch())
+    with svc.state.store.session() as session:
+        left = [AnalysisRun(loop_id=loop, started_at=T0, window_start=T0 - WINDOW,
+                            window_end=T0, status="ok", verdict=verdict, confidence=0.9,
+                            result={"oscillation": {}}, round_end=T0, scheduled_by="dead:1:0")
+                for loop, verdict in (("FIC-1", "stiction"), ("FIC-2", "no_stiction"))]
+        session.add_all(left)
+    assert svc.scheduler.run_round(T0) == []  # no loop is analysed again
+    with svc.state.store.session() as session:
+        unit = session.scalars(select(UnitAnalysisRun)).one()
+        assert (unit.round_end, unit.sticky_loops) == (T0, ["FIC-1"])
+        ticket = session.scalars(select(Ticket)).one()
+        assert (ticket.valve_asset, ticket.evidence["run_id"]) == ("FV-1", left[0].id)
+
+
+def test_completing_a_finished_round_again_opens_no_ticket_maintenance_closed(make_service):
+    """Each turn completes the newest round in the store again; its runs must not reopen a
+    ticket closed since (the valve was repaired after that window)."""
+    svc = make_service(plant(), ticket_confirmations=1)
+    svc.state.ingest(simulated_batch())
+    (ticket_id,) = [s.ticket_id for s in svc.scheduler.run_round(T0) if s.ticket_id]
+    with svc.state.store.session() as session:
+        for state in ("acknowledged", "scheduled", "done"):
+            change_ticket_state(session, ticket_id, state, actor="mike", now=T0 + 60)
+    assert svc.scheduler.run_round(T0) == []
+    assert tickets(svc) == [("FV-1", "FIC-1")]
