@@ -36,7 +36,7 @@ from analytics.oscillation import detect_oscillations
 from analytics.quality import QualityLimits
 from analytics.scenarios import SCENARIOS, build_scenario
 from analytics.simulation import ClosedLoopModel, SimulationResult
-from service.commands import CliError, command_modules
+from service.commands import CliError, command_modules, read_json_file
 from service.loop_csv import LoopCsvError, read_loop_csv
 
 
@@ -48,14 +48,7 @@ def _load_model(source: str) -> ClosedLoopModel:
         raise CliError(
             f"{source!r} is neither a scenario name ({', '.join(SCENARIOS)}) nor a .json model file"
         )
-    try:
-        spec = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CliError(f"{path}: no such file") from None
-    except json.JSONDecodeError as exc:
-        raise CliError(
-            f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
+    spec = read_json_file(path)
     try:
         return ClosedLoopModel.from_dict(spec)
     except AnalyticsError as exc:

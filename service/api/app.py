@@ -32,6 +32,7 @@ from service.api.routes import (
     ingest,
     keys,
     loops,
+    model_check,
     plots,
     system,
     tickets,
@@ -58,8 +59,8 @@ def create_app(state: AppState) -> FastAPI:
         redoc_url=None,
     )
     app.state.loopwatch = state
-    for module in (system, loops, unit_prediction, plots, alarms, tickets, ingest, keys,
-                   dashboard):
+    for module in (system, loops, unit_prediction, plots, model_check, alarms, tickets,
+                   ingest, keys, dashboard):
         app.include_router(module.router)
 
     @app.get("/openapi.json", include_in_schema=False)

@@ -26,11 +26,11 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 from analytics.limit_cycle import LimitCycleReport
 from analytics.simulation import ClosedLoopModel
-from service.commands import CliError
+from service.commands import CliError, read_json_file
 from service.prediction import ModelError, predict_spec
 
 
@@ -54,18 +54,6 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     parser.set_defaults(handler=run)
 
 
-def load_model(path: Path) -> Any:
-    """The JSON of ``path``; user errors as :class:`CliError`."""
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CliError(f"{path}: no such file") from None
-    except json.JSONDecodeError as exc:
-        raise CliError(
-            f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
-
-
 def predict_file(
     path: Path,
     *,
@@ -74,7 +62,7 @@ def predict_file(
 ) -> tuple[ClosedLoopModel, LimitCycleReport]:
     """The model of ``path``, predicted and simulated (see :mod:`service.prediction`)."""
     try:
-        return predict_spec(load_model(path), source=str(path), omega_range=omega_range,
+        return predict_spec(read_json_file(path), source=str(path), omega_range=omega_range,
                             duration=duration)
     except ModelError as exc:
         raise CliError(str(exc)) from None

@@ -4,8 +4,8 @@ and nothing already stored is lost or changed.
 Two kinds of generated input:
 
 * schemathesis reads our own OpenAPI schema and sends what it allows and what
-  it does not (positive and negative cases) to the ingest and loop
-  configuration operations;
+  it does not (positive and negative cases) to the ingest, loop
+  configuration and model-check operations;
 * hypothesis strategies aimed at the parsers behind them: near-valid loop
   configurations (a valid one with one part broken), ingest items of
   configured tags with any time stamp and value, and any text as CSV, both
@@ -116,7 +116,7 @@ def service(store) -> Iterator[Service]:
 
 
 OPERATIONS = [("POST", "/api/v1/ingest"), ("POST", "/api/v1/ingest/csv"),
-              ("PUT", "/api/v1/loops/{loop_id}")]
+              ("PUT", "/api/v1/loops/{loop_id}"), ("POST", "/api/v1/loops/{loop_id}/model-check")]
 
 
 @pytest.mark.parametrize("mode", [GenerationMode.POSITIVE, GenerationMode.NEGATIVE])

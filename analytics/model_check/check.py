@@ -1,0 +1,890 @@
+"""Model check: what a loop simulation gets wrong, the cause, the extended model and the gain.
+
+:func:`check_model` compares a loop model with measured data in two ways
+that do not depend on the phase of a free-running limit cycle:
+
+1. **Replay.**  The measured OP drives valve and process; the simulated PV
+   is compared with the measured PV on blocks held out from any fitting
+   (:class:`analytics.model_check.effects.ReplayData`), by two-fold
+   cross-validation over alternate blocks: fitted on the even blocks and
+   scored on the odd ones, then the other way round, so that every scored
+   sample is held out once (a setpoint change or a slip in one half cannot
+   hide from the score).  The score is the normalised mean squared error
+   ``NMSE = sum (PV - PV_sim)^2 / sum (PV - mean PV)^2``.
+2. **Closed loop.**  Controller, valve and process are simulated with the
+   measured setpoint (and measurement noise of the measured size); period
+   and amplitude of the PV oscillation are compared with the measured ones
+   (:func:`analytics.oscillation.detect_loop_oscillation`, amplitudes as
+   ``sqrt(2)`` times the RMS of the band-passed PV).
+
+Every effect of :data:`analytics.model_check.effects.EFFECTS` is then fitted
+and scored in the same way.  An effect explains the mismatch when it removes
+at least ``min_gain`` of the base model's held-out error; the cause is the
+simplest explaining effect whose held-out error is within
+``simpler_tolerance`` of the best one, and ``none`` when no effect explains
+anything.  The cause is then refitted on all scored data.  The findings
+state, in sentences, how far the model is off, where (valve position,
+direction of travel, time) and why.
+
+References
+----------
+.. [1] Thesis section 3.4.6 (three reasons why model and experiment
+   disagree), section 5.5.3 and Fig. 5.14 (stiction in part of the travel,
+   stiction in one direction).
+.. [2] Ljung (1999), *System Identification*, 2nd ed., sec. 16.4-16.6: model
+   validation by simulation and cross-validation; prefer the simpler model
+   among those that validate equally well.
+.. [3] Thornhill, Huang & Zhang (2003), J. Process Control 13:91-100: the
+   oscillation period and amplitude compared here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from analytics.errors import DataError, ModelSpecError
+from analytics.model_check.effects import (
+    EFFECTS,
+    Candidate,
+    Prediction,
+    ReplayData,
+    describe_parameters,
+    fit_effect,
+)
+from analytics.model_check.identify import identify_controller, identify_model
+from analytics.model_check.model import LoopModel, friction_of
+from analytics.oscillation import bandpass, detect_loop_oscillation
+from analytics.stiction.evidence import margin_confidence
+
+__all__ = [
+    "MIN_SAMPLES",
+    "Cause",
+    "CycleComparison",
+    "Gain",
+    "ModelCheck",
+    "Overlay",
+    "ScoredCandidate",
+    "check_model",
+    "noise_std",
+    "valve_synchronisation",
+]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+MIN_SAMPLES = 300
+"""Fewest samples a check accepts (eight blocks of a few dozen samples each)."""
+
+ADEQUATE_NOISE_RATIO, ADEQUATE_NMSE = 3.0, 0.01
+"""A base model that no effect improves is called adequate when its held-out NMSE is at
+most this multiple of the noise NMSE plus this margin."""
+
+REPLAY_LIMIT = 1e6
+"""Largest PV response to the measured OP a model may give, in units of the measured PV."""
+
+TIME_SCALE_LIMIT = 1e6
+"""Largest time constant or dead time of a model checked, in record lengths."""
+
+
+@dataclass(frozen=True)
+class CycleComparison:
+    """PV oscillation of the data and of a closed-loop simulation of a model.
+
+    Attributes
+    ----------
+    period_measured, period_simulated : float or None
+        Oscillation period, s (None: no oscillation detected).
+    amplitude_measured, amplitude_simulated : float
+        ``sqrt(2)`` times the RMS of PV band-passed around the period (the
+        measured period, or the simulated one when the data do not oscillate).
+    """
+
+    period_measured: float | None
+    period_simulated: float | None
+    amplitude_measured: float | None
+    amplitude_simulated: float | None
+
+    @property
+    def period_error(self) -> float | None:
+        """``(simulated - measured) / measured``; None unless both oscillate."""
+        if self.period_measured is None or self.period_simulated is None:
+            return None
+        return (self.period_simulated - self.period_measured) / self.period_measured
+
+    @property
+    def amplitude_error(self) -> float | None:
+        """``(simulated - measured) / measured`` amplitude; None if there is nothing to compare."""
+        if not self.amplitude_measured or self.amplitude_simulated is None:
+            return None
+        return (self.amplitude_simulated - self.amplitude_measured) / self.amplitude_measured
+
+    def to_dict(self) -> dict[str, float | None]:
+        """JSON form with the relative errors."""
+        return {
+            "period_measured_s": self.period_measured,
+            "period_simulated_s": self.period_simulated,
+            "amplitude_measured": self.amplitude_measured,
+            "amplitude_simulated": self.amplitude_simulated,
+            "period_error": self.period_error,
+            "amplitude_error": self.amplitude_error,
+        }
+
+
+@dataclass(frozen=True)
+class ScoredCandidate:
+    """One effect tried: its fitted parameters and scores.
+
+    Attributes
+    ----------
+    effect : str
+    parameters : dict
+        Fitted on the even blocks (the cause named by the check is refitted on
+        all scored data, see :attr:`Cause.parameters`).
+    nmse_fit, nmse_test : float
+        NMSE of the replay on the blocks each half was fitted on and on the
+        blocks it was not (two-fold cross-validation).
+    improvement : float
+        ``1 - SSE_test / SSE_test(base)``: the fraction of the base model's
+        held-out error the extension removes (negative: it adds error).
+    note : str
+        Why the effect could not be fitted, if so.
+    model : LoopModel
+        The extended model fitted on the even blocks.
+    """
+
+    effect: str
+    parameters: dict[str, float]
+    nmse_fit: float
+    nmse_test: float
+    improvement: float
+    note: str
+    model: LoopModel = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {
+            "effect": self.effect,
+            "parameters": self.parameters,
+            "nmse_fit": self.nmse_fit,
+            "nmse_test": self.nmse_test,
+            "improvement": self.improvement,
+            "note": self.note,
+        }
+
+
+@dataclass(frozen=True)
+class Cause:
+    """The effect named as the cause of the mismatch, its parameters fitted on all
+    scored data.
+
+    ``confidence`` grows with the held-out improvement beyond ``min_gain``
+    and with the margin over the runner-up effect (for ``none``: with the
+    margin of the best effect below ``min_gain``).
+    """
+
+    effect: str
+    confidence: float
+    parameters: dict[str, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {"effect": self.effect, "confidence": self.confidence, "parameters": self.parameters}
+
+
+@dataclass(frozen=True)
+class Gain:
+    """How much better the extended model is than the base model."""
+
+    nmse_before: float
+    nmse_after: float
+    before: CycleComparison
+    after: CycleComparison
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form: held-out NMSE, period and amplitude errors before and after."""
+        return {
+            "nmse_before": self.nmse_before,
+            "nmse_after": self.nmse_after,
+            "period_error_before": self.before.period_error,
+            "period_error_after": self.after.period_error,
+            "amplitude_error_before": self.before.amplitude_error,
+            "amplitude_error_after": self.after.amplitude_error,
+        }
+
+
+@dataclass(frozen=True)
+class Overlay:
+    """Measured versus simulated PV (replay of the measured OP) for plotting.
+
+    Each scored sample is predicted by the model fitted on the other half of
+    the data (cross-validation); ``scored`` is False for the warm-up.
+    """
+
+    t: FloatArray
+    pv: FloatArray
+    pv_base: FloatArray
+    pv_extended: FloatArray
+    scored: BoolArray
+
+    def to_dict(self) -> dict[str, list[float] | list[bool]]:
+        """JSON form (lists)."""
+        return {
+            "t": self.t.tolist(),
+            "pv": self.pv.tolist(),
+            "pv_base": self.pv_base.tolist(),
+            "pv_extended": self.pv_extended.tolist(),
+            "scored": self.scored.tolist(),
+        }
+
+
+@dataclass(frozen=True)
+class ModelCheck:
+    """Result of :func:`check_model`.
+
+    Attributes
+    ----------
+    model_source : {"given", "identified"}
+    base_model, extended_model : LoopModel
+    nmse_base_fit, nmse_base_test : float
+        Replay NMSE of the base model, with its operating point fitted on the
+        same blocks and scored on the other ones (cross-validated).
+    noise_nmse : float
+        NMSE that white measurement noise alone would cause (estimated from
+        the second differences of PV): the floor a perfect model reaches.
+    controller_nmse : float or None
+        NMSE of the model's controller replayed on measured SP and PV, against
+        the measured OP (None when it could not be computed).
+    cycle_base : CycleComparison
+        Measured against closed-loop simulated oscillation, base model.
+    findings : tuple of str
+        What the simulation gets wrong, where and how much, and why.
+    cause : Cause
+    candidates : tuple of ScoredCandidate
+        Every effect tried, in :data:`EFFECTS` order.
+    gain : Gain
+    overlay : Overlay
+    notes : tuple of str
+        How the base model was obtained, and caveats.
+    """
+
+    model_source: Literal["given", "identified"]
+    base_model: LoopModel
+    extended_model: LoopModel
+    nmse_base_fit: float
+    nmse_base_test: float
+    noise_nmse: float
+    controller_nmse: float | None
+    cycle_base: CycleComparison
+    findings: tuple[str, ...]
+    cause: Cause
+    candidates: tuple[ScoredCandidate, ...]
+    gain: Gain
+    overlay: Overlay = field(repr=False)
+    notes: tuple[str, ...] = ()
+
+    def to_dict(self, *, overlay: bool = False) -> dict[str, Any]:
+        """JSON form: ``baseline``, ``findings``, ``cause``, ``candidates``,
+        ``extended_model``, ``gain`` (and ``overlay`` when asked)."""
+        out: dict[str, Any] = {
+            "model_source": self.model_source,
+            "base_model": self.base_model.to_dict(),
+            "baseline": {
+                "nmse": self.nmse_base_test,
+                "nmse_fit": self.nmse_base_fit,
+                "noise_nmse": self.noise_nmse,
+                "controller_nmse": self.controller_nmse,
+                **self.cycle_base.to_dict(),
+            },
+            "findings": list(self.findings),
+            "cause": self.cause.to_dict(),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "extended_model": self.extended_model.to_dict(),
+            "gain": self.gain.to_dict(),
+            "notes": list(self.notes),
+        }
+        if overlay:
+            out["overlay"] = self.overlay.to_dict()
+        return _finite_or_none(out)
+
+
+# ----------------------------------------------------------------------------
+# helpers
+
+
+def _finite_or_none(value: Any) -> Any:
+    """``value`` with every NaN or infinite float (nested in dicts and lists) as None,
+    so that it is valid JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def _series(name: str, values: ArrayLike, n: int | None = None) -> FloatArray:
+    out = np.ascontiguousarray(values, dtype=np.float64)
+    if out.ndim != 1:
+        raise DataError(f"{name} must be one-dimensional, got shape {out.shape}")
+    if n is not None and out.size != n:
+        raise DataError(f"{name} has {out.size} samples, OP has {n}")
+    bad = np.flatnonzero(~np.isfinite(out))
+    if bad.size:
+        raise DataError(
+            f"{name} holds {bad.size} missing or non-finite value(s), first at sample {bad[0]}; "
+            "fill or cut them before a model check"
+        )
+    return out
+
+
+def noise_std(pv: FloatArray) -> float:
+    """Standard deviation of white measurement noise in ``pv``, from its second differences.
+
+    For white noise of variance ``s^2`` the second difference has variance
+    ``6 s^2``; a smooth signal barely contributes, and the median absolute
+    deviation ignores the few large steps of a slipping valve.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> pv = np.sin(np.arange(5000) / 50.0) + rng.normal(0.0, 0.1, 5000)
+    >>> round(noise_std(pv), 2)
+    0.1
+    """
+    second = np.diff(pv, 2)
+    mad = float(np.median(np.abs(second - np.median(second))))
+    return 1.4826 * mad / math.sqrt(6.0)
+
+
+def valve_synchronisation(model: LoopModel, op: FloatArray) -> int:
+    """First sample from which the replayed valve position no longer depends on where
+    the valve stood at the start.
+
+    The valve is replayed from rest at the first OP sample and two stick bands
+    either side of it; a sticky valve keeps the memory of its start until OP
+    has pushed it through its band.
+
+    Examples
+    --------
+    >>> from analytics.model_check.model import LoopModel
+    >>> model = LoopModel.from_dict({"dt": 1, "process": {"type": "fopdt", "K": 1, "tau": 5},
+    ...     "controller": {"Kc": 1, "Ti": 5}, "valve": {"model": "he", "fs": 2, "fd": 1}})
+    >>> valve_synchronisation(model, np.array([50.0, 50.5, 49.5, 60.0, 61.0, 40.0]))
+    3
+    """
+    table = model.valve.friction_table()
+    reach = 2.0 * float(np.max(table)) + 1e-9
+    runs = [
+        model.replay(op, initial_position=float(op[0]) + shift)[0] for shift in (-reach, 0.0, reach)
+    ]
+    differ = np.flatnonzero((runs[0] != runs[1]) | (runs[1] != runs[2]))
+    return int(differ[-1]) + 1 if differ.size else 0
+
+
+HORIZONS = (20, 40, 80, 160, 320, 640, None)
+"""Prediction horizons (samples; None: free run) tried for an integrating process."""
+
+
+def _valve_starts(
+    model: LoopModel, op: FloatArray, *, convention: bool
+) -> list[tuple[float, FloatArray]]:
+    """Where the replayed valve may start.
+
+    With ``convention`` (a given model, whose loop starts at rest at
+    ``op_bias``) and OP starting within reach of ``op_bias``: there.
+    Otherwise the start is unknown: at rest at the first OP sample, or
+    arriving there from below or from above (stepped through its stick band).
+    """
+    reach = 2.0 * float(np.max(model.valve.friction_table()))
+    first = float(op[0])
+    if convention and abs(first - model.op_bias) <= reach:
+        return [(model.op_bias, np.empty(0))]
+    starts = [(first, np.empty(0))]
+    if reach > 0:
+        ramp = np.array([3.0, 2.0, 1.0]) * reach
+        starts += [(first - 4 * reach, first - ramp), (first + 4 * reach, first + ramp)]
+    return starts
+
+
+def _replay_data(
+    base: LoopModel,
+    op: FloatArray,
+    pv: FloatArray,
+    ts: float,
+    warm_up: int,
+    folds: int,
+    convention: bool,
+) -> tuple[ReplayData, ReplayData]:
+    """The two halves of the cross-validation (odd blocks held out, even blocks held out).
+
+    Nuisance choices are those with which the base model predicts the scored
+    data best: where the valve starts (:func:`_valve_starts`) and, for an
+    integrating process, the prediction horizon (how fast level errors build up).
+    """
+    integrating = base.process.kind == "integrating"
+    block = (op.size - warm_up) // max(2 * folds, 1)
+    horizons = [h for h in HORIZONS if h is None or h <= block] if integrating else [None]
+    options = [
+        ReplayData(op, pv, ts, warm_up=warm_up, folds=folds, horizon=h, ramp=integrating,
+                   valve_start=start, held_out="none")
+        for start in _valve_starts(base, op, convention=convention)
+        for h in horizons
+    ]
+    best = min(options, key=lambda data: data.fit_error(base))
+    return best.holding_out("odd"), best.holding_out("even")
+
+
+@dataclass(frozen=True)
+class _CrossValidated:
+    """A model's predictions from the two halves: each scores the blocks it was not fitted on."""
+
+    halves: tuple[ReplayData, ReplayData]
+    predictions: tuple[Prediction, ...]
+
+    @property
+    def sse_test(self) -> float:
+        """Squared error of every scored sample, predicted by the fit that did not see it."""
+        return sum(p.sse_test for p in self.predictions)
+
+    @property
+    def nmse_test(self) -> float:
+        """:attr:`sse_test` over the held-out variance of PV."""
+        return self.sse_test / sum(h.sst_test for h in self.halves)
+
+    @property
+    def nmse_fit(self) -> float:
+        """The same on the blocks each fit saw."""
+        return sum(p.sse_fit for p in self.predictions) / sum(h.sst_fit for h in self.halves)
+
+    def held_out_pv(self) -> FloatArray:
+        """Every sample predicted by the fit that did not see it."""
+        first, second = self.predictions
+        return np.asarray(np.where(self.halves[1].test, second.pv, first.pv), dtype=np.float64)
+
+
+def _amplitude(pv: FloatArray, period_samples: float) -> float:
+    return float(math.sqrt(2.0) * np.std(bandpass(pv, period_samples)))
+
+
+def _cycle(
+    model: LoopModel,
+    sp: FloatArray,
+    pv_bias: float,
+    noise: FloatArray,
+    measured: float | None,
+    measured_pv: FloatArray,
+    warm_up: int,
+) -> CycleComparison:
+    """Closed-loop simulation of ``model`` (after its start-up ``warm_up``) against the
+    measured oscillation (period ``measured``, None if there is none, and PV)."""
+    ts = model.dt
+    sim = model.simulate(sp, noise=noise, pv_bias=pv_bias)
+    op_s, pv_s = sim.op[warm_up:], sim.pv[warm_up:]
+    simulated = None
+    if np.all(np.isfinite(pv_s)) and np.ptp(pv_s) > 0:
+        simulated = detect_loop_oscillation(op_s, pv_s, ts).period_s
+    reference = measured or simulated
+    if reference is None:
+        return CycleComparison(None, None, None, None)
+    amp_m = _amplitude(measured_pv, (measured or reference) / ts)
+    amp_s = _amplitude(pv_s, (simulated or reference) / ts) if np.all(np.isfinite(pv_s)) else None
+    return CycleComparison(measured, simulated, amp_m, amp_s)
+
+
+def _controller_nmse(
+    model: LoopModel, op: FloatArray, pv: FloatArray, sp: FloatArray
+) -> float:
+    """NMSE of the model's PI law replayed on measured SP and PV against measured OP."""
+    c = model.controller
+    e = sp - pv
+    op_model = c.Kc * e + c.ki * model.dt * np.cumsum(e)
+    op_model += np.mean(op - op_model)  # the integrator's initial value
+    op_model = np.clip(op_model, *c.op_limits)
+    total = float(np.sum((op - op.mean()) ** 2))
+    return float(np.sum((op - op_model) ** 2) / total) if total > 0 else math.nan
+
+
+def _select(
+    scored: list[ScoredCandidate], min_gain: float, simpler_tolerance: float
+) -> tuple[ScoredCandidate | None, float]:
+    """The cause (None: the base model is adequate) and its confidence.
+
+    An effect explains the data when it removes at least ``min_gain`` of the
+    base model's held-out error.  Of those, the simplest whose held-out error
+    is within ``simpler_tolerance`` of the best is the cause.  Under a correct
+    base model an extension fitted to noise changes the held-out error by
+    ``O(1 / N)`` only, so a few per cent is a safe threshold.
+    """
+    valid = [c for c in scored if not c.note]
+    explaining = [c for c in valid if c.improvement >= min_gain]
+    if not explaining:
+        best_gain = max((c.improvement for c in valid), default=0.0)
+        return None, margin_confidence(min(best_gain, min_gain), min_gain, min_gain)
+    best_error = min(c.nmse_test for c in explaining)
+    chosen = next(c for c in explaining if c.nmse_test <= best_error * (1.0 + simpler_tolerance))
+    runner_up = min((c.nmse_test for c in valid if c.effect != chosen.effect), default=math.inf)
+    margin = 1.0 - chosen.nmse_test / runner_up if runner_up > 0 else 0.0
+    confidence = margin_confidence(chosen.improvement, min_gain, 0.1) * margin_confidence(
+        max(margin, 0.0), 0.0, 0.05
+    )
+    return chosen, confidence
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:+.0f} %"
+
+
+def _where(data: ReplayData, predicted: FloatArray, op: FloatArray) -> list[str]:
+    """Sentences locating the base model's held-out error: by OP range, by direction of
+    OP, in time (``data`` with every scored sample in ``data.fit``)."""
+    out: list[str] = []
+    scored = data.fit
+    error = (data.pv - predicted)[scored]
+    rms_all = float(np.sqrt(np.mean(error**2)))
+    if rms_all == 0:
+        return out
+    cuts = np.quantile(op[scored], [0.0, 1 / 3, 2 / 3, 1.0])
+    band = np.clip(np.searchsorted(cuts, op[scored], side="right") - 1, 0, 2)
+    rms = [float(np.sqrt(np.mean(error[band == b] ** 2))) if np.any(band == b) else 0.0
+           for b in range(3)]
+    worst = int(np.argmax(rms))
+    rest = [r for b, r in enumerate(rms) if b != worst]
+    if rms[worst] > 1.3 * max(rest):
+        out.append(
+            f"The error is largest with OP between {cuts[worst]:.1f} and {cuts[worst + 1]:.1f} %: "
+            f"RMS {rms[worst]:.3g} against {max(rest):.3g} in the rest of the travel."
+        )
+    slope = np.zeros(op.size)
+    slope[5:-5] = op[10:] - op[:-10]  # OP over +-5 samples: rising pushes the valve open
+    push = np.sign(slope)[scored]
+    rising = float(np.sqrt(np.mean(error[push > 0] ** 2))) if np.any(push > 0) else 0.0
+    falling = float(np.sqrt(np.mean(error[push < 0] ** 2))) if np.any(push < 0) else 0.0
+    if max(rising, falling) > 1.3 * min(rising, falling) and min(rising, falling) > 0:
+        which = "rises (the valve is pushed open)" if rising > falling else "falls (pushed shut)"
+        out.append(
+            f"The error is larger while OP {which}: RMS {max(rising, falling):.3g} "
+            f"against {min(rising, falling):.3g}."
+        )
+    block_rms = [float(np.sqrt(np.mean((data.pv - predicted)[a:b] ** 2))) for a, b in data.blocks]
+    a, b = data.blocks[int(np.argmax(block_rms))]
+    if max(block_rms) > 1.3 * rms_all:
+        out.append(
+            f"The error is largest at t = {data.t[a]:.0f}-{data.t[b - 1]:.0f} s: "
+            f"RMS {max(block_rms):.3g} against {rms_all:.3g} overall."
+        )
+    return out
+
+
+def _cause_sentence(chosen: Candidate, base: LoopModel) -> str:
+    p, b = chosen.parameters, base
+    effect = chosen.effect
+    if effect == "gain_mismatch":
+        return (
+            f"The process gain is {p['K']:.3g} instead of {b.process.K:.3g} "
+            f"({p['ratio']:.2f} times the model's)."
+        )
+    if effect == "deadtime_mismatch":
+        return f"The dead time is {p['theta']:.3g} s instead of {b.process.theta:.3g} s."
+    if effect == "time_constant_mismatch":
+        return f"The time constant is {p['tau']:.3g} s instead of {b.process.tau:.3g} s."
+    if effect == "valve_characteristic":
+        c = p["curvature"]
+        kind = "equal-percentage-like" if c > 0 else "quick-opening-like"
+        return (
+            f"The installed valve characteristic is not linear ({kind}, curvature {c:.2f}): "
+            f"the valve's gain changes by a factor {math.exp(abs(c) / 10):.2f} every 10 % of "
+            f"travel, {'rising' if c > 0 else 'falling'} as it opens."
+        )
+    if effect == "measurement_quantization":
+        return (
+            f"The PV is recorded on a grid of {p['resolution']:.3g} (sensor resolution or "
+            "historian rounding), which the model lacks."
+        )
+    if effect == "external_disturbance":
+        return (
+            f"An unmeasured periodic load of amplitude {p['amplitude']:.3g} and period "
+            f"{p['period']:.4g} s acts on PV."
+        )
+    S0, j0 = friction_of(b.valve.base)
+    base_text = f"S = {S0:.3g}, J = {S0 * j0:.3g}"
+    if effect == "asymmetric_stiction":
+        v = chosen.model.valve
+        assert v.opening is not None and v.closing is not None
+        return (
+            f"The valve sticks differently opening (S = {v.opening.S:.3g}, J = {v.opening.J:.3g}) "
+            f"and closing (S = {v.closing.S:.3g}, J = {v.closing.J:.3g}); the model has "
+            f"{base_text} both ways."
+        )
+    zone = chosen.model.valve.zone
+    assert zone is not None
+    return (
+        f"The valve sticks with S = {zone.valve.S:.3g}, J = {zone.valve.J:.3g} between "
+        f"{zone.low:.1f} and {zone.high:.1f} % of travel, and with {base_text} elsewhere."
+    )
+
+
+def check_model(
+    op: ArrayLike,
+    pv: ArrayLike,
+    ts: float,
+    *,
+    sp: ArrayLike | None = None,
+    model: LoopModel | dict[str, Any] | None = None,
+    effects: tuple[str, ...] = EFFECTS,
+    folds: int = 4,
+    min_gain: float = 0.05,
+    simpler_tolerance: float = 0.02,
+    seed: int = 0,
+) -> ModelCheck:
+    """Check a loop model against measured data, name the cause of the mismatch and extend it.
+
+    Parameters
+    ----------
+    op, pv : array_like
+        Measured controller output (% of span) and process variable.
+    ts : float
+        Sampling interval, s.
+    sp : array_like, optional
+        Measured setpoint; without it a constant setpoint is fitted with the
+        controller law.
+    model : LoopModel or dict, optional
+        The base model (JSON form of :class:`LoopModel`); identified from the
+        data when omitted (:func:`analytics.model_check.identify.identify_model`).
+        A model with another ``dt`` is used at ``ts``.
+    effects : tuple of str
+        Effects tried (default: all of :data:`EFFECTS`).
+    folds : int
+        Pairs of fitting and held-out blocks.
+    min_gain : float
+        Fraction of the base model's held-out error an effect must remove to be named.
+    simpler_tolerance : float
+        An effect earlier in :data:`EFFECTS` is preferred when its held-out
+        error is within this fraction of the best.
+    seed : int
+        Seed of the measurement noise in the closed-loop simulations.
+
+    Returns
+    -------
+    ModelCheck
+
+    Raises
+    ------
+    DataError
+        Signals of different length, not 1-D, missing values, fewer than
+        :data:`MIN_SAMPLES` samples, or OP that never moves.
+    ModelSpecError
+        An invalid model.
+
+    Examples
+    --------
+    Data from a loop whose process gain is 1.5 times the model's:
+
+    >>> from analytics.model_check.cases import hidden_effect_case
+    >>> case = hidden_effect_case("gain_mismatch", seed=3, samples=3000)
+    >>> result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+    >>> result.cause.effect
+    'gain_mismatch'
+    >>> result.gain.nmse_after < result.gain.nmse_before
+    True
+    """
+    if not (isinstance(ts, int | float) and math.isfinite(ts) and ts > 0):
+        raise DataError(f"sampling interval ts must be a positive number of seconds, got {ts!r}")
+    op_a = _series("OP", op)
+    n = op_a.size
+    pv_a = _series("PV", pv, n)
+    sp_a = None if sp is None else _series("SP", sp, n)
+    if n < MIN_SAMPLES:
+        raise DataError(f"a model check needs at least {MIN_SAMPLES} samples, got {n}")
+    if not np.ptp(op_a) > 0:
+        raise DataError("OP never moves: nothing drives the model")
+    if not np.ptp(pv_a) > 0:
+        raise DataError("PV never moves: there is nothing to compare the model with")
+    unknown = [e for e in effects if e not in EFFECTS]
+    if unknown:
+        raise DataError(f"unknown effect(s) {unknown}; expected some of {EFFECTS}")
+
+    notes: list[str] = []
+    if model is None:
+        base, controller_fit, identified = identify_model(op_a, pv_a, ts, sp_a)
+        notes.extend(identified)
+        source: Literal["given", "identified"] = "identified"
+    else:
+        base = model if isinstance(model, LoopModel) else LoopModel.from_dict(model)
+        if not math.isclose(base.dt, ts, rel_tol=1e-6):
+            notes.append(f"the model's dt = {base.dt:g} s differs from the data's {ts:g} s; "
+                         f"the model is used at {ts:g} s")
+            base = base.with_dt(ts)
+        controller_fit = identify_controller(op_a, pv_a, ts, sp_a)
+        source = "given"
+    if sp_a is None:
+        setpoint = controller_fit.setpoint if controller_fit.setpoint is not None else pv_a.mean()
+        sp_a = np.full(n, setpoint)
+        notes.append(f"no SP measured: a constant setpoint of {setpoint:.4g} is assumed")
+
+    process = base.process
+    for name, value in (("tau", process.tau), ("theta", process.theta)):
+        if value > TIME_SCALE_LIMIT * n * ts:
+            raise ModelSpecError(
+                f"process {name} = {value:g} s is more than {TIME_SCALE_LIMIT:g} times the "
+                f"record ({n * ts:g} s): the data cannot check such a model"
+            )
+    oscillation = detect_loop_oscillation(op_a, pv_a, ts)
+    settle = min(process.delay_samples(ts), n) + math.ceil(min(3.0 * process.tau / ts, n))
+    synchronised = valve_synchronisation(base, op_a)
+    warm_up = min(n // 5, max(20, settle + 1, synchronised))
+    if synchronised > n // 5:
+        notes.append(
+            f"the model valve's position depends on its unknown initial state until sample "
+            f"{synchronised}; only the first {n // 5} samples are left unscored"
+        )
+    reach = float(np.max(np.abs(base.replay(op_a)[1])))
+    if not reach <= REPLAY_LIMIT * float(np.max(np.abs(pv_a)) + np.ptp(pv_a)):
+        raise ModelSpecError(
+            f"the base model's replay of the measured OP reaches {reach:.3g}, more than "
+            f"{REPLAY_LIMIT:g} times the measured PV: check the model's gain against the data"
+        )
+    # Two-fold cross-validation: fit on the even blocks and score on the odd ones,
+    # then the other way round, so that every scored sample is held out once.
+    halves = _replay_data(base, op_a, pv_a, ts, warm_up, folds, convention=source == "given")
+    base_cv = _CrossValidated(halves, tuple(h.predict(base) for h in halves))
+    scored: list[ScoredCandidate] = []
+    cross_validated: dict[str, _CrossValidated] = {}
+    seeds: dict[str, list[tuple[float, ...]]] = {}
+    for effect in effects:
+        fits = [
+            fit_effect(effect, h, base, p, period_s=oscillation.period_s)
+            for h, p in zip(halves, base_cv.predictions, strict=True)
+        ]
+        seeds[effect] = [c.search_point for c in fits if c.search_point]
+        cv = cross_validated[effect] = _CrossValidated(halves, tuple(c.prediction for c in fits))
+        scored.append(
+            ScoredCandidate(
+                effect=effect,
+                parameters=fits[0].parameters,
+                nmse_fit=cv.nmse_fit,
+                nmse_test=cv.nmse_test,
+                improvement=1.0 - cv.sse_test / base_cv.sse_test if base_cv.sse_test > 0 else 0.0,
+                note=fits[0].note or fits[1].note,
+                model=fits[0].model,
+            )
+        )
+    chosen, confidence = _select(scored, min_gain, simpler_tolerance)
+    whole = halves[0].holding_out("none")
+    base_fit = whole.predict(base)
+    final: Candidate | None = None
+    if chosen is None:
+        extended, extended_cv, extended_fit = base, base_cv, base_fit
+    else:  # the named cause, refitted on all scored data from the two halves' results
+        final = fit_effect(
+            chosen.effect, whole, base, base_fit, period_s=oscillation.period_s,
+            seeds=seeds[chosen.effect],
+        )
+        extended, extended_fit = final.model, final.prediction
+        extended_cv = cross_validated[chosen.effect]
+
+    sigma = noise_std(pv_a)
+    noise = np.random.default_rng(seed).normal(0.0, sigma, n)
+    pv_var = float(np.var(pv_a[warm_up:]))
+    noise_nmse = sigma**2 / pv_var if pv_var > 0 else math.nan
+
+    def bias(prediction: Prediction) -> float:
+        return float(sp_a[0]) if process.kind == "integrating" else prediction.pv_bias
+
+    period = oscillation.period_s
+    cycle_base = _cycle(base, sp_a, bias(base_fit), noise, period, pv_a, warm_up)
+    cycle_ext = (
+        _cycle(extended, sp_a, bias(extended_fit), noise, period, pv_a, warm_up)
+        if final is not None else cycle_base
+    )
+    controller_nmse = _controller_nmse(base, op_a[warm_up:], pv_a[warm_up:], sp_a[warm_up:])
+
+    findings = [
+        f"Driven by the measured OP, the model misses the measured PV by NMSE "
+        f"{base_cv.nmse_test:.3g} on held-out data (noise alone would give about "
+        f"{noise_nmse:.2g})."
+    ]
+    findings.extend(_where(whole, base_cv.held_out_pv(), op_a))
+    cb = cycle_base
+    if cb.period_measured is not None:
+        sim = (
+            f"the closed-loop simulation gives {cb.period_simulated:.4g} s and "
+            f"{cb.amplitude_simulated:.3g} (period {_pct(cb.period_error)}, amplitude "
+            f"{_pct(cb.amplitude_error)})"
+            if cb.period_simulated is not None
+            else f"the closed-loop simulation does not oscillate (amplitude "
+            f"{cb.amplitude_simulated or 0.0:.3g} at that period)"
+        )
+        findings.append(
+            f"The measured loop oscillates with period {cb.period_measured:.4g} s and PV "
+            f"amplitude {cb.amplitude_measured:.3g}; {sim}."
+        )
+    elif cb.period_simulated is not None:
+        findings.append(
+            f"The closed-loop simulation oscillates with period {cb.period_simulated:.4g} s "
+            f"and amplitude {cb.amplitude_simulated:.3g}, but the measured loop does not."
+        )
+    if controller_nmse > 0.3:
+        findings.append(
+            f"The model's controller reproduces the measured OP only with NMSE "
+            f"{controller_nmse:.2f}: the loop may be in cascade or manual, or tuned otherwise; "
+            "the closed-loop comparison is then indicative only."
+        )
+    if final is None:
+        best = max((c for c in scored if not c.note), key=lambda c: c.improvement, default=None)
+        tried = (
+            f" (closest: {best.effect}, {100 * best.improvement:+.1f} %)"
+            if best is not None else ""
+        )
+        verdict = (
+            "the base model is adequate for these data"
+            if base_cv.nmse_test <= ADEQUATE_NOISE_RATIO * noise_nmse + ADEQUATE_NMSE
+            else f"its held-out NMSE {base_cv.nmse_test:.3g} is well above what noise explains, "
+            "so the model is wrong in a way outside the catalogue (or in several at once)"
+        )
+        findings.append(
+            f"No effect in the catalogue removes {100 * min_gain:.0f} % or more of the held-out "
+            f"error{tried}: {verdict}."
+        )
+        cause = Cause("none", confidence, {})
+    else:
+        findings.append(_cause_sentence(final, base))
+        cycle = [
+            f"closed-loop {name} error {_pct(before)} -> {_pct(after)}"
+            for name, before, after in (
+                ("period", cycle_base.period_error, cycle_ext.period_error),
+                ("amplitude", cycle_base.amplitude_error, cycle_ext.amplitude_error),
+            )
+            if before is not None or after is not None
+        ]
+        findings.append(
+            f"Extended with {final.effect} ({describe_parameters(final.parameters)}), the "
+            f"held-out NMSE falls from {base_cv.nmse_test:.3g} to {extended_cv.nmse_test:.3g}"
+            + "".join(f"; {text}" for text in cycle) + "."
+        )
+        cause = Cause(final.effect, confidence, final.parameters)
+    return ModelCheck(
+        model_source=source,
+        base_model=base,
+        extended_model=extended,
+        nmse_base_fit=base_cv.nmse_fit,
+        nmse_base_test=base_cv.nmse_test,
+        noise_nmse=noise_nmse,
+        controller_nmse=controller_nmse,
+        cycle_base=cycle_base,
+        findings=tuple(findings),
+        cause=cause,
+        candidates=tuple(scored),
+        gain=Gain(base_cv.nmse_test, extended_cv.nmse_test, cycle_base, cycle_ext),
+        overlay=Overlay(
+            whole.t, pv_a, base_cv.held_out_pv(), extended_cv.held_out_pv(), whole.fit
+        ),
+        notes=tuple(
+            notes + ([controller_fit.note] if controller_fit.note and source == "given" else [])
+        ),
+    )
