@@ -19,7 +19,10 @@ Figures
   MV when measured), with the ellipse fitted by
   :func:`analytics.stiction.signature.fit_signature_ellipse` and its width
   along OP, the apparent stiction (Choudhury, Shah, Thornhill & Shook 2006,
-  Control Eng. Practice 14:1395-1412, section 6).
+  Control Eng. Practice 14:1395-1412, section 6), and the fitted stiction
+  model of :func:`stiction_model_path` (the Hammerstein fit of
+  :func:`analytics.quantification.quantify_stiction` replayed on the
+  measured OP): OP against its predicted PV and against its MV.
 * :func:`spectrum_figure`: power spectrum and autocorrelation of OP and PV
   with the detected period (Thornhill, Huang & Zhang 2003, J. Process
   Control 13:91-100, read the period off the ACF).
@@ -27,6 +30,9 @@ Figures
   cycles (thesis Figs. 3.1, 5.16; Eq. 3.16) from
   :class:`analytics.limit_cycle.NyquistCurves`.
 * :func:`history_figure`: health, S and J of the past analyses.
+* :func:`model_check_figure`: measured PV against the base and the extended
+  model driven by the measured OP, and their errors
+  (:class:`analytics.model_check.check.Overlay`).
 """
 
 from __future__ import annotations
@@ -44,26 +50,32 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
+from analytics.lti import TransferFunction, simulate_open_loop
 from analytics.stiction.signature import EllipseFit
+from analytics.valves import ValveModel
 
 __all__ = [
     "COLOURS",
+    "MODEL_CYCLES_DRAWN",
     "PLOT_WIDTH",
     "PNG_ZOOM",
     "Figure",
     "Marker",
     "Panel",
     "Series",
+    "StictionModelPath",
     "autocorrelation",
     "ellipse_points",
     "format_utc",
     "history_figure",
+    "model_check_figure",
     "nyquist_figure",
     "power_spectrum",
     "render_png",
     "render_svg",
     "signature_figure",
     "spectrum_figure",
+    "stiction_model_path",
     "trend_figure",
 ]
 
@@ -84,12 +96,15 @@ COLOURS = {
     "op": "#D55E00",
     "mv": "#009E73",
     "fit": "#CC79A7",
+    "model": "#E69F00",
     "marker": "#6a3d9a",
     "health": "#0072B2",
     "S": "#D55E00",
     "J": "#009E73",
     "loop": "#0072B2",
     "df": "#D55E00",
+    "pv_base": "#D55E00",
+    "pv_extended": "#009E73",
 }
 """Okabe-Ito colours: told apart with the common colour-vision deficiencies."""
 
@@ -206,6 +221,89 @@ def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, Floa
     return x, y
 
 
+@dataclass(frozen=True)
+class StictionModelPath:
+    """The fitted stiction model replayed on the measured OP (:func:`stiction_model_path`).
+
+    Attributes
+    ----------
+    mv : ndarray
+        Valve position of the model, per sample of OP (NaN before ``start``).
+    pv : ndarray
+        PV the model predicts (valve, then the identified process), with the
+        offset and drift of the measured PV (NaN before ``start``).
+    start : int
+        The sample the model starts from: an OP maximum (see the function).
+    period : int
+        The oscillation period, samples.
+    r2 : float
+        ``1 - SSE / SST`` of the predicted against the measured PV from ``start`` on.
+    label : str
+        The model in words, e.g. ``kano valve, S = 4.01, J = 1.98``.
+    """
+
+    mv: FloatArray
+    pv: FloatArray
+    start: int
+    period: int
+    r2: float
+    label: str
+
+
+def stiction_model_path(
+    op: ArrayLike, pv: ArrayLike, ts: float, *, valve: ValveModel, process: TransferFunction,
+    period_s: float, label: str,
+) -> StictionModelPath:
+    """Replay a Hammerstein stiction model (valve, then linear process) on the measured OP.
+
+    The valve's state at the first sample is unknown, and with OP swinging
+    barely more than the stick band (a limit cycle) a valve started in the
+    wrong place never moves.  At a maximum of OP in a stiction cycle the state
+    is known: the valve has followed OP up and rests on the trailing edge of
+    its band.  So the model starts at the least pronounced OP maximum of the
+    first three periods (as :func:`analytics.quantification.quantify_stiction`
+    starts at a turning point), at rest after two lead-in steps of one stick
+    band from below, and the first samples are left out.  The process is
+    driven by the deviation of MV from its value there, from rest, and the
+    offset and drift (a straight line in time, which the identification
+    removes from PV as well) are fitted to the measured PV by least squares.
+
+    Raises
+    ------
+    ValueError
+        If ``op`` and ``pv`` differ in shape, are shorter than one period or
+        hold non-finite samples, or ``period_s`` is not positive.
+    """
+    op_values, pv_values = _array(op), _array(pv)
+    if op_values.shape != pv_values.shape or op_values.ndim != 1:
+        raise ValueError(f"stiction_model_path: op and pv must be 1-D and equally long, got "
+                         f"{op_values.shape} and {pv_values.shape}")
+    if not (np.isfinite(op_values).all() and np.isfinite(pv_values).all()):
+        raise ValueError("stiction_model_path: op and pv must be finite (the window has gaps)")
+    if not (math.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"stiction_model_path: period_s must be positive, got {period_s}")
+    period = max(1, round(period_s / ts))
+    if op_values.size < period + 1:
+        raise ValueError(f"stiction_model_path: {op_values.size} samples, fewer than one "
+                         f"period of {period}")
+    maxima = [k + int(np.argmax(op_values[k:k + period]))
+              for k in range(0, min(3 * period, op_values.size - period + 1), period)]
+    start = min(maxima, key=lambda k: op_values[k])
+    lead_in = op_values[start] - valve.stick_band * np.array([2.0, 1.0])
+    mv_run = valve.simulate(np.concatenate([lead_in, op_values[start:]]), dt=ts)[lead_in.size:]
+    response = simulate_open_loop(process, mv_run - mv_run[0], ts)
+    measured = pv_values[start:]
+    line = np.column_stack([np.ones(measured.size), ts * np.arange(measured.size)])
+    offset_and_drift = np.linalg.lstsq(line, measured - response, rcond=None)[0]
+    predicted = response + line @ offset_and_drift
+    spread = float(np.sum((measured - measured.mean()) ** 2))
+    r2 = 1.0 - float(np.sum((measured - predicted) ** 2)) / spread if spread > 0 else math.nan
+    mv, pv_model = np.full(op_values.size, np.nan), np.full(op_values.size, np.nan)
+    mv[start:], pv_model[start:] = mv_run, predicted
+    return StictionModelPath(mv=mv, pv=pv_model, start=start, period=period, r2=r2,
+                             label=label)
+
+
 # ---------------------------------------------------------------------------- figures
 
 
@@ -255,25 +353,49 @@ def trend_figure(
 
 
 def _signature_panel(
-    op: FloatArray, valve: FloatArray, valve_name: str, fit: EllipseFit | None, unit: str
+    op: FloatArray, valve: FloatArray, valve_name: str, fit: EllipseFit | None, unit: str,
+    model: StictionModelPath | None,
 ) -> Panel:
     label = SIGNAL_LABELS[valve_name]
     drawn = [Series(valve_name, "samples", op, valve, COLOURS[valve_name],
                     style="points")]
-    note = "no ellipse: no oscillation period to filter at"
+    notes = ["no ellipse: no oscillation period to filter at"]
     if fit is not None:
         ex, ey = ellipse_points(fit)
         half = fit.apparent_stiction / 2.0
         cx, cy = fit.centre
         drawn += [
-            Series("ellipse", "fitted ellipse", ex, ey, COLOURS["fit"], width=2.5),
+            Series("ellipse", "ellipse", ex, ey, COLOURS["fit"], width=2.5),
             Series("apparent_stiction", "apparent stiction", np.array([cx - half, cx + half]),
                    np.array([cy, cy]), COLOURS["sp"], width=2.5),
         ]
-        note = (f"apparent stiction {fit.apparent_stiction:.2f} (width ratio "
-                f"{fit.width_ratio:.2f}, fit residual {fit.residual:.2f})")
+        notes = [f"apparent stiction {fit.apparent_stiction:.2f} (width ratio "
+                 f"{fit.width_ratio:.2f}, fit residual {fit.residual:.2f})"]
+    if model is not None:
+        drawn += _model_series(op, model, valve_name)
+        notes.append(f"fitted model predicts PV with R² {model.r2:.2f}" if valve_name == "pv"
+                     else model.label)
     return Panel(f"Valve signature: OP against {label}", f"OP ({unit})", f"{label} ({unit})",
-                 tuple(drawn), note=note)
+                 tuple(drawn), note="; ".join(notes))
+
+
+MODEL_CYCLES_DRAWN = 3
+"""Periods of the fitted model drawn (the last ones): more would hide the samples."""
+
+
+def _model_series(op: FloatArray, model: StictionModelPath, signal: str) -> list[Series]:
+    """The fitted model's path from OP to its ``pv`` or ``mv`` over the last cycles, a line."""
+    drawn = slice(max(model.start, op.size - MODEL_CYCLES_DRAWN * model.period), None)
+    values = model.pv if signal == "pv" else model.mv
+    return [Series(f"model_{signal}", f"model {SIGNAL_LABELS[signal]}", op[drawn],
+                   values[drawn], COLOURS["model"], width=2.0)]
+
+
+def _model_valve_panel(op: FloatArray, model: StictionModelPath, unit: str) -> Panel:
+    """OP against the model's MV when MV is not measured: the fitted valve's stick-slip."""
+    return Panel("Fitted valve model: OP against the model's MV", f"OP ({unit})",
+                 f"model MV ({unit})", tuple(_model_series(op, model, "mv")),
+                 note=model.label)
 
 
 def signature_figure(
@@ -284,27 +406,36 @@ def signature_figure(
     pv_fit: EllipseFit | None = None,
     mv: ArrayLike | None = None,
     mv_fit: EllipseFit | None = None,
+    model: StictionModelPath | None = None,
     unit: str = "% of span",
 ) -> Figure:
-    """The valve signature: OP against PV (and MV), with the fitted ellipse.
+    """The valve signature: OP against PV (and MV), with the fitted ellipse and model.
 
     The ellipse is the direct least-squares fit to the band-passed signature
     (:func:`analytics.stiction.signature.fit_signature_ellipse`); the black
     bar through its centre is its width along the OP axis, the apparent
-    stiction of Choudhury et al. (2006, section 6).  Only pairs where both
-    signals are finite are drawn.
+    stiction of Choudhury et al. (2006, section 6).  The fitted stiction
+    ``model`` (:func:`stiction_model_path`) is drawn as its path from OP to
+    the predicted PV over the OP-PV signature and from OP to its MV: over the
+    measured OP-MV signature, or in a panel of its own when MV is not
+    measured.  Only pairs where both signals are finite are drawn.
     """
     op_values, pv_values = _array(op), _array(pv)
     if op_values.shape != pv_values.shape:
         raise ValueError(f"signature_figure: op and pv differ in shape, "
                          f"{op_values.shape} and {pv_values.shape}")
-    panels = [_signature_panel(op_values, pv_values, "pv", pv_fit, unit)]
+    if model is not None and model.pv.shape != op_values.shape:
+        raise ValueError(f"signature_figure: the model path has shape {model.pv.shape}, "
+                         f"op {op_values.shape}")
+    panels = [_signature_panel(op_values, pv_values, "pv", pv_fit, unit, model)]
     if mv is not None:
         mv_values = _array(mv)
         if mv_values.shape != op_values.shape:
             raise ValueError(f"signature_figure: op and mv differ in shape, "
                              f"{op_values.shape} and {mv_values.shape}")
-        panels.append(_signature_panel(op_values, mv_values, "mv", mv_fit, unit))
+        panels.append(_signature_panel(op_values, mv_values, "mv", mv_fit, unit, model))
+    elif model is not None:
+        panels.append(_model_valve_panel(op_values, model, unit))
     words = "; ".join(f"{p.title}: {p.note}" for p in panels)
     return Figure("signature", title, f"Valve signature. {words}.", tuple(panels))
 
@@ -415,6 +546,48 @@ def history_figure(
     )
     return Figure("history", title, f"Health and stiction estimate over {t.size} analyses.",
                   panels)
+
+
+def model_check_figure(
+    t: ArrayLike, pv: ArrayLike, pv_base: ArrayLike, pv_extended: ArrayLike,
+    scored: ArrayLike, *, title: str,
+) -> Figure:
+    """Measured PV against the replay of the base and the extended model, and their errors.
+
+    The inputs are the overlay of :func:`analytics.model_check.check_model`:
+    each model is driven by the measured OP and each scored sample predicted
+    by the model fitted on the other half of the data; the warm-up
+    (``scored`` False) is not drawn for the models.  The lower panel shows
+    measured minus simulated PV, where each model goes wrong.
+    """
+    times, measured = _array(t), _array(pv)
+    keep = np.asarray(scored, dtype=bool)
+    shapes = {a.shape for a in (times, measured, _array(pv_base), _array(pv_extended), keep)}
+    if len(shapes) != 1:
+        raise ValueError(f"model_check_figure: t, pv, pv_base, pv_extended and scored differ "
+                         f"in shape: {sorted(shapes)}")
+    base, extended = (np.where(keep, _array(x), np.nan) for x in (pv_base, pv_extended))
+    panels = (
+        Panel("Measured and simulated PV", "time (UTC)", "PV (% of span)", (
+            Series("pv", "measured", times, measured, COLOURS["pv"]),
+            Series("pv_base", "base model", times, base, COLOURS["pv_base"], dashed=True),
+            Series("pv_extended", "extended model", times, extended, COLOURS["pv_extended"]),
+        ), x_format="time"),
+        Panel("Simulation error: measured minus simulated PV", "time (UTC)", "% of span", (
+            Series("error_base", "base model", times, measured - base, COLOURS["pv_base"],
+                   dashed=True),
+            Series("error_extended", "extended model", times, measured - extended,
+                   COLOURS["pv_extended"]),
+        ), x_format="time"),
+    )
+
+    def rms(error: FloatArray) -> float:
+        return float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else math.nan
+
+    return Figure("model-check", title, (
+        f"Measured PV against the simulated PV of the base and the extended model, "
+        f"{int(keep.sum())} scored samples; RMS error {rms(measured - base):.3g} (base) and "
+        f"{rms(measured - extended):.3g} (extended) % of span."), panels)
 
 
 # ---------------------------------------------------------------------------- drawing

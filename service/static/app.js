@@ -1,14 +1,17 @@
 /* loopwatch dashboard: a single page over the REST API, no build step, no external code.
  *
- * Pages (hash routes): #/ plant overview, #/loop/ID, #/unit/ID, #/ticket/ID (printable).
+ * Pages (hash routes): #/ plant overview, #/loop/ID, #/loop/ID/model-check, #/unit/ID,
+ * #/ticket/ID (printable).
  * The API key is asked for once and kept in sessionStorage (per browser tab); a link
  * ending in #key=... signs in too, and the key is removed from the address bar at once.
  * Plots are SVG rendered by the server (GET /api/v1/loops/ID/plots/KIND), fetched with
  * the key and placed inline, so they are part of the page's accessibility tree.
+ * "Large text" (kept in localStorage) enlarges everything for a control-room wall screen.
  */
 "use strict";
 
 const KEY_STORAGE = "loopwatch.apiKey";
+const LARGE_TEXT_STORAGE = "loopwatch.largeText";
 // Pages refresh every 15 s; a kiosk page (or the browser test) may set
 // window.LOOPWATCH_REFRESH_MS before this script runs to change that.
 const REFRESH_MS = Number(window.LOOPWATCH_REFRESH_MS) || 15000;
@@ -130,21 +133,23 @@ async function optional(path) {
   }
 }
 
-/** An inline server-rendered SVG plot, or a "not available" note with the reason. */
-async function plot(loopId, kind, params = {}) {
+/** An inline server-rendered SVG plot, or a "not available" note with the reason.
+ * With a body, the plot is drawn from it (POST): the model check sends its overlay. */
+async function plot(loopId, kind, params = {}, body = undefined) {
   const query = new URLSearchParams(params).toString();
   const url = `/api/v1/loops/${encodeURIComponent(loopId)}/plots/${kind}${query ? "?" + query : ""}`;
+  const method = body === undefined ? "GET" : "POST";
   const figure = h("figure", { class: "plot", "data-plot": kind });
   try {
-    const text = await (await request(url)).text();
+    const text = await (await request(url, { method, body })).text();
     const svg = new DOMParser().parseFromString(text, "image/svg+xml").documentElement;
     if (svg.nodeName !== "svg") throw new Error("the server sent no SVG");
     svg.removeAttribute("width");
     svg.removeAttribute("height");
     figure.append(document.importNode(svg, true));
     figure.append(h("figcaption", {},
-      h("a", { href: "#", onclick: (event) => downloadPng(event, url, loopId, kind) },
-        "Download PNG")));
+      h("a", { href: "#", onclick: (event) => downloadPng(event, url, loopId, kind, method, body) },
+        "Download PNG", h("span", { class: "visually-hidden" }, ` of the ${kind} plot`))));
   } catch (error) {
     figure.classList.add("unavailable");
     figure.append(h("p", {}, `${kind} plot not available: ${error.message}`));
@@ -152,11 +157,11 @@ async function plot(loopId, kind, params = {}) {
   return figure;
 }
 
-async function downloadPng(event, svgUrl, loopId, kind) {
+async function downloadPng(event, svgUrl, loopId, kind, method, body) {
   event.preventDefault();
   const url = svgUrl + (svgUrl.includes("?") ? "&" : "?") + "format=png";
   try {
-    const blob = await (await request(url)).blob();
+    const blob = await (await request(url, { method, body })).blob();
     const link = h("a", { href: URL.createObjectURL(blob), download: `${loopId}-${kind}.png` });
     link.click();
     setTimeout(() => URL.revokeObjectURL(link.href), 10000);
@@ -356,6 +361,8 @@ async function renderOverview(params) {
     h("h1", {}, "Plant overview"),
     h("form", { class: "filters", "aria-label": "Filter loops", onsubmit: (e) => e.preventDefault() },
       h("label", { for: "unit-filter" }, "Unit"), unitFilter,
+      params.get("unit") ? h("a", { href: `#/unit/${encodeURIComponent(params.get("unit"))}` },
+        "Unit page: the loops side by side and the sticky valves") : null,
       h("label", { for: "state-filter" }, "State"), stateFilter),
     section("Loops ranked by health (bad actors first)", "loops-title", loopsBox),
     section("Active alarms", "alarms-title", alarmsBox),
@@ -431,13 +438,6 @@ function estimateFacts(diagnosis) {
   return definitionList(pairs);
 }
 
-function genericResult(result) {
-  // PENDING: the model check lands with its own issue; until its shape is fixed, show its
-  // fields as they come.
-  return definitionList(Object.entries(result).map(([k, v]) =>
-    [k, typeof v === "object" ? JSON.stringify(v) : String(v)]));
-}
-
 function cycleText(cycle) {
   if (!cycle) return "—";
   if (!cycle.oscillating) return "no cycle";
@@ -480,19 +480,6 @@ async function adviceSection(path) {
     box.append(h("p", { class: "unavailable" }, `Tuning advice: not available (${error.message}).`));
   }
   return section("Tuning advice", "advice-title", box);
-}
-
-async function pendingSection(title, id, path) {
-  const box = h("div", { "data-pending": path });
-  try {
-    const result = await optional(path);
-    box.append(result === null
-      ? h("p", { class: "unavailable" }, `${title}: not available yet.`)
-      : genericResult(result));
-  } catch (error) {
-    box.append(h("p", { class: "unavailable" }, `${title}: not available (${error.message}).`));
-  }
-  return section(title, id, box);
 }
 
 async function renderLoop(loopId) {
@@ -556,18 +543,28 @@ async function renderLoop(loopId) {
         "Window ending at the latest analysis"), windowChoice),
       trendBox, valuesBox),
     h("div", { class: "grid-2" },
-      section("Valve signature", "signature-title", await plot(loopId, "signature")),
+      section("Valve signature", "signature-title", await plot(loopId, "signature"),
+        h("p", { class: "help" }, "Dots: the samples of the analysed window. Pink: the fitted "
+          + "ellipse; black bar: its width along OP, the apparent stiction. Orange: the fitted "
+          + "stiction model (valve S, J and process) replayed on the measured OP: its predicted "
+          + "PV, and its valve position MV.")),
       section("Spectrum and autocorrelation", "spectrum-title", await plot(loopId, "spectrum"))),
     h("div", { class: "grid-2" },
       section("Detection methods", "methods-title", methodsTable(diagnosis)),
       section("Stiction estimate", "estimate-title", estimateFacts(diagnosis),
         await plot(loopId, "history"))),
-    // PENDING: the model check depends on work in progress; it shows "not available" until
-    // its endpoint answers.
     h("div", { class: "grid-2" },
-      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", await plot(loopId, "nyquist")),
+      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", await plot(loopId, "nyquist"),
+        h("p", { class: "help" }, "The loop (identified process and configured controller) "
+          + "against the describing function of the estimated stiction; a limit cycle is "
+          + "predicted where the curves meet (harmonic balance, thesis Eq. 3.16).")),
       await adviceSection(`${path}/advice`)),
-    await pendingSection("Model check", "model-check-title", `${path}/model-check`),
+    section("Model check", "model-check-title",
+      h("p", {}, "Replays the loop's model on the current window: where the simulation "
+        + "differs from the measured PV, the cause, the extended model and what it gains."),
+      h("button", { type: "button", onclick: () => {
+        location.hash = `#/loop/${encodeURIComponent(loopId)}/model-check`;
+      } }, "Check the model")),
     h("div", { class: "grid-2" },
       section("Alarms of this loop", "loop-alarms-title", alarmsBox),
       section("Tickets of this loop", "loop-tickets-title", ticketsBox)));
@@ -590,17 +587,73 @@ async function renderLoop(loopId) {
 
 /* ------------------------------------------------------------------ unit page */
 
-function commonOscillations(loops) {
-  // Loops whose periods agree within 10 %: candidates for one plant-wide oscillation.
-  const cycling = loops.filter((l) => l.oscillating && l.period_s).sort((a, b) =>
-    a.period_s - b.period_s);
-  const groups = [];
-  for (const loop of cycling) {
-    const group = groups[groups.length - 1];
-    if (group && loop.period_s <= group[0].period_s * 1.1) group.push(loop);
-    else groups.push([loop]);
+function signalName(signal) {
+  // The unit diagnosis names signals "op_LOOP" and "pv_LOOP".
+  const [role, ...loop] = signal.split("_");
+  return [role.toUpperCase(), " of ", loopLink(loop.join("_"))];
+}
+
+function stickyValvesList(diagnosis, valves) {
+  if (diagnosis.sticky_valves.length === 0) {
+    return h("p", { class: "empty" }, "No valve of this unit is named sticky.");
   }
-  return groups;
+  return h("ol", { id: "sticky-valves" }, diagnosis.sticky_valves.map((v) =>
+    h("li", { "data-loop-id": v.loop },
+      h("strong", {}, valves.get(v.loop) || v.loop), " (", loopLink(v.loop), "): ",
+      `confidence ${num(v.confidence)}, cycle ${num(v.period_s, 0)} s`,
+      v.S === null ? "" : `, S ${num(v.S)} %, J ${num(v.J)} %`,
+      h("div", { class: "sub" }, v.reason))));
+}
+
+function oscillationGroup(group, index, valves) {
+  // One plant-wide oscillation: its loops, the surrogate nonlinearity ranking of every OP
+  // and PV (thesis chapter 2, step 3) and each loop's evidence.
+  const sticky = new Set(group.sticky_valves);
+  const rows = group.ranking.map((r, i) => {
+    const loop = r.signal.split("_").slice(1).join("_");
+    return h("tr", { "data-signal": r.signal },
+      h("td", {}, i + 1), h("th", { scope: "row" }, signalName(r.signal)),
+      h("td", {}, num(r.nonlinearity, 2)),
+      h("td", {}, sticky.has(loop) ? pill(`sticky valve ${valves.get(loop) || loop}`, "bad")
+        : "—"));
+  });
+  const id = `group-${index}`;
+  return h("article", { class: "oscillation-group", "aria-labelledby": id },
+    h("h3", { id }, `Oscillation of ${num(group.period_s, 0)} s (${num(group.cycles, 1)} `
+      + "cycles in the window): ",
+      group.loops.flatMap((l, i) => (i ? [", ", loopLink(l)] : [loopLink(l)]))),
+    table(`Nonlinearity ranking of oscillation ${index + 1}`,
+      ["Rank", "Signal", "Nonlinearity index", "Named"], rows, "No signal could be ranked."),
+    h("ul", { class: "evidence" }, group.evidence.map((e) =>
+      h("li", {}, loopLink(e.loop), `: ${e.note}`))),
+    group.note ? h("p", { class: "help" }, group.note) : null);
+}
+
+async function unitDiagnosis(unitId, valves) {
+  // Runs the unit diagnosis on the latest windows: it takes a moment, so the page shows
+  // the loops first and this fills in when it arrives.
+  try {
+    const diagnosis = await api(`/units/${encodeURIComponent(unitId)}/diagnosis`);
+    const skipped = diagnosis.loops_without_complete_window;
+    return [
+      section("Sticky valves, most certain first", "sticky-title",
+        stickyValvesList(diagnosis, valves),
+        h("p", { class: "help" }, `Diagnosed together on the window ending `
+          + `${utc(diagnosis.window_end)}: ${diagnosis.loops.length} loops, `
+          + `${diagnosis.samples} samples each.`
+          + (skipped.length ? ` Left out (gaps in OP or PV): ${skipped.join(", ")}.` : ""))),
+      section("Common oscillations and the ranking that names the valves", "common-title",
+        diagnosis.groups.length
+          ? diagnosis.groups.map((g, i) => oscillationGroup(g, i, valves))
+          : h("p", { class: "empty" }, "No oscillation is shared by loops of this unit."),
+        h("p", { class: "help" }, "Signals that oscillate together are ranked by their "
+          + "surrogate nonlinearity index (highest first); a valve is named sticky when its "
+          + "own stiction model is needed to explain its loop.")),
+    ];
+  } catch (error) {
+    return [h("p", { class: "unavailable", role: "status" },
+      `Unit diagnosis not available: ${error.message}`)];
+  }
 }
 
 async function renderUnit(unitId) {
@@ -608,34 +661,135 @@ async function renderUnit(unitId) {
   const [units, loops] = await Promise.all([api("/units"),
     api(`/units/${encodeURIComponent(unitId)}`)]);
   const unit = units.data.find((u) => u.id === unitId) || { id: unitId, name: unitId };
-  const ranked = rankByHealth(loops.data);
-  const sticky = ranked.filter((l) => l.verdict === "stiction")
-    .sort((a, b) => b.confidence - a.confidence);
-  const groups = commonOscillations(loops.data);
-  const cards = await Promise.all(ranked.map(async (l) => h("article", { class: "card loop-card",
-    "aria-labelledby": `card-${l.id}` },
-  h("h3", { id: `card-${l.id}` }, loopLink(l.id), " ", h("span", { class: "sub" }, l.name)),
-  definitionList([["Health", l.health === null ? "unknown" : num(l.health, 0)],
-    ["Oscillation", oscillationText(l)], ["Valve", verdictPill(l.verdict, l.confidence)]]),
-  await plot(l.id, "trend"))));
+  const valves = new Map(loops.data.map((l) => [l.id, l.valve_asset || l.id]));
+  const diagnosisBox = h("div", { id: "unit-diagnosis", class: "grid-2", "aria-busy": "true" },
+    h("p", { class: "unavailable" }, "Diagnosing the unit's loops together…"));
+  const cards = await Promise.all(rankByHealth(loops.data).map(async (l) => h("article",
+    { class: "card loop-card", "aria-labelledby": `card-${l.id}` },
+    h("h3", { id: `card-${l.id}` }, loopLink(l.id), " ", h("span", { class: "sub" }, l.name)),
+    definitionList([["Health", l.health === null ? "unknown" : num(l.health, 0)],
+      ["Oscillation", oscillationText(l)], ["Valve", verdictPill(l.verdict, l.confidence)]]),
+    await plot(l.id, "trend"))));
   main.replaceChildren(
     h("p", { class: "crumbs" }, h("a", { href: "#/" }, "Plant overview")),
     h("h1", {}, unit.name || unit.id, " ", h("span", { class: "sub" }, `unit ${unit.id}`)),
-    h("div", { class: "grid-2" },
-      section("Sticky valves, most certain first", "sticky-title",
-        sticky.length ? h("ol", {}, sticky.map((l) => h("li", {},
-          `${l.valve_asset || l.id} (`, loopLink(l.id), `): confidence ${num(l.confidence)}, `
-          + `S ${num(l.S)} %, J ${num(l.J)} %`)))
-          : h("p", { class: "empty" }, "No valve in this unit is diagnosed as sticky.")),
-      section("Common oscillations", "common-title",
-        groups.length ? h("ul", {}, groups.map((g) => h("li", {},
-          g.length === 1 ? `period ${num(g[0].period_s, 0)} s: `
-            : `periods ${num(g[0].period_s, 0)}–${num(g[g.length - 1].period_s, 0)} s: `,
-          g.flatMap((l, i) => (i ? [", ", loopLink(l.id)] : [loopLink(l.id)])))))
-          : h("p", { class: "empty" }, "No loop of this unit oscillates."),
-        h("p", { class: "help" }, "Loops whose periods agree within 10 % are listed together."))),
+    diagnosisBox,
     h("section", { class: "side-by-side", "aria-label": "Loops of the unit side by side" },
       cards));
+  diagnosisBox.replaceChildren(...await unitDiagnosis(unitId, valves));
+  diagnosisBox.removeAttribute("aria-busy");
+}
+
+/* ------------------------------------------------------------------ model check page */
+
+function percent(fraction) {
+  if (fraction === null || fraction === undefined) return "—";
+  const rounded = Math.round(100 * fraction) || 0;  // no "-0"
+  return `${rounded > 0 ? "+" : ""}${rounded} %`;
+}
+
+function parameterText(parameters) {
+  const entries = Object.entries(parameters || {});
+  if (entries.length === 0) return "—";
+  return entries.map(([k, v]) => `${k} ${typeof v === "number" ? num(v, 3) : v}`).join(", ");
+}
+
+function modelFacts(model) {
+  // A model of issue 8: process, controller and valve, each an object of parameters.
+  return definitionList(["process", "controller", "valve"].filter((part) => model[part])
+    .map((part) => [part, parameterText(model[part])]));
+}
+
+function gainTable(check) {
+  const { baseline, gain } = check;
+  const rows = [
+    ["NMSE on held-out data", num(gain.nmse_before, 4), num(gain.nmse_after, 4)],
+    ["Closed-loop period error", percent(gain.period_error_before),
+      percent(gain.period_error_after)],
+    ["Closed-loop amplitude error", percent(gain.amplitude_error_before),
+      percent(gain.amplitude_error_after)],
+  ].map(([what, before, after]) => h("tr", {}, h("th", { scope: "row" }, what),
+    h("td", {}, before), h("td", {}, after)));
+  return h("div", { id: "model-check-gain" },
+    table("The gain of the extended model", ["Measure", "Base model", "Extended model"], rows,
+      ""),
+    h("p", { class: "help" }, `Measurement noise alone would give an NMSE of about `
+      + `${num(baseline.noise_nmse, 4)}: no model can do better.`));
+}
+
+function candidatesTable(check) {
+  const rows = check.candidates.map((c) => h("tr", { "data-effect": c.effect,
+    class: c.effect === check.cause.effect ? "chosen" : null },
+  h("th", { scope: "row" }, c.effect.replace(/_/g, " ")),
+  h("td", {}, parameterText(c.parameters)),
+  h("td", {}, num(c.nmse_test, 4)),
+  h("td", {}, percent(c.improvement)),
+  h("td", {}, c.note || "")));
+  return table("Effects tried", ["Effect", "Fitted parameters", "Held-out NMSE",
+    "Error removed", "Note"], rows, "No effect was tried.");
+}
+
+async function modelCheckResult(loopId, check) {
+  const cause = check.cause;
+  const figure = await plot(loopId, "model-check", {},
+    { overlay: check.overlay, cause: check.cause });
+  return [
+    section("Measured and simulated PV", "overlay-title", figure,
+      h("p", { class: "help" }, `Window ${utc(check.window_start)} to ${utc(check.window_end)}, `
+        + `${check.samples} samples; each model is driven by the measured OP.`)),
+    h("div", { class: "grid-2" },
+      section("Findings", "findings-title",
+        h("ol", { id: "findings" }, check.findings.map((f) => h("li", {}, f))),
+        h("p", {}, h("strong", {}, "Cause: "), cause.effect.replace(/_/g, " "),
+          ` (confidence ${num(cause.confidence)}; ${parameterText(cause.parameters)})`),
+        ...(check.notes || []).map((note) => h("p", { class: "note" }, note))),
+      section("Gain", "gain-title", gainTable(check))),
+    h("div", { class: "grid-2" },
+      section("Base model", "base-model-title",
+        h("p", { class: "help" }, check.model_source === "identified"
+          ? "Identified from the window." : "As given."), modelFacts(check.base_model)),
+      section("Extended model", "extended-model-title", modelFacts(check.extended_model))),
+    section("Effects tried", "candidates-title", candidatesTable(check)),
+  ];
+}
+
+async function renderModelCheck(loopId) {
+  const main = document.getElementById("main");
+  const path = `/loops/${encodeURIComponent(loopId)}`;
+  const loop = await api(path);
+  const result = h("div", { id: "model-check-result" });
+  const again = h("button", { type: "button" }, "Check again");
+  const page = session.page;
+  const check = async () => {
+    again.disabled = true;
+    result.setAttribute("aria-busy", "true");
+    result.replaceChildren(h("p", { class: "unavailable" },
+      "Checking the model on the current window; this takes a few seconds…"));
+    try {
+      const answer = await api(`${path}/model-check`, { method: "POST" });
+      const parts = await modelCheckResult(loopId, answer);
+      if (page !== session.page) return;  // the user went elsewhere meanwhile
+      result.replaceChildren(...parts);
+      announce(`Model check of ${loopId} done: ${answer.cause.effect.replace(/_/g, " ")}`);
+    } catch (error) {
+      result.replaceChildren(h("p", { class: "error", role: "alert" },
+        `Model check not available: ${error.message}`));
+    } finally {
+      again.disabled = false;
+      result.removeAttribute("aria-busy");
+    }
+  };
+  again.addEventListener("click", check);
+  main.replaceChildren(
+    h("p", { class: "crumbs" }, h("a", { href: "#/" }, "Plant overview"),
+      loop.unit ? [" › ", h("a", { href: `#/unit/${encodeURIComponent(loop.unit)}` }, loop.unit)]
+        : null, " › ", loopLink(loopId)),
+    h("h1", {}, `Model check: ${loopId} `, h("span", { class: "sub" }, loop.name)),
+    h("p", {}, "The loop's model (identified from the window) replayed on the current window: "
+      + "what the simulation gets wrong, the effect that explains it, and how much the "
+      + "extended model gains. ", again),
+    result);
+  await check();
 }
 
 /* ------------------------------------------------------------------ ticket view */
@@ -687,7 +841,9 @@ async function route() {
   const parts = (path || "/").split("/").filter(Boolean).map(decodeURIComponent);
   main.setAttribute("aria-busy", "true");
   try {
-    if (parts[0] === "loop" && parts[1]) await renderLoop(parts[1]);
+    if (parts[0] === "loop" && parts[1] && parts[2] === "model-check") {
+      await renderModelCheck(parts[1]);
+    } else if (parts[0] === "loop" && parts[1]) await renderLoop(parts[1]);
     else if (parts[0] === "unit" && parts[1]) await renderUnit(parts[1]);
     else if (parts[0] === "ticket" && parts[1]) await renderTicket(parts[1]);
     else await renderOverview(new URLSearchParams(query || ""));
@@ -703,7 +859,17 @@ async function route() {
   }
 }
 
+function setLargeText(on) {
+  document.documentElement.classList.toggle("large-text", on);
+  document.getElementById("large-text").setAttribute("aria-pressed", String(on));
+  localStorage.setItem(LARGE_TEXT_STORAGE, on ? "1" : "");
+}
+
 async function start() {
+  const largeText = document.getElementById("large-text");
+  setLargeText(localStorage.getItem(LARGE_TEXT_STORAGE) === "1");
+  largeText.addEventListener("click", () =>
+    setLargeText(largeText.getAttribute("aria-pressed") !== "true"));
   const fragment = location.hash.match(/^#key=([^&]+)/);
   if (fragment) {
     sessionStorage.setItem(KEY_STORAGE, decodeURIComponent(fragment[1]));

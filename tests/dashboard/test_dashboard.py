@@ -8,6 +8,9 @@ twice, so FIC-1 has an oscillation alarm and a valve-repair ticket.  Then
 Chromium, driven by Playwright, signs in, finds FIC-1 at the top of the
 overview, opens it, sees the valve signature drawn from the data,
 acknowledges the alarm and the test checks the new state through the API.
+Further tests open the unit page (the diagnosis that names the sticky
+valve), the fitted stiction model over the signature and the Nyquist plot,
+and the model check page, each leaving a screenshot.
 
 Skipped with the reason when Playwright or Chromium is missing; failed
 instead under ``LOOPWATCH_REQUIRE_ALL=1``.
@@ -43,13 +46,6 @@ CHROMIUM_ARGS = [
 WAIT_MS = 30_000
 REFRESH_MS = 500
 """How often the pages refresh themselves in the test (15 s in service)."""
-PENDING_ENDPOINTS = ("/model-check",)
-"""Endpoints of work in progress: the dashboard asks for them and expects 404 for now."""
-
-
-def expected_404(text: str, url: str) -> bool:
-    """Chromium logs every 404 as an error; those of pending endpoints are expected."""
-    return "status of 404" in text and url.endswith(PENDING_ENDPOINTS)
 
 
 @dataclass
@@ -162,9 +158,8 @@ def browser(running: RunningService) -> Iterator[Browser]:
         page.on("request", lambda request: watched.requests.append(request.url))
 
         def console(message: Any) -> None:
-            url = message.location.get("url", "")
-            if message.type == "error" and not expected_404(message.text, url):
-                watched.errors.append(f"{message.text} ({url})")
+            if message.type == "error":  # Chromium logs every failed request as one
+                watched.errors.append(f"{message.text} ({message.location.get('url', '')})")
 
         page.on("console", console)
         page.on("pageerror", lambda error: watched.errors.append(str(error)))
@@ -206,6 +201,21 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     assert dots.count("M") == window.t.size  # one dot per sample of the analysed window
     assert signature.locator('path[data-series="ellipse"]').count() == 1
     assert "apparent stiction" in signature.inner_html()
+    # The fitted stiction model: its predicted PV over the signature, its MV in a panel.
+    assert signature.locator('path[data-series="model_pv"]').count() == 1
+    model_mv = signature.locator('g.panel[data-title="Fitted valve model: OP against the '
+                                 'model\'s MV"] path[data-series="model_mv"]')
+    diagnosis = running.call("GET", "/api/v1/loops/FIC-1/health", "viewer")["diagnosis"]
+    period = round(diagnosis["oscillation"]["analysed_period_s"])
+    assert (model_mv.get_attribute("d") or "").count("L") == 3 * period - 1  # 3 cycles drawn
+    estimate = diagnosis["quantification"]
+    assert f"S = {estimate['S']:.2f} %, J = {estimate['J']:.2f} %" in signature.inner_html()
+    nyquist = page.locator('figure[data-plot="nyquist"] svg[data-kind="nyquist"]')
+    nyquist.wait_for()
+    for series in ("loop", "df"):
+        assert nyquist.locator(f'path[data-series="{series}"]').count() == 1
+    assert nyquist.locator('circle[data-marker="limit_cycle"]').count() >= 1
+    assert "stable limit cycle of period" in (nyquist.locator("desc").text_content() or "")
     assert page.locator('[data-method="hammerstein"]').inner_text().count("stiction") >= 1
     advice = page.locator('[data-advice-box$="/advice"]')
     advice.get_by_text("Current tuning", exact=True).wait_for()
@@ -261,15 +271,41 @@ def test_unit_page_and_printable_ticket(
     page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
     page.locator("#loops tbody tr").first.wait_for()
 
-    page.goto(f"{running.base_url}/#/unit/u1")
+    page.get_by_role("combobox", name="Unit").select_option("u1")
+    page.get_by_role("link", name="Unit page").click()  # the overview leads to the unit
     page.get_by_role("heading", level=1, name="Unit 1 unit u1").wait_for()
     cards = page.locator(".loop-card")
     cards.nth(1).locator('svg[data-kind="trend"]').wait_for()
     assert cards.evaluate_all("cards => cards.map(c => c.querySelector('h3 a').textContent)") \
         == ["FIC-1", "FIC-2"]
-    assert "FV-1" in page.locator('[aria-labelledby="sticky-title"]').inner_text()
+    # The unit diagnosis: the common oscillation, its ranking, the valve it names.
+    page.locator("#sticky-valves li").first.wait_for()
+    diagnosis = running.call("GET", "/api/v1/units/u1/diagnosis", "viewer")
+    named = page.locator("#sticky-valves li")
+    assert named.evaluate_all("items => items.map(i => i.dataset.loopId)") == [
+        v["loop"] for v in diagnosis["sticky_valves"]] == ["FIC-1"]
+    assert named.first.inner_text().startswith("FV-1 (FIC-1): confidence "
+                                               f"{diagnosis['sticky_valves'][0]['confidence']:.2f}")
+    (group,) = diagnosis["groups"]
+    ranking = page.locator(".oscillation-group tr[data-signal]")
+    assert ranking.evaluate_all("rows => rows.map(r => r.dataset.signal)") == [
+        r["signal"] for r in group["ranking"]]
+    assert "sticky valve FV-1" in ranking.first.inner_text()
+    assert f"Oscillation of {group['period_s']:.0f} s" in page.locator(
+        ".oscillation-group h3").inner_text()
     artefacts = tmp_path_factory.mktemp("artefacts")
     page.screenshot(path=str(artefacts / "unit-u1.png"), full_page=True)
+
+    # Large text for a wall screen: a toggle button, remembered, that enlarges the text.
+    toggle = page.get_by_role("button", name="Large text")
+    size = "() => parseFloat(getComputedStyle(document.documentElement).fontSize)"
+    normal = page.evaluate(size)
+    toggle.click()
+    assert toggle.get_attribute("aria-pressed") == "true"
+    assert page.evaluate(size) > 1.2 * normal
+    page.screenshot(path=str(artefacts / "unit-u1-large-text.png"), full_page=True)
+    toggle.click()
+    assert page.evaluate(size) == normal
 
     ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
     page.goto(f"{running.base_url}/#/ticket/{ticket['id']}")
@@ -281,3 +317,35 @@ def test_unit_page_and_printable_ticket(
     assert page.get_by_role("button", name="Print").is_hidden()
     page.screenshot(path=str(artefacts / "ticket-print.png"), full_page=True)
     print(f"unit page and printed ticket: {artefacts}")
+
+
+def test_model_check_page_shows_the_simulation_against_the_measurement(
+    running: RunningService, browser: Browser, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.goto(f"{running.base_url}/#/loop/FIC-1")
+    button = page.get_by_role("button", name="Check the model")
+    button.focus()  # reached and pressed from the keyboard
+    page.keyboard.press("Enter")
+    page.get_by_role("heading", level=1, name="Model check: FIC-1").wait_for()
+    overlay = page.locator('figure[data-plot="model-check"] svg[data-kind="model-check"]')
+    overlay.wait_for()
+
+    check = running.call("POST", "/api/v1/loops/FIC-1/model-check", "viewer", {})
+    for series in ("pv", "pv_base", "pv_extended", "error_base", "error_extended"):
+        assert overlay.locator(f'path[data-series="{series}"]').count() == 1
+    effect = check["cause"]["effect"].replace("_", " ")
+    assert effect in (overlay.get_attribute("aria-label") or "")
+    findings = page.locator("#findings li")
+    assert findings.all_inner_texts() == check["findings"]
+    gain = page.locator("#model-check-gain tbody tr")
+    assert gain.first.inner_text().split("\t") == [
+        "NMSE on held-out data", f"{check['gain']['nmse_before']:.4f}",
+        f"{check['gain']['nmse_after']:.4f}"]
+    chosen = page.locator("tr.chosen")
+    assert chosen.get_attribute("data-effect") == check["cause"]["effect"]
+    shot = tmp_path_factory.mktemp("artefacts") / "model-check-FIC-1.png"
+    page.screenshot(path=str(shot), full_page=True)
+    print(f"model check screenshot: {shot}")

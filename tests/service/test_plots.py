@@ -22,10 +22,13 @@ from fastapi.testclient import TestClient
 
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
 from analytics.lti import TransferFunction
+from analytics.quantification import VALVE_MODELS
 from analytics.simulation import PIDController
 from analytics.stiction.signature import fit_signature_ellipse
-from analytics.valves import ChoudhuryValve
+from analytics.synthetic_cases import synthetic_library
+from analytics.valves import ChoudhuryValve, KanoValve
 from service import plots
+from service.buffer import LoopBuffers
 from service.config import Settings
 from service.server import build_service
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
@@ -153,6 +156,111 @@ def test_signature_with_mv_has_a_second_panel():
     root = parse(plots.render_svg(plots.signature_figure(op, pv, mv=op, title="s")))
     assert [p.get("data-title") for p in panels(root)] == [
         "Valve signature: OP against PV", "Valve signature: OP against MV"]
+
+
+def sticky_flow_loop() -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """OP, MV, PV and ts of the synthetic library's flow loop with a Kano valve (S 4, J 2)."""
+    case = next(c for c in synthetic_library(3600) if c.name == "flow-kano-S4-J2-ts1")
+    run = case.simulate()
+    return run.op[0], run.mv[0], run.pv[0], run.dt
+
+
+TRUE_FLOW_PROCESS = TransferFunction.fopdt(1.2, 8.0, 2.0)
+"""The process of ``flow-kano-S4-J2-ts1`` (analytics.synthetic_cases)."""
+
+
+def test_model_path_is_the_valve_simulation_started_at_an_op_maximum():
+    """With the true valve and process, the replayed MV is the simulator's MV and the
+    predicted PV explains the measured one up to its measurement noise (0.2 % sd)."""
+    op, mv, pv, ts = sticky_flow_loop()
+    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+                                     process=TRUE_FLOW_PROCESS, period_s=100.0, label="true")
+    assert np.isnan(path.mv[:path.start]).all() and np.isnan(path.pv[:path.start]).all()
+    first = path.start // 100 * 100  # a maximum of one of the first three periods
+    assert path.start < 300 and op[path.start] == op[first:first + 100].max()
+    mismatch = np.abs(path.mv[path.start:] - mv[path.start:])
+    assert np.median(mismatch) < 1e-9  # the same valve on the same OP: the same MV
+    assert np.mean(mismatch > 0.1) < 0.01  # bar a few slips a sample early or late
+    noise = 0.2**2 / np.var(pv[path.start:])
+    assert path.r2 == pytest.approx(1.0 - noise, abs=0.02)
+
+
+def test_model_path_predicts_pv_through_the_process_with_fitted_offset_and_drift():
+    """An ideal valve with S = 0 passes OP on; PV = 3 + 0.01 t + G(OP - OP[start]) is
+    reproduced exactly, G simulated independently by its difference equation."""
+    ts, tau, K = 1.0, 5.0, 2.0
+    k = np.arange(1000)
+    op = 50 + 5 * np.sin(2 * np.pi * k / 100)
+    a = math.exp(-ts / tau)
+    start = int(np.argmax(op[:100]))
+    u = op[start:] - op[start]
+    lag = np.zeros(u.size)
+    for i in range(1, u.size):  # ZOH FOPDT with 3 samples dead time, 1 of them the hold
+        lag[i] = a * lag[i - 1] + K * (1 - a) * (u[i - 3] if i >= 3 else 0.0)
+    pv = np.full(k.size, np.nan)
+    pv[start:] = 3.0 + 0.01 * ts * np.arange(u.size) + lag
+    pv[:start] = pv[start]
+    path = plots.stiction_model_path(op, pv, ts, valve=ChoudhuryValve(0.0, 0.0),
+                                     process=TransferFunction.fopdt(K, tau, 2.0),
+                                     period_s=100.0, label="linear")
+    assert path.start == start
+    np.testing.assert_allclose(path.mv[start:], op[start:])
+    np.testing.assert_allclose(path.pv[start:], pv[start:], atol=1e-9)
+    assert path.r2 == pytest.approx(1.0)
+
+
+def test_signature_draws_the_fitted_model_over_pv_and_in_a_valve_panel():
+    op, _, pv, ts = sticky_flow_loop()
+    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+                                     process=TRUE_FLOW_PROCESS, period_s=100.0,
+                                     label="fitted kano valve, S = 4.00 %, J = 2.00 %")
+    root = parse(plots.render_svg(plots.signature_figure(op, pv, model=path, title="s")))
+    signature, valve = panels(root)
+    assert valve.get("data-title") == "Fitted valve model: OP against the model's MV"
+    last = slice(-plots.MODEL_CYCLES_DRAWN * path.period, None)  # the last cycles only
+    x, y = drawn(signature, "model_pv")
+    np.testing.assert_allclose(x, op[last], atol=resolution(signature, "x"))
+    np.testing.assert_allclose(y, path.pv[last], atol=resolution(signature, "y"))
+    x, y = drawn(valve, "model_mv")
+    np.testing.assert_allclose(y, path.mv[last], atol=resolution(valve, "y"))
+    assert y.max() - y.min() == pytest.approx(np.ptp(op[last]) - 2.0, abs=0.3)  # OP - (S-J)
+    description = root.find(f"{SVG}desc").text
+    assert f"fitted model predicts PV with R² {path.r2:.2f}" in description
+    assert "S = 4.00 %, J = 2.00 %" in description
+
+
+def test_signature_with_measured_mv_draws_the_model_over_it():
+    op, mv, pv, ts = sticky_flow_loop()
+    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+                                     process=TRUE_FLOW_PROCESS, period_s=100.0, label="m")
+    root = parse(plots.render_svg(plots.signature_figure(op, pv, mv=mv, model=path,
+                                                         title="s")))
+    _, valve = panels(root)
+    assert valve.get("data-title") == "Valve signature: OP against MV"
+    assert series_path(valve, "mv") and series_path(valve, "model_mv")
+
+
+def test_model_check_draws_measured_and_scored_simulations_and_their_errors():
+    t = T0 + np.arange(400.0)
+    pv = 50 + np.sin(t / 30)
+    base, extended = pv + 0.5, pv - 0.1
+    scored = t >= T0 + 100
+    root = parse(plots.render_svg(plots.model_check_figure(t, pv, base, extended, scored,
+                                                           title="check")))
+    overlay, errors = panels(root)
+    x, y = drawn(overlay, "pv")
+    np.testing.assert_allclose(y, pv, atol=resolution(overlay, "y"))
+    x, y = drawn(overlay, "pv_base")
+    np.testing.assert_allclose(x, t[scored], atol=resolution(overlay, "x"))  # no warm-up
+    np.testing.assert_allclose(y, base[scored], atol=resolution(overlay, "y"))
+    _, y = drawn(errors, "error_base")
+    np.testing.assert_allclose(y, -0.5, atol=resolution(errors, "y"))
+    _, y = drawn(errors, "error_extended")
+    np.testing.assert_allclose(y, 0.1, atol=resolution(errors, "y"))
+    assert "300 scored samples; RMS error 0.5 (base) and 0.1 (extended)" in \
+        root.find(f"{SVG}desc").text
+    with pytest.raises(ValueError, match="differ in shape"):
+        plots.model_check_figure(t, pv[1:], base, extended, scored, title="x")
 
 
 def test_spectrum_and_acf_show_the_injected_period():
@@ -339,6 +447,68 @@ def test_every_kind_renders_as_svg_and_png(analysed):
         assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
         width, _ = struct.unpack(">II", png.content[16:24])
         assert width == round(plots.PLOT_WIDTH * plots.PNG_ZOOM)
+
+
+def test_signature_draws_the_latest_estimate_replayed_on_the_window(analysed, service):
+    diagnosis = analysed.get("/api/v1/loops/FIC-1/health", headers=HEADERS).json()["diagnosis"]
+    estimate = diagnosis["quantification"]
+    assert estimate["valve_model"] in ("he", "kano")
+    signature, valve = panels(parse(get_plot(analysed, "FIC-1", "signature").text))
+    window = service.state.buffers.window("FIC-1", 3600, T0)
+    x, y = drawn(valve, "model_mv")
+    path = plots.stiction_model_path(
+        window.op, window.pv, window.ts,
+        valve=VALVE_MODELS[estimate["valve_model"]](estimate["S"], estimate["J"]),
+        process=TransferFunction.fopdt(estimate["process"]["K"], estimate["process"]["tau"],
+                                       estimate["process"]["theta"]),
+        period_s=diagnosis["oscillation"]["analysed_period_s"], label="")
+    last = slice(-plots.MODEL_CYCLES_DRAWN * path.period, None)
+    np.testing.assert_allclose(x, window.op[last], atol=resolution(valve, "x"))
+    np.testing.assert_allclose(y, path.mv[last], atol=resolution(valve, "y"))
+    assert path.r2 > 0.8  # the fit explains the measured signature
+    assert f"R² {path.r2:.2f}" in signature.findtext(f".//{SVG}text[last()]")
+    assert f"S = {estimate['S']:.2f} %" in ET.tostring(valve, encoding="unicode")
+
+
+def test_plots_read_the_window_from_the_store_when_the_buffer_lacks_it(
+    analysed, service, monkeypatch
+):
+    """An API replica of the scale-out has empty rolling buffers: the same plots, from the
+    store."""
+    from_buffer = {kind: get_plot(analysed, "FIC-1", kind).text
+                   for kind in ("signature", "spectrum")}
+    monkeypatch.setattr(service.state, "buffers", LoopBuffers(plant(), horizon_s=7200))
+    assert not np.isfinite(service.state.buffers.window("FIC-1", 3600, T0).pv).any()
+    for kind, svg in from_buffer.items():
+        assert get_plot(analysed, "FIC-1", kind).text == svg
+
+
+def test_model_check_plot_draws_the_answer_of_the_model_check(analysed):
+    check = analysed.post("/api/v1/loops/FIC-1/model-check", headers=HEADERS)
+    assert check.status_code == 200, check.text
+    answer = check.json()
+    body = {"overlay": answer["overlay"], "cause": answer["cause"]}
+    response = analysed.post("/api/v1/loops/FIC-1/plots/model-check", json=body,
+                             headers=HEADERS)
+    assert response.status_code == 200, response.text
+    root = parse(response.text)
+    assert root.get("data-kind") == "model-check"
+    assert answer["cause"]["effect"].replace("_", " ") in root.get("aria-label")
+    overlay, _ = panels(root)
+    x, y = drawn(overlay, "pv_extended")
+    scored = np.array(answer["overlay"]["scored"])
+    np.testing.assert_allclose(x, np.array(answer["overlay"]["t"])[scored],
+                               atol=resolution(overlay, "x"))
+    np.testing.assert_allclose(y, np.array(answer["overlay"]["pv_extended"])[scored],
+                               atol=resolution(overlay, "y"))
+    png = analysed.post("/api/v1/loops/FIC-1/plots/model-check", json=body, headers=HEADERS,
+                        params={"format": "png"})
+    assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    body["overlay"]["pv"] = body["overlay"]["pv"][1:]
+    bad = analysed.post("/api/v1/loops/FIC-1/plots/model-check", json=body, headers=HEADERS)
+    assert bad.status_code == 422 and "differ in shape" in bad.json()["detail"]
+    missing = analysed.post("/api/v1/loops/NOPE/plots/model-check", json=body, headers=HEADERS)
+    assert missing.json() == {"detail": "Loop not found"}
 
 
 def test_signature_and_spectrum_show_what_the_analysis_measured(analysed):

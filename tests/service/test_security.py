@@ -47,6 +47,7 @@ ACCESS: dict[tuple[str, str], str] = {
     ("GET", "/api/v1/loops/{loop_id}/plots/{kind}"): "read",
     ("GET", "/api/v1/loops/{loop_id}/advice"): "read",
     ("POST", "/api/v1/loops/{loop_id}/model-check"): "read",
+    ("POST", "/api/v1/loops/{loop_id}/plots/model-check"): "read",
     ("GET", "/api/v1/units/{unit_id}/diagnosis"): "read",
     ("GET", "/api/v1/units/{unit_id}/prediction"): "read",
     ("GET", "/api/v1/units"): "read",

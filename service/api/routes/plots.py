@@ -7,14 +7,24 @@ builders of :mod:`service.plots`.  Kinds:
 * ``trend``: SP, PV, OP, MV between ``start`` and ``end`` (default: the last
   hour), from the same query as ``GET /loops/{id}/data``.
 * ``signature``, ``spectrum``: the window of the latest analysis, in % of
-  span as the analysis saw it, with the period it used.
+  span as the analysis saw it, with the period it used; the signature also
+  shows the fitted stiction model (the valve and process of the latest
+  stiction estimate replayed on the window's OP).
 * ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
   the latest stiction estimate, the configured controller and Choudhury's
   describing function at the estimated (S, J) (thesis Eq. 3.16).
 * ``history``: health, S and J of the past analyses.
 
-A plot that cannot be drawn yet (no analysis, no estimate, samples gone from
-the rolling buffer) answers 404 with the reason, which the dashboard shows.
+``POST /api/v1/loops/{id}/plots/model-check`` draws the overlay of a model
+check (``POST /loops/{id}/model-check``, which takes seconds to run): the
+caller sends back the ``overlay`` and ``cause`` of its answer and gets the
+plot, so the check is not run a second time for its picture.
+
+The window comes from the rolling buffer, or from the store when the buffer
+does not hold it (an API replica of the scale-out topology has no buffers
+of its own).  A plot that cannot be drawn yet (no analysis, no estimate,
+samples purged from the store) answers 404 with the reason, which the
+dashboard shows.
 """
 
 from __future__ import annotations
@@ -23,16 +33,20 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from pydantic import BaseModel
 from sqlalchemy import select
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
+from analytics.lti import TransferFunction
+from analytics.quantification import VALVE_MODELS
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
 from service import plots
 from service.analysis import to_percent_of_span
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.api.routes.loops import loop_data
-from service.buffer import LoopWindowData
+from service.buffer import LoopBuffers, LoopWindowData
+from service.config import LoopConfig, PlantConfig
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
 
@@ -65,19 +79,35 @@ def _latest_run(session: SessionDep, loop_id: str) -> AnalysisRun:
     return run
 
 
-def _analysed_window(state: StateDep, loop: Loop, run: AnalysisRun) -> LoopWindowData:
-    """The samples of ``run``'s window from the rolling buffer, in % of span."""
+def _holds_samples(window: LoopWindowData) -> bool:
+    return any(x is not None and np.isfinite(x).any() for x in (window.op, window.pv))
+
+
+def _stored_window(session: SessionDep, state: StateDep, loop: Loop, start: float,
+                   end: float) -> LoopWindowData:
+    """The window cut from the stored samples exactly as the scheduler cuts it from its
+    buffers: a rolling buffer of this loop alone, rebuilt from the store back to ``start``."""
+    now = max(state.clock(), end)
+    config = LoopConfig.model_validate(loop.config)
+    buffers = LoopBuffers(PlantConfig(), horizon_s=now - start + config.ts)
+    buffers.add_loop(config)
+    buffers.rebuild_from_store(session, now)
+    return buffers.window(loop.id, end - start, end)
+
+
+def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
+                     ) -> LoopWindowData:
+    """The samples of ``run``'s window, in % of span: from the rolling buffer, else the store."""
     assert run.window_start is not None and run.window_end is not None
     try:
         window = state.buffers.window(loop.id, run.window_end - run.window_start,
                                       run.window_end)
-    except (KeyError, ValueError) as exc:
-        raise HTTPException(404, f"Samples of the analysed window are not available: {exc}") \
-            from None
-    if not any(x is not None and np.isfinite(x).any() for x in (window.op, window.pv)):
-        raise HTTPException(
-            404, "Samples of the analysed window are no longer in the rolling buffer"
-        )
+    except (KeyError, ValueError):
+        window = None
+    if window is None or not _holds_samples(window):
+        window = _stored_window(session, state, loop, run.window_start, run.window_end)
+    if not _holds_samples(window):
+        raise HTTPException(404, "Samples of the analysed window are no longer stored")
     ranges = loop.config.get("ranges") or {}
     scaled = {name: to_percent_of_span(x, tuple(ranges[name]) if name in ranges else None)
               for name, x in window.signals.items()}
@@ -113,12 +143,16 @@ def _title(loop: Loop, what: str, start: float, end: float) -> str:
     return f"{_name(loop)}: {what}, {(end - start) / 60:.0f} min to {plots.format_utc(end)}"
 
 
+def _values(values: list[float | None]) -> np.ndarray:
+    """JSON numbers with nulls as an array with NaN."""
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+
 def _trend(session: SessionDep, state: StateDep, key: Principal, loop: Loop,
            start: float | None, end: float | None) -> plots.Figure:
     data = loop_data(loop.id, session, state, key, start, end, TREND_POINTS)
     series = {
-        s.signal: (np.asarray(s.t, dtype=float),
-                   np.array([np.nan if v is None else v for v in s.value], dtype=float))
+        s.signal: (np.asarray(s.t, dtype=float), _values(s.value))
         for s in data.series
     }
     if not any(t.size for t, _ in series.values()):
@@ -130,8 +164,32 @@ def _trend(session: SessionDep, state: StateDep, key: Principal, loop: Loop,
     )
 
 
-def _signature(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
-    window = _analysed_window(state, loop, run)
+def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: dict[str, Any]
+                  ) -> plots.StictionModelPath | None:
+    """The latest stiction estimate's valve and process replayed on the window's OP.
+
+    None without an estimate (no stiction verdict), without a period, or with
+    gaps in the window (the valve model cannot run through a missing OP).
+    """
+    estimate = diagnosis.get("quantification")
+    period = _analysed_period(diagnosis)
+    if not estimate or estimate.get("S") is None or period is None:
+        return None
+    if not (np.isfinite(op).all() and np.isfinite(pv).all()):
+        return None
+    S, J, process = float(estimate["S"]), float(estimate["J"] or 0.0), estimate["process"]
+    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
+    den = (*lag, 0.0) if process["integrating"] else lag
+    return plots.stiction_model_path(
+        op, pv, ts, valve=VALVE_MODELS[estimate["valve_model"]](S, J),
+        process=TransferFunction((process["K"],), den, process["theta"]), period_s=period,
+        label=f"fitted {estimate['valve_model']} valve, S = {S:.2f} %, J = {J:.2f} %",
+    )
+
+
+def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
+               ) -> plots.Figure:
+    window = _analysed_window(session, state, loop, run)
     if window.op is None or window.pv is None:
         raise HTTPException(404, "The valve signature needs both OP and PV tags")
     period = _analysed_period(run.result or {})
@@ -140,12 +198,14 @@ def _signature(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
         window.op, window.pv, mv=window.mv,
         pv_fit=_ellipse(window.op, window.pv, period_samples),
         mv_fit=_ellipse(window.op, window.mv, period_samples),
+        model=_fitted_model(window.op, window.pv, window.ts, run.result or {}),
         title=_title(loop, "valve signature", window.t[0], window.t[-1]),
     )
 
 
-def _spectrum(state: StateDep, loop: Loop, run: AnalysisRun) -> plots.Figure:
-    window = _analysed_window(state, loop, run)
+def _spectrum(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
+              ) -> plots.Figure:
+    window = _analysed_window(session, state, loop, run)
     return plots.spectrum_figure(
         window.op, window.pv, window.ts, period_s=_analysed_period(run.result or {}),
         title=_title(loop, "spectrum and ACF", window.t[0], window.t[-1]),
@@ -182,14 +242,77 @@ def _history(session: SessionDep, loop: Loop) -> plots.Figure:
     if not runs:
         raise HTTPException(404, f"No analysis of loop {loop.id} yet")
 
-    def column(values: list[float | None]) -> np.ndarray:
-        return np.array([np.nan if v is None else v for v in values], dtype=float)
-
     return plots.history_figure(
-        column([r.started_at for r in runs]), column([r.health for r in runs]),
-        column([r.S for r in runs]), column([r.J for r in runs]),
+        _values([r.started_at for r in runs]), _values([r.health for r in runs]),
+        _values([r.S for r in runs]), _values([r.J for r in runs]),
         title=f"{_name(loop)}: health and S, J of {len(runs)} analyses",
     )
+
+
+class ModelCheckOverlay(BaseModel):
+    """The ``overlay`` of a model check: measured and simulated PV per sample."""
+
+    t: list[float]
+    pv: list[float | None]
+    pv_base: list[float | None]
+    pv_extended: list[float | None]
+    scored: list[bool]
+
+
+class ModelCheckCause(BaseModel):
+    """The ``cause`` of a model check: the effect that extends the base model."""
+
+    effect: str
+
+
+class ModelCheckPlotRequest(BaseModel):
+    """The parts of a ``POST /loops/{id}/model-check`` answer that the plot draws."""
+
+    overlay: ModelCheckOverlay
+    cause: ModelCheckCause
+
+
+def _image(figure: plots.Figure, loop_id: str, kind: str, image_format: str) -> Response:
+    if image_format == "png":
+        body: bytes = plots.render_png(figure)
+    else:
+        body = plots.render_svg(figure).encode()
+    return Response(
+        body, media_type=MEDIA_TYPES[image_format],
+        headers={"Cache-Control": "no-store",
+                 "Content-Disposition": f'inline; filename="{loop_id}-{kind}.{image_format}"'},
+    )
+
+
+@router.post(
+    "/{loop_id}/plots/model-check",
+    response_class=Response,
+    responses={200: {"content": {"image/svg+xml": {}, "image/png": {}},
+                     "description": "measured against simulated PV, and the errors"},
+               404: {"description": "unknown loop"},
+               422: {"description": "overlay series of different lengths"}},
+)
+def model_check_plot(
+    loop_id: str,
+    body: ModelCheckPlotRequest,
+    session: SessionDep,
+    _: Reader,
+    image_format: Annotated[PlotFormat, Query(alias="format")] = "svg",
+) -> Response:
+    """The overlay of a model check of the loop as SVG (default) or PNG."""
+    loop = _loop_or_404(session, loop_id)
+    overlay, cause = body.overlay, body.cause
+    if not overlay.t:
+        raise HTTPException(422, "The overlay has no samples")
+    try:
+        figure = plots.model_check_figure(
+            overlay.t, _values(overlay.pv), _values(overlay.pv_base),
+            _values(overlay.pv_extended), overlay.scored,
+            title=f"{_name(loop)}: model check, extended with {cause.effect.replace('_', ' ')}",
+        )
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    return _image(figure, loop_id, "model-check", image_format)
 
 
 @router.get(
@@ -218,17 +341,9 @@ def loop_plot(
     else:
         run = _latest_run(session, loop_id)
         if kind == "signature":
-            figure = _signature(state, loop, run)
+            figure = _signature(session, state, loop, run)
         elif kind == "spectrum":
-            figure = _spectrum(state, loop, run)
+            figure = _spectrum(session, state, loop, run)
         else:
             figure = _nyquist(loop, run)
-    if image_format == "png":
-        body: bytes = plots.render_png(figure)
-    else:
-        body = plots.render_svg(figure).encode()
-    return Response(
-        body, media_type=MEDIA_TYPES[image_format],
-        headers={"Cache-Control": "no-store",
-                 "Content-Disposition": f'inline; filename="{loop_id}-{kind}.{image_format}"'},
-    )
+    return _image(figure, loop_id, kind, image_format)
