@@ -51,6 +51,12 @@ SET_POINT_SIGNALS = frozenset({"sp"})
 """Signals that are constant or stepwise by design: only their missing values are
 checked (a constant set point is normal operation, not a frozen transmitter)."""
 
+HELD_BY_DESIGN_SIGNALS = frozenset({"mv"})
+"""Signals whose held stretches are the symptom under study: a sticky valve's
+position stays put between slips (thesis Fig. 1.3), so runs of identical or
+straight-line values in MV are neither a frozen transmitter nor historian
+compression; MV is screened for missing values, saturation and quantisation."""
+
 
 @dataclass(frozen=True)
 class QualityIssue:
@@ -501,9 +507,11 @@ def _check_signal(
     eps = 1e-9 * max(scale, abs(hi), abs(lo))
 
     sat_values = _check_saturation(name, x, rng, lo, hi, eps, lim, issues)
-    _check_flatline(name, x, sat_values, lim, issues)
+    if name not in HELD_BY_DESIGN_SIGNALS:
+        _check_flatline(name, x, sat_values, lim, issues)
     quantised = _check_quantisation(name, x, eps, lim, issues)
-    _check_compression(name, x, eps, quantised, lim, issues)
+    if name not in HELD_BY_DESIGN_SIGNALS:
+        _check_compression(name, x, eps, quantised, lim, issues)
 
 
 def _check_saturation(

@@ -330,3 +330,16 @@ def test_isdb_loops_are_usable() -> None:
             rejected[row["loop"]] = rep.reasons()
         assert rep.samples == t.size
     assert rejected == {}
+
+
+def test_a_sticky_valves_held_position_is_not_mistaken_for_a_frozen_or_compressed_mv() -> None:
+    from analytics.synthetic_cases import synthetic_library
+
+    case = {c.name: c for c in synthetic_library(3600)}["flow-kano-S4-J2-ts1"]
+    run = case.simulate()
+    op, pv, mv = run.op[0], run.pv[0], run.mv[0]
+    as_pv = assess_quality(None, {"op": op, "pv": mv}, ts=1.0)
+    assert {"flatline", "compression"} & set(as_pv.codes())  # the held stretches are there
+    report = assess_quality(None, {"op": op, "pv": pv, "mv": mv}, ts=1.0)
+    assert report.usable, report.reasons()
+    assert not [i for i in report.issues if i.signal == "mv"]
