@@ -218,6 +218,27 @@ class LoopBuffers:
                 self._buffers[tag] = RingBuffer(horizon_s=self.horizon_s, ts=loop.ts)
             self._loops[loop.id] = loop
 
+    @classmethod
+    def from_store(cls, session: Session, loops: Sequence[LoopConfig], *, since: float,
+                   now: float) -> LoopBuffers:
+        """Buffers of ``loops`` refilled with their stored samples from ``since`` to ``now``.
+
+        A process that keeps no buffers (an API replica, ``--role api``) cuts
+        its windows from these exactly as the scheduler cuts them from its own.
+        """
+        buffers = cls(PlantConfig(), horizon_s=now - since + max(loop.ts for loop in loops))
+        for loop in loops:
+            buffers.add_loop(loop)
+        buffers.rebuild_from_store(session, now)
+        return buffers
+
+    def holds_samples(self, loop_id: str) -> bool:
+        """Whether any tag of the loop has a sample in its buffer (False for an unknown loop)."""
+        with self._lock:
+            loop = self._loops.get(loop_id)
+            return loop is not None and any(
+                len(self._buffers[tag]) > 0 for _, tag in loop.tags.items())
+
     @property
     def tags(self) -> frozenset[str]:
         """The tags that have a buffer."""

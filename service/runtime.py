@@ -13,13 +13,15 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from sqlalchemy.orm import Session
+
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
-from service.config import Settings
+from service.config import LoopConfig, Settings
 from service.ingest import (
     REFUSAL_REASONS,
     IngestError,
@@ -85,6 +87,14 @@ class AppState:
     spool: IngestSpool = field(init=False)
     keys: KeyVerifier = field(init=False)
     limiter: RateLimiter = field(init=False)
+
+    def buffers_for(self, session: Session, loops: Sequence[LoopConfig], window_s: float,
+                    now: float) -> LoopBuffers:
+        """The rolling buffers when this process keeps samples of ``loops``; else (an API
+        replica) buffers of ``loops`` rebuilt from the store for the window ending ``now``."""
+        if any(self.buffers.holds_samples(loop.id) for loop in loops):
+            return self.buffers
+        return LoopBuffers.from_store(session, loops, since=now - window_s, now=now)
 
     def __post_init__(self) -> None:
         self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)

@@ -13,6 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from analytics.synthetic_cases import synthetic_library
+from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings
 from service.server import build_service
 
@@ -224,3 +225,6 @@ def test_unit_diagnosis_names_the_sticky_valve_of_the_unit(client):
     assert body["loops_without_complete_window"] == []
     assert client.get("/api/v1/units/nope/diagnosis", headers=viewer).json() == {
         "detail": "Unit not found"}
+    # an API replica keeps no rolling buffers: the same diagnosis from the store
+    client.app.state.loopwatch.buffers = LoopBuffers(plant(), horizon_s=7200)
+    assert client.get("/api/v1/units/u1/diagnosis", headers=viewer).json() == body

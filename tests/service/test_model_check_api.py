@@ -16,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from analytics.model_check.cases import HiddenEffectCase, hidden_effect_case
+from service.buffer import LoopBuffers
 from service.config import Settings
 from service.server import build_service
 from tests.service.test_api import ADMIN, T0, plant
@@ -113,7 +114,7 @@ def test_without_a_model_one_is_identified(client) -> None:
     ("loop_id", "body", "status", "detail"),
     [
         ("NOPE", {}, 404, "Loop not found"),
-        ("FIC-2", {}, 404, "Loop FIC-2 has no OP and PV samples in the buffers"),
+        ("FIC-2", {}, 404, "Loop FIC-2 has no OP and PV samples in its window"),
         ("FIC-1", {"model": {"dt": 1}}, 422,
          "Invalid base model: the model lacks the key(s) 'process', 'controller'"),
         ("FIC-1", {"model": {"dt": 1, "process": {"type": "fopdt", "K": 1, "tau": 1e300},
@@ -147,3 +148,14 @@ def test_a_window_with_too_few_complete_samples_is_refused(tmp_path, gain_case) 
     finally:
         svc.executor.shutdown()
         svc.state.store.close()
+
+
+def test_an_api_replica_checks_the_same_window_from_the_store(client) -> None:
+    """A replica of ``--role api`` keeps no rolling buffers: it reads the window from the
+    store, and the check comes out the same."""
+    buffered = client.post(URL.format("FIC-1"), headers=HEADERS)
+    client.app.state.loopwatch.buffers = LoopBuffers(plant(), horizon_s=7200)
+    assert not client.app.state.loopwatch.buffers.holds_samples("FIC-1")
+    stored = client.post(URL.format("FIC-1"), headers=HEADERS)
+    assert buffered.status_code == stored.status_code == 200, stored.text
+    assert stored.json() == buffered.json()

@@ -1,7 +1,7 @@
 """Model check of a loop on its current window: ``POST /api/v1/loops/{id}/model-check``.
 
 Runs :func:`analytics.model_check.check_model` (issue 8) on the loop's
-latest window from the rolling buffers (``LOOPWATCH_WINDOW_S``), in % of
+latest window (``LOOPWATCH_WINDOW_S``; from the store on an API replica), in % of
 span as the analysis sees it, with the base model of the request body or,
 without one, a model identified from the window.  The answer is the JSON of
 ``loopwatch model-check --json`` plus the measured-versus-simulated PV
@@ -22,6 +22,7 @@ from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, check_model
 from service.analysis import to_percent_of_span
 from service.api.deps import Principal, SessionDep, StateDep, require
+from service.config import LoopConfig
 from service.store.models import Loop
 
 router = APIRouter(prefix="/api/v1", tags=["model check"])
@@ -69,7 +70,7 @@ async def loop_model_check(
 
     The model is checked on the longest stretch of the current window where
     OP, PV (and SP, when the loop has one) are all present.  404 for an
-    unknown loop or one without samples in the buffers; 422 with the reason
+    unknown loop or one without samples in its window; 422 with the reason
     for an invalid model, a loop without OP or PV, or too little complete data.
     """
     loop = session.get(Loop, loop_id)
@@ -80,10 +81,9 @@ async def loop_model_check(
         model = None if spec is None else LoopModel.from_dict(spec)
     except AnalyticsError as exc:
         raise HTTPException(422, f"Invalid base model: {exc}") from None
-    try:
-        window = state.buffers.window(loop_id, state.settings.window_s, state.clock())
-    except KeyError:
-        raise HTTPException(404, f"Loop {loop_id} has no samples in the buffers") from None
+    now, window_s = state.clock(), state.settings.window_s
+    config = LoopConfig.model_validate(loop.config)
+    window = state.buffers_for(session, [config], window_s, now).window(loop_id, window_s, now)
     ranges = loop.config.get("ranges") or {}
     if "pv" in ranges:
         ranges = {"sp": ranges["pv"], **ranges}  # the set point is in PV units
@@ -94,7 +94,7 @@ async def loop_model_check(
         raise HTTPException(422, f"A model check needs OP and PV; loop {loop_id} has no "
                                  f"{'OP' if op is None else 'PV'} tag")
     if not (np.isfinite(op).any() and np.isfinite(pv).any()):
-        raise HTTPException(404, f"Loop {loop_id} has no OP and PV samples in the buffers")
+        raise HTTPException(404, f"Loop {loop_id} has no OP and PV samples in its window")
     signals = [x for x in (op, pv, sp) if x is not None]
     start, stop = _longest_complete_stretch(signals)
     if stop - start < MIN_SAMPLES:

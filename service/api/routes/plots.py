@@ -46,7 +46,7 @@ from service.analysis import to_percent_of_span
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.api.routes.loops import loop_data
 from service.buffer import LoopBuffers, LoopWindowData
-from service.config import LoopConfig, PlantConfig
+from service.config import LoopConfig
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
 
@@ -83,18 +83,6 @@ def _holds_samples(window: LoopWindowData) -> bool:
     return any(x is not None and np.isfinite(x).any() for x in (window.op, window.pv))
 
 
-def _stored_window(session: SessionDep, state: StateDep, loop: Loop, start: float,
-                   end: float) -> LoopWindowData:
-    """The window cut from the stored samples exactly as the scheduler cuts it from its
-    buffers: a rolling buffer of this loop alone, rebuilt from the store back to ``start``."""
-    now = max(state.clock(), end)
-    config = LoopConfig.model_validate(loop.config)
-    buffers = LoopBuffers(PlantConfig(), horizon_s=now - start + config.ts)
-    buffers.add_loop(config)
-    buffers.rebuild_from_store(session, now)
-    return buffers.window(loop.id, end - start, end)
-
-
 def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
                      ) -> LoopWindowData:
     """The samples of ``run``'s window, in % of span: from the rolling buffer, else the store."""
@@ -104,8 +92,11 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
                                       run.window_end)
     except (KeyError, ValueError):
         window = None
-    if window is None or not _holds_samples(window):
-        window = _stored_window(session, state, loop, run.window_start, run.window_end)
+    if window is None or not _holds_samples(window):  # not in this process's buffers
+        stored = LoopBuffers.from_store(session, [LoopConfig.model_validate(loop.config)],
+                                        since=run.window_start,
+                                        now=max(state.clock(), run.window_end))
+        window = stored.window(loop.id, run.window_end - run.window_start, run.window_end)
     if not _holds_samples(window):
         raise HTTPException(404, "Samples of the analysed window are no longer stored")
     ranges = loop.config.get("ranges") or {}

@@ -28,7 +28,7 @@ async def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
     The scheduler's latest diagnosis of the unit (``source`` "scheduler", with
     its ``round_end``; 422 with the reason if it failed).  Only when none is
     stored is it computed now (``source`` "on_demand") from each loop's
-    latest window (``LOOPWATCH_WINDOW_S``) in the rolling buffers; the loops
+    latest window (``LOOPWATCH_WINDOW_S``; from the store on an API replica); the loops
     must share one sampling interval.  404 without loops or data; 422 when
     the windows cannot be analysed together.
     """
@@ -45,10 +45,14 @@ async def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
     loops = [LoopConfig.model_validate(loop.config) for loop in session.scalars(
         select(Loop).where(Loop.unit_id == unit_id).order_by(Loop.id))]
     now = state.clock()
-    windows = unit_windows(state.buffers, loops, state.settings.window_s, now)
+    if not loops:
+        raise HTTPException(404, "Unit diagnosis not available: the unit has no loops")
+    window_s = state.settings.window_s
+    windows = unit_windows(state.buffers_for(session, loops, window_s, now), loops, window_s,
+                           now)
     if not windows.signals:
         raise HTTPException(404, "Unit diagnosis not available: no loop of the unit has a "
-                                 "complete OP and PV window in the buffers")
+                                 "complete OP and PV window")
     try:
         result = await run_in_threadpool(analyse_unit, windows.signals, windows.ts)
     except (UnitWindowsError, AnalyticsError) as exc:
