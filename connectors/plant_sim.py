@@ -63,7 +63,8 @@ from typing import Any, Literal
 import numpy as np
 from asyncua import Server, ua
 
-from analytics.scenarios import column3x3
+from analytics.lti import TransferFunction
+from analytics.scenarios import COLUMN_PROCESS, column3x3
 from analytics.simulation import PIDController, SimulationResult
 from analytics.synthetic_cases import SyntheticCase, synthetic_library
 from connectors.base import ThreadedRunner
@@ -161,6 +162,35 @@ PLANT_LOOPS = SINGLE_LOOPS + COLUMN_LOOPS
 UNITS = (
     {"id": "column", "name": "Ethanol-water column, 3x3 (simulated, thesis Eq. 2.10)"},
 )
+
+
+def _span(loop: PlantLoop, signal: str) -> float:
+    low, high = dict(loop.ranges)[signal]
+    return high - low
+
+
+def _matrix_entry(g: TransferFunction, gain: float, speed: float) -> dict[str, Any]:
+    """``gain G(speed s)`` in the plant file's ``{"num", "den", "theta"}`` form: the model
+    in % of span per % of OP, in the plant's accelerated time."""
+    def scaled(coefficients: tuple[float, ...]) -> list[float]:
+        order = len(coefficients) - 1
+        return [c / speed ** (order - k) for k, c in enumerate(coefficients)]
+
+    return {"num": [gain * c for c in scaled(g.num)], "den": scaled(g.den),
+            "theta": g.delay / speed}
+
+
+def column_process(speed: float = 1.0) -> dict[str, Any]:
+    """The column unit's process matrix for the plant file (``units[].process``): thesis
+    Eq. 2.10 with each entry scaled from engineering units to % of span (``op`` span of
+    the valve's loop over ``pv`` span of the measured loop)."""
+    return {
+        "loops": [loop.id for loop in COLUMN_LOOPS],
+        "matrix": [[_matrix_entry(COLUMN_PROCESS[i][j],
+                                  _span(COLUMN_LOOPS[j], "op") / _span(pv_loop, "pv"), speed)
+                    for j in range(len(COLUMN_LOOPS))]
+                   for i, pv_loop in enumerate(COLUMN_LOOPS)],
+    }
 
 
 @dataclass(frozen=True)
@@ -396,7 +426,9 @@ class PlantSimulator:
         }]}
         if over_modbus:
             connectors["modbus"] = [self._modbus_section(sorted(over_modbus), addresses)]
-        return {"units": [dict(u) for u in UNITS], "loops": loops, "connectors": connectors}
+        units = [{**unit, "process": column_process(self.speed)} if unit["id"] == "column"
+                 else dict(unit) for unit in UNITS]
+        return {"units": units, "loops": loops, "connectors": connectors}
 
     def _modbus_section(
         self, loop_ids: list[str], addresses: dict[str, TagAddress]

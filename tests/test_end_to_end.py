@@ -73,6 +73,7 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
         found = verdicts()
         alarms = client.get("/api/v1/alarms", headers=HEADERS).json()["data"]
         column = client.get("/api/v1/units/column/diagnosis", headers=HEADERS).json()
+        prediction = client.get("/api/v1/units/column/prediction", headers=HEADERS)
         ticketed = tickets()
     assert plant.origin is not None
     for window, tag in ((over_opcua, "FIC-101.PV"), (over_modbus, "FIC-105.PV")):
@@ -90,6 +91,13 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert polled >= 5
 
     assert ticketed == {"FV-101", "FV-105", "FV-502"}  # no healthy valve has a ticket
+    # the unit's prediction takes the sticky valve's estimate, and the cleared valves as healthy
+    assert prediction.status_code == 200, prediction.text
+    valves = {v["loop"]: v for v in prediction.json()["valves"]}
+    sticky = valves["AIC-502"]["valve"]
+    assert sticky["model"] == "choudhury" and sticky["S"] > 0
+    assert all(valves[loop]["valve"] is None and "cleared_by_unit_run" in valves[loop]
+               for loop in ("AIC-501", "TIC-503"))
     assert found == {
         "FIC-101": (True, "stiction"), "FIC-105": (True, "stiction"),  # sticky valves
         "FIC-102": (True, "no_stiction"), "TIC-201": (True, "no_stiction"),  # tuning, disturbance

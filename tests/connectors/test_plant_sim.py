@@ -18,6 +18,8 @@ import pytest
 from asyncua import Client
 from pymodbus.client import AsyncModbusTcpClient
 
+from analytics.lti import TransferFunction
+from analytics.scenarios import COLUMN_PROCESS
 from analytics.synthetic_cases import synthetic_library
 from connectors.modbus import ModbusConnectorConfig, decode
 from connectors.opcua import OpcUaConnector, OpcUaEndpointConfig
@@ -254,6 +256,23 @@ def test_the_plant_configuration_is_one_the_service_and_the_connectors_accept():
         for tag in group.tags:
             assert group.start + tag.offset == next(
                 a.modbus_address for a in sim.address_map() if a.tag == tag.tag)
+
+
+def test_the_column_process_matrix_is_thesis_eq_2_10_in_percent_of_span_and_plant_time():
+    speed = 10.0
+    unit = parse_plant_config(plant(speed=speed).plant_config()).units[0]
+    assert unit.process is not None and unit.process.loops == [loop.id for loop in COLUMN_LOOPS]
+    omega = np.array([0.01, 0.1, 1.0])  # rad/s of the accelerated plant: G(j omega / speed)
+    op_span = [dict(loop.ranges)["op"][1] - dict(loop.ranges)["op"][0] for loop in COLUMN_LOOPS]
+    for i, row in enumerate(unit.process.matrix):
+        for j, entry in enumerate(row):
+            assert entry is not None
+            served = TransferFunction(tuple(entry["num"]), tuple(entry["den"]), entry["theta"])
+            # % of PV span (100) per % of OP span: the engineering gain times span_op / 100
+            np.testing.assert_allclose(
+                served.frequency_response(omega),
+                op_span[j] / 100.0 * COLUMN_PROCESS[i][j].frequency_response(omega / speed),
+                rtol=1e-12)
 
 
 def test_the_address_map_gives_every_tag_its_own_node_and_registers():

@@ -19,9 +19,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
+from service.analysis import valve_decisions
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.prediction import ModelError, predict_spec
 from service.store.models import AnalysisRun, Loop, Unit
+from service.tickets import latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"])
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -53,11 +55,14 @@ def _controller(loop: Loop) -> dict[str, Any]:
     return controller
 
 
-def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
+def _valve(session: Session, loop_id: str, cleared: dict[str, int]
+           ) -> tuple[dict[str, Any], str | None]:
     """The loop's valve from its latest analysis, and what is not known about it.
 
     A stiction finding gives a Choudhury valve of the estimated S and J (or He's
-    fs, fd when only those were estimated); no finding gives a healthy valve.
+    fs, fd when only those were estimated); no finding gives a healthy valve,
+    and so does a valve the unit's diagnosis cleared (``cleared``: loop -> unit
+    run; its loop cycles only with a sticky neighbour, thesis chapter 2).
     """
     run = session.scalars(
         select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
@@ -67,6 +72,9 @@ def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
         return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None},
                 f"{loop_id}: not analysed yet; its valve is taken as healthy")
     entry = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
+    if loop_id in cleared:
+        entry["cleared_by_unit_run"] = cleared[loop_id]
+        return entry, None
     if run.verdict != "stiction":
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
@@ -89,7 +97,9 @@ async def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
 
     Every limit cycle of the unit's loops (frequency, period, OP amplitude per
     loop, stability) beside the cycle simulated with the same model, and the
-    DF error (``comparison``).  ``valves`` says where each valve comes from;
+    DF error (``comparison``).  ``valves`` says where each valve comes from
+    (a valve the unit's latest diagnosis clears is healthy, with
+    ``cleared_by_unit_run``);
     ``unknown`` lists what was assumed.  404 for an unknown unit; 409 when the
     unit has no process matrix or a loop lacks a controller or a stiction size;
     422 when the loops are unstable without stiction.
@@ -109,9 +119,12 @@ async def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                                      "the store")
         loops.append(loop)
     controllers = [_controller(loop) for loop in loops]
+    unit_run = latest_unit_run(session, unit_id, ok_only=True)
+    cleared = ({} if unit_run is None or unit_run.result is None
+               else dict.fromkeys(valve_decisions(unit_run.result)[1], unit_run.id))
     valves, unknown = [], []
     for loop in loops:
-        entry, note = _valve(session, loop.id)
+        entry, note = _valve(session, loop.id, cleared)
         valves.append(entry)
         if note:
             unknown.append(note)
