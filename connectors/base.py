@@ -301,9 +301,15 @@ class BackgroundConnector(ABC):
     it holds before it ends, also when cancelled.
     """
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, clock: Callable[[], float] = time.time) -> None:
         self.name = name
         self._runner = ThreadedRunner(self.run, name=name)
+        self._outages = OutageLog(name, clock)
+
+    @property
+    def outages(self) -> list[Outage]:
+        """The times no data came from the source, oldest first (the last may be open)."""
+        return list(self._outages.outages)
 
     @abstractmethod
     async def run(self) -> None:

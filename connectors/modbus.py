@@ -56,8 +56,6 @@ from connectors.base import (
     BackgroundConnector,
     Backoff,
     DeliveryCounters,
-    Outage,
-    OutageLog,
     SampleSink,
     hand_over,
     item,
@@ -369,18 +367,12 @@ class ModbusConnector(BackgroundConnector):
         self._sink = sink
         self._backoff = backoff
         self._counters = ModbusCounters()
-        self._outages = OutageLog(self.name)
         self._failing_groups: set[int] = set()
 
     @property
     def counters(self) -> ModbusCounters:
         """A copy of the counters now."""
         return dataclasses.replace(self._counters)
-
-    @property
-    def outages(self) -> list[Outage]:
-        """The outages so far, oldest first (the last one may still be open)."""
-        return list(self._outages.outages)
 
     async def run(self) -> None:
         """Poll until cancelled, reconnecting after every loss."""

@@ -56,7 +56,7 @@ from pydantic import (
     model_validator,
 )
 
-from connectors.base import BackgroundConnector, Backoff, Outage, OutageLog, SampleSink, item
+from connectors.base import BackgroundConnector, Backoff, Outage, SampleSink, item
 
 __all__ = [
     "MONITORED_ITEMS_PER_CALL",
@@ -262,14 +262,13 @@ class OpcUaConnector(BackgroundConnector):
         backoff: Backoff = Backoff(),  # noqa: B008 -- frozen, so one shared default is safe
         clock: Callable[[], float] = time.time,
     ) -> None:
-        super().__init__(f"opcua {config.url}")
+        super().__init__(f"opcua {config.url}", clock)
         self.config = config
         self.sink = sink
         self.backoff = backoff
         self.clock = clock
         self._tags = {handle: node.tag for handle, node in enumerate(config.nodes, start=1)}
         self._counters = _Counters()
-        self._outages = OutageLog(self.name, clock)
         self._pending: dict[str, list[dict[str, Any]]] = {}
         self._pending_count = 0
         self._warned_tags: set[str] = set()

@@ -36,7 +36,8 @@ class Metrics:
             return self._counters.get((name, tuple(sorted(labels.items()))), 0.0)
 
     def render(self, gauges: dict[str, float] | None = None) -> str:
-        """The exposition text: every counter, then the given gauges."""
+        """The exposition text: every counter, then the given gauges (``name`` or
+        ``name{label="value"}``)."""
         lines: list[str] = []
         with self._lock:
             items = sorted(self._counters.items())
@@ -50,6 +51,9 @@ class Metrics:
             label_text = ",".join(f'{k}="{v}"' for k, v in labels)
             lines.append(f"{name}{{{label_text}}} {value:g}" if labels else f"{name} {value:g}")
         for name, value in sorted((gauges or {}).items()):
-            lines.append(f"# TYPE {name} gauge")
+            base = name.split("{", 1)[0]  # a gauge may carry labels: name{label="value"}
+            if base not in seen:
+                seen.add(base)
+                lines.append(f"# TYPE {base} gauge")
             lines.append(f"{name} {value:g}")
         return "\n".join(lines) + "\n"

@@ -15,10 +15,11 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from sqlalchemy.orm import Session
 
+from connectors.base import Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
@@ -74,6 +75,16 @@ class SampleAccounting:
                                  + sum(self.refused.values()) + self.spooled)
 
 
+class WatchedSource(Protocol):
+    """What the service reports of a connector: its name and its outages."""
+
+    name: str
+
+    @property
+    def outages(self) -> list[Outage]:
+        """The times no data came, oldest first (the last one may still be open)."""
+
+
 @dataclass
 class AppState:
     """Everything the routes, the scheduler and the feeders share."""
@@ -84,6 +95,7 @@ class AppState:
     buffers: LoopBuffers
     metrics: Metrics = field(default_factory=Metrics)
     clock: Callable[[], float] = time.time
+    sources: list[WatchedSource] = field(default_factory=list)
     spool: IngestSpool = field(init=False)
     keys: KeyVerifier = field(init=False)
     limiter: RateLimiter = field(init=False)

@@ -50,7 +50,7 @@ from service.executors import make_executor
 from service.leader import make_election
 from service.metrics import Metrics
 from service.plant import PlantRegistry, sync_plant
-from service.runtime import AppState
+from service.runtime import AppState, WatchedSource
 from service.scheduler import AnalysisScheduler
 from service.store.db import Store
 from service.tickets import TicketWebhook, get_ticket
@@ -79,7 +79,7 @@ INGEST_ROLES = frozenset({"ingest", "all"})
 SCHEDULING_ROLES = frozenset({"scheduler", "all"})
 
 
-class Connector(Protocol):
+class Connector(WatchedSource, Protocol):
     """A connector as the service runs it (:class:`connectors.opcua.OpcUaConnector` fits)."""
 
     def start(self) -> None:
@@ -259,6 +259,7 @@ def build_service(
             connectors = connector_factory(plant, lambda _: True, feeder.live_sink(state.ingest))
         else:
             connectors = connector_factory(plant, owns, state.ingest)
+    state.sources = list(connectors)
     return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
                    create_app(state), role=role, connectors=connectors)
 

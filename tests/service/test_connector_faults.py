@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from connectors.modbus import ModbusConnector
@@ -54,6 +55,15 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
         service = build_service(settings, plant_config, connector_factory=build_connectors)
         opcua, modbus = sorted(service.connectors, key=lambda c: type(c).__name__, reverse=True)
         assert isinstance(opcua, OpcUaConnector) and isinstance(modbus, ModbusConnector)
+        client = TestClient(service.app)
+
+        async def metrics() -> str:
+            """``GET /metrics`` as an operator's monitoring would scrape it."""
+            response = await asyncio.to_thread(client.get, "/metrics",
+                                               headers={"X-API-Key": ADMIN})
+            assert response.status_code == 200, response.text
+            return str(response.text)
+
         await asyncio.to_thread(service.start)
         try:
             await until("samples over both protocols",
@@ -66,10 +76,15 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 times[f"{server} down"] = time.time()
                 await plant.take_down(server)
                 await until(f"the {server} loss to be noticed", lambda c=connected: not c())
+                name = opcua.name if server == "opcua" else modbus.name
+                assert f'loopwatch_connector_up{{connector="{name}"}} 0' in await metrics()
                 await asyncio.sleep(DOWN_S)
                 times[f"{server} up"] = time.time()
                 await plant.bring_back(server)
                 await until(f"{server} to reconnect", lambda r=reconnects: r() == 1)
+                scraped = await metrics()
+                assert f'loopwatch_connector_up{{connector="{name}"}} 1' in scraped
+                assert f'loopwatch_connector_outages{{connector="{name}"}} 1' in scraped
             bad_before = (opcua.stats.bad, modbus.counters.bad)
             plant.set_bad("FIC-101.PV")  # over OPC UA
             plant.set_bad("FIC-105.PV")  # over Modbus

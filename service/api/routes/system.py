@@ -24,7 +24,8 @@ def liveness() -> dict[str, str]:
 def metrics(
     session: SessionDep, state: StateDep, _: Annotated[Principal, Depends(require("read"))]
 ) -> str:
-    """Counters and gauges in the Prometheus text format."""
+    """Counters and gauges in the Prometheus text format; per connector whether data
+    comes now (``loopwatch_connector_up``), its outages and their total length."""
     gauges = {
         "loopwatch_loops": float(session.scalar(select(func.count()).select_from(Loop)) or 0),
         "loopwatch_alarms_active": float(
@@ -36,4 +37,12 @@ def metrics(
             ) or 0
         ),
     }
+    now = state.clock()
+    for source in state.sources:
+        outages = source.outages
+        label = f'{{connector="{source.name}"}}'
+        gauges[f"loopwatch_connector_up{label}"] = float(not outages or outages[-1].end is not None)
+        gauges[f"loopwatch_connector_outages{label}"] = float(len(outages))
+        gauges[f"loopwatch_connector_outage_seconds{label}"] = sum(
+            (now if o.end is None else o.end) - o.start for o in outages)
     return state.metrics.render(gauges)
