@@ -262,14 +262,16 @@ def _free_port(host: str) -> int:
         return int(probe.getsockname()[1])
 
 
-def _controller_config(controller: PIDController, speed: float) -> dict[str, Any]:
-    """The DCS view of a simulated PI controller: Kc > 0 with an action, Ti in s."""
+def _controller_config(controller: PIDController, speed: float, loop: PlantLoop
+                       ) -> dict[str, Any]:
+    """The DCS view of a simulated PI controller: Kc > 0 in OP % per PV % of span (the
+    simulated gain is in engineering units) with an action, Ti in s."""
     action = controller.action
     if controller.kp < 0:  # a negative gain is the other action (thesis Eq. 2.12)
         action = "direct" if action == "reverse" else "reverse"
     return {
         "type": "PI",
-        "Kc": abs(controller.kp),
+        "Kc": abs(controller.kp) * _span(loop, "pv") / _span(loop, "op"),
         "Ti": controller.kp / controller.ki / speed,
         "action": action,
     }
@@ -409,7 +411,7 @@ class PlantSimulator:
                 "process_type": model.process_type,
                 "valve_asset": loop.valve_asset,
                 "importance": loop.importance,
-                "controller": _controller_config(model.controller, self.speed),
+                "controller": _controller_config(model.controller, self.speed, loop),
             })
         addresses = {a.tag: a for a in self.address_map()}
         over_opcua = [loop.id for loop in self.loops if loop.id not in over_modbus]

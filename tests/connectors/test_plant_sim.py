@@ -251,6 +251,9 @@ def test_the_plant_configuration_is_one_the_service_and_the_connectors_accept():
     assert plant_config.loop("FIC-101").ts == pytest.approx(0.1)  # ts 1 s, 10 x faster
     assert plant_config.loop("AIC-502").controller is not None
     assert plant_config.loop("AIC-502").controller.action == "direct"  # Kp < 0, Eq. 2.12
+    # Kc in OP % per PV % of span: TIC-503 moves its valve (span 450) by 0.675 units per unit
+    # of PV (span 100), i.e. 0.15 % of travel per % of PV (Eq. 2.13)
+    assert plant_config.loop("TIC-503").controller.Kc == pytest.approx(0.15)
     assert opcua.sampling_interval_ms == pytest.approx(50.0)  # the column: 0.5 s / 10
     for group in modbus.groups:  # each group's registers are the loop's in the map
         for tag in group.tags:
