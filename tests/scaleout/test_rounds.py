@@ -4,6 +4,7 @@ Two services share one store (SQLite and PostgreSQL), as two scheduler
 processes would; their clocks stand at T0 and the rounds sit on a 500 s grid.
 """
 
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -184,13 +185,22 @@ def test_no_more_than_two_analyses_per_worker_are_in_flight(
             super().__init__(1)
             self.futures: list[Future[Any]] = []
             self.most_in_flight = 0
+            self.second_submitted = threading.Event()
 
         def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
             in_flight = sum(not f.done() for f in self.futures) + 1
             self.most_in_flight = max(self.most_in_flight, in_flight)
-            future = super().submit(fn, *args, **kwargs)
+            if self.futures:
+                self.second_submitted.set()
+                future = super().submit(fn, *args, **kwargs)
+            else:  # the first job waits for the second submission, however slow the machine
+                future = super().submit(self.after_second_submission, fn, *args, **kwargs)
             self.futures.append(future)
             return future
+
+        def after_second_submission(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+            self.second_submitted.wait(60)
+            return fn(*args, **kwargs)
 
     executor = CountingExecutor()
     svc = make_service(executor=executor, plant_config=six, workers=1)
