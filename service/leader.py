@@ -31,6 +31,7 @@ import socket
 import threading
 import time
 import uuid
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, cast
 
@@ -75,7 +76,7 @@ def advisory_key(name: str) -> int:
     return int.from_bytes(digest[:8], "big", signed=True)
 
 
-class Election:
+class Election(ABC):
     """The background thread common to both elections; subclasses hold or release.
 
     Parameters
@@ -110,13 +111,13 @@ class Election:
         """True while the leadership is held (and, for a lease, not run out)."""
         return self.clock() < self._valid_until
 
+    @abstractmethod
     def _hold(self) -> float | None:
         """Take or keep the leadership; the time it is held until, or None if not held."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _let_go(self) -> None:
         """Give up the leadership (on a clean stop)."""
-        raise NotImplementedError
 
     def poll(self) -> bool:
         """One attempt to take or keep the leadership; True if held afterwards."""
