@@ -68,6 +68,7 @@ __all__ = [
     "check_transition",
     "evidence_from_run",
     "get_ticket",
+    "latest_loop_run",
     "latest_unit_run",
     "list_tickets",
     "ticket_payload",
@@ -267,6 +268,14 @@ def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[Analys
             break
         streak.append(run)
     return streak
+
+
+def latest_loop_run(session: Session, loop_id: str) -> AnalysisRun | None:
+    """The loop's newest analysis that ended ``ok``, or None."""
+    return session.scalars(
+        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
+        .order_by(AnalysisRun.id.desc()).limit(1)
+    ).first()
 
 
 def latest_unit_run(session: Session, unit_id: str, *, ok_only: bool = False

@@ -8,13 +8,13 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy import select
 
 from analytics.errors import AnalyticsError
 from analytics.tuning import advise
 from service.api.deps import Principal, SessionDep, require
 from service.loop_model import ModelUnavailableError, identified_loop
-from service.store.models import AnalysisRun, Loop
+from service.store.models import Loop
+from service.tickets import latest_loop_run
 
 router = APIRouter(tags=["advice"])  # included by the loops router under /api/v1
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -42,10 +42,7 @@ async def loop_advice(loop_id: str, session: SessionDep, _: Reader) -> dict[str,
     loop = session.get(Loop, loop_id)
     if loop is None:
         raise HTTPException(404, "Loop not found")
-    run = session.scalars(
-        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
-        .order_by(AnalysisRun.id.desc()).limit(1)
-    ).first()
+    run = latest_loop_run(session, loop_id)
     if run is None:
         raise HTTPException(404, "Advice not available: the loop has not been analysed yet")
     try:

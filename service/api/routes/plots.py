@@ -49,6 +49,7 @@ from service.buffer import LoopBuffers, LoopWindowData
 from service.config import LoopConfig
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
+from service.tickets import latest_loop_run
 
 router = APIRouter(prefix="/api/v1/loops", tags=["plots"])
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -70,10 +71,7 @@ def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
 
 
 def _latest_run(session: SessionDep, loop_id: str) -> AnalysisRun:
-    run = session.scalars(
-        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
-        .order_by(AnalysisRun.id.desc()).limit(1)
-    ).first()
+    run = latest_loop_run(session, loop_id)
     if run is None or run.result is None:
         raise HTTPException(404, f"No analysis of loop {loop_id} yet")
     return run

@@ -15,15 +15,14 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
 from service.analysis import valve_decisions
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.prediction import ModelError, predict_spec
-from service.store.models import AnalysisRun, Loop, Unit
-from service.tickets import latest_unit_run
+from service.store.models import Loop, Unit
+from service.tickets import latest_loop_run, latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"])
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -64,10 +63,7 @@ def _valve(session: Session, loop_id: str, cleared: dict[str, int]
     and so does a valve the unit's diagnosis cleared (``cleared``: loop -> unit
     run; its loop cycles only with a sticky neighbour, thesis chapter 2).
     """
-    run = session.scalars(
-        select(AnalysisRun).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok")
-        .order_by(AnalysisRun.id.desc()).limit(1)
-    ).first()
+    run = latest_loop_run(session, loop_id)
     if run is None:
         return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None},
                 f"{loop_id}: not analysed yet; its valve is taken as healthy")
