@@ -556,9 +556,10 @@ class _Window:
         samples_per_cycle: int,
         max_samples: int,
         max_delay_fraction: float,
-    ) -> _Window:
+    ) -> _Window | None:
         """Average the most recent ``max_samples`` blocks of about a
-        ``samples_per_cycle``-th of the period (``factor`` raw samples each)."""
+        ``samples_per_cycle``-th of the period (``factor`` raw samples each); None when
+        less than a period is left to score after the model valve's start."""
         factor = max(1, int(period // samples_per_cycle))
         n_blocks = min(op.size // factor, max_samples)
         first = op.size - n_blocks * factor
@@ -571,6 +572,8 @@ class _Window:
         first_turn, direction = _first_turning_point(op_w, op_blocks, factor, period_blocks)
         # Score once the delayed model MV no longer reaches back before the start.
         start = max(math.ceil(period_blocks), first_turn // factor) + max_block_delay + 1
+        if n_blocks - start < period_blocks:
+            return None
         signals = np.array([pv_blocks[start:], pv_blocks[start:] - pv_blocks[start - 1 : -1]])
         # Steps of 2 s_max >= 2 S: every model moves at each and arrives moving.
         lead_in = op_w[first_turn] - direction * s_max * np.array([6.0, 4.0, 2.0])
@@ -936,6 +939,11 @@ def quantify_stiction(
     window = _Window.build(
         op_a, pv_a, ts, period, samples_per_cycle, max_samples, max_delay_fraction
     )
+    if window is None:
+        return _not_quantified(
+            f"OP turns too late in the window ({op_a.size / period:.1f} cycles) to replay "
+            "a valve model over a whole cycle", period_s,
+        )
     s_max = window.s_max
     if not s_max > 0:
         return _not_quantified("OP does not move", period_s)

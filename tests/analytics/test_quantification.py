@@ -232,3 +232,18 @@ def test_estimates_match_the_reference_implementation(name: str) -> None:
         valve, integrating, found
     )
     assert est.search.evaluations == evaluations
+
+
+def test_a_window_whose_op_turns_too_late_is_not_quantified():
+    # An hour at 4 s holding 3.5 irregular cycles of about 1,030 s (a sticky temperature
+    # loop in noise): the model valve can only start at an OP turn in the last cycle, so
+    # nothing is left to score.  This used to raise a TypeError from inside numpy.
+    case = next(c for c in synthetic_library(28800) if c.name == "temp-kano-S2-J1-ts4")
+    run = case.simulate()
+    op, pv = run.op[0][6750:7650], run.pv[0][6750:7650]
+    estimate = quantify_stiction(op, pv, case.ts, process_type="self-regulating",
+                                 period_s=1034.28)
+    assert estimate.S is None and not estimate.stiction_found
+    assert estimate.issues == (
+        "OP turns too late in the window (3.5 cycles) to replay a valve model over a whole "
+        "cycle",)
