@@ -115,6 +115,11 @@ class RingBuffer:
         self._rebuild(t, v)
 
     @property
+    def oldest_time(self) -> float | None:
+        """Time of the oldest sample held, or None when empty."""
+        return float(self._t[self._head]) if self._size else None
+
+    @property
     def _last(self) -> int:
         return (self._head + self._size - 1) % self.capacity
 
@@ -238,6 +243,12 @@ class LoopBuffers:
             loop = self._loops.get(loop_id)
             return loop is not None and any(
                 len(self._buffers[tag]) > 0 for _, tag in loop.tags.items())
+
+    def history_start(self) -> float | None:
+        """Time of the oldest sample held for any loop, or None when nothing is held."""
+        with self._lock:
+            times = [buffer.oldest_time for buffer in self._buffers.values()]
+        return min((t for t in times if t is not None), default=None)
 
     @property
     def tags(self) -> frozenset[str]:

@@ -294,7 +294,9 @@ class Settings(BaseSettings):
     buffer_horizon_s: float = Field(default=4 * 3600.0, gt=0)
     sample_retention_days: float = Field(default=30.0, gt=0)
     ticket_confirmations: int = Field(
-        default=2, ge=1, description="consecutive stiction findings that open a ticket"
+        default=2, ge=1,
+        description="stiction findings on windows that do not overlap, with no other finding "
+        "in between, that open a ticket",
     )
     workers: int = Field(default=2, ge=1, description="analysis process-pool size")
     analysis_timeout_s: float = Field(default=60.0, gt=0)

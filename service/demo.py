@@ -4,14 +4,15 @@
 :mod:`connectors.plant_sim` (six single loops with known faults and a 3x3
 column with one sticky valve).  :class:`DemoFeeder` serves it on free
 loopback ports from a thread of the service, and the service reads it
-through its connectors like any plant.  So that the first analysis has a
-full window, the last ``history_s`` of the plant is ingested at start, as a
+through its connectors like any plant.  So that the first analyses have full
+windows (the latest, and the earlier ones the ticket rule confirms on), the
+last ``history_s`` of the plant is ingested at start, as a
 historian back-fill would be, and once the connectors deliver, each tag's
 samples up to its first live one: the window runs on from history to live
 data without a gap.
 
 The simulation starts ``history_s`` before the service, so the first
-analyses of every start see the same simulated hour.
+analyses of every start see the same simulated history.
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ class DemoFeeder:
     Parameters
     ----------
     history_s : float
-        Seconds of plant history back-filled (the analysis window).
+        Seconds of plant history back-filled (the windows a sticky valve's ticket needs,
+        :meth:`service.scheduler.AnalysisScheduler.due_rounds`).
     max_batch_samples : int
         The most samples one ingest batch may hold.
     clock : callable

@@ -93,6 +93,14 @@ IN_FLIGHT_PER_SLOT = 2
 MAX_TRIES = 2
 """Tries of an analysis whose worker died or hung: the first and one retry (issue 10)."""
 
+HISTORY_ROUNDS_PER_WINDOW = 4
+"""History rounds per window length (:meth:`AnalysisScheduler.due_rounds`): the runs
+between two confirmations on separate windows must find stiction too."""
+
+HISTORY_WINDOW_COVERED = 0.9
+"""Share of a window the buffers must hold before a new installation analyses it as
+history (:meth:`AnalysisScheduler.due_rounds`); the data quality screen judges the rest."""
+
 
 @dataclass(frozen=True)
 class RunSummary:
@@ -276,7 +284,8 @@ class AnalysisScheduler:
         """The rounds to run at ``now``, oldest first (see the module docstring).
 
         Rounds older than the newest whose window has left the buffer horizon
-        are dropped, counted and logged.
+        are dropped, counted and logged.  A new installation (no scheduled run
+        stored) also runs the history it holds (:meth:`_history_rounds`).
         """
         newest = math.floor(now / self.settings.analysis_interval_s)
         with self.store.session() as session:
@@ -297,7 +306,32 @@ class AnalysisScheduler:
             log.warning("%d analysis round(s) between %.0f and %.0f can no longer be run: "
                         "their windows have left the buffer horizon", missed, rounds[0],
                         runnable[0])
+        if last is None:
+            return self._history_rounds(runnable[0]) + runnable
         return runnable
+
+    def _history_rounds(self, first: float) -> list[float]:
+        """Grid rounds before the first round of a new installation whose windows the
+        buffers hold (at least :data:`HISTORY_WINDOW_COVERED` of each), oldest first:
+        :data:`HISTORY_ROUNDS_PER_WINDOW` per window, back to ``ticket_confirmations - 1``
+        windows before ``first``.
+
+        The ticket rule needs stiction found on windows that do not overlap, and
+        on every window between them (:mod:`service.tickets`): with these, a
+        sticky valve in the history a historian or the demo back-fills gets its
+        ticket at start instead of after ``ticket_confirmations`` windows of
+        waiting, and a loop whose findings come and go does not.
+        """
+        start = self.buffers.history_start()
+        window, interval = self.settings.window_s, self.settings.analysis_interval_s
+        step = math.ceil(window / HISTORY_ROUNDS_PER_WINDOW / interval) * interval
+        rounds: list[float] = []
+        for k in range(1, (self.settings.ticket_confirmations - 1) * HISTORY_ROUNDS_PER_WINDOW + 1):
+            round_end = first - k * step
+            if start is None or start > round_end - HISTORY_WINDOW_COVERED * window:
+                break
+            rounds.insert(0, round_end)
+        return rounds
 
     def run_due(self) -> list[RunSummary]:
         """One turn of the leader: housekeeping, buffer sync, then every due round."""

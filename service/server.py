@@ -215,7 +215,9 @@ def build_service(
     reads_plant = role in INGEST_ROLES and connector_factory is not None
     feeder = None
     if plant is None and reads_plant and owns(DEMO_ENDPOINT):
-        feeder = DemoFeeder(history_s=settings.window_s,
+        # enough history for the ticket rule's confirmations on windows that do not overlap
+        history_s = settings.ticket_confirmations * settings.window_s + settings.analysis_interval_s
+        feeder = DemoFeeder(history_s=min(history_s, settings.buffer_horizon_s),
                             max_batch_samples=settings.max_batch_samples, clock=clock)
         plant = feeder.plant_config
     elif plant is None:

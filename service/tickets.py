@@ -1,9 +1,16 @@
 """Valve-repair tickets: stiction confirmed by repeated analyses goes to maintenance.
 
 Opening.  The scheduler calls :func:`update_ticket_from_analysis` after each
-analysis run is stored.  A ticket is opened when the newest
-``confirmations_needed`` runs of the loop all have status ``ok`` and verdict
-``stiction`` (any other run, a failed one included, ends the streak).  There
+analysis run is stored.  A ticket is opened when ``confirmations_needed``
+runs on windows that do not overlap found stiction, and so did every run in
+between: the loop's runs are read newest first, any run that is not ``ok``
+with verdict ``stiction`` (a failed one included) ends the streak, and a run
+counts as a confirmation only if its window ends before the window of the
+last counted one starts.  Runs every minute on hour-long windows share most
+of their data, so their verdicts are not independent: a healthy loop whose
+analyses now and then find weak stiction must not get a ticket from two of
+them a minute apart.  A new installation confirms from the history it finds
+(:meth:`service.scheduler.AnalysisScheduler.due_rounds`).  There
 is at most one active ticket per valve asset: a further confirmation updates
 the evidence of that ticket and records an ``evidence updated`` event instead
 of opening another.  A ticket that is ``done`` or ``cancelled`` does not block
@@ -117,6 +124,10 @@ stiction in % of valve span; ``period_s``: oscillation period;
 in % of span.  The stored evidence adds ``loop_id``, ``valve_asset``, ``fs``,
 ``fd`` (He's parameters, % of span), ``confirmations`` and ``plots``.
 """
+
+RUNS_READ_PER_BATCH = 100
+"""Runs fetched at a time while looking back for confirmations (one window of minute
+rounds is 60 of them)."""
 
 SHORT_TEXT_CHARS = 40
 """SAP PM notification short text (QMTXT) length."""
@@ -255,19 +266,30 @@ def _checked_evidence(
 
 
 def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[AnalysisRun]:
-    """The loop's newest runs that found stiction, newest first, up to the first that did not."""
-    newest = session.scalars(
+    """Up to ``needed`` runs that found stiction on windows that do not overlap, newest
+    first, from the loop's unbroken streak of stiction findings (module docstring)."""
+    newest_first = (
         select(AnalysisRun)
         .where(AnalysisRun.loop_id == loop_id)
         .order_by(AnalysisRun.started_at.desc(), AnalysisRun.id.desc())
-        .limit(needed)
-    ).all()
-    streak = []
-    for run in newest:
-        if run.status != "ok" or run.verdict != "stiction":
-            break
-        streak.append(run)
-    return streak
+        .execution_options(yield_per=RUNS_READ_PER_BATCH)
+    )
+    confirmations: list[AnalysisRun] = []
+    with session.scalars(newest_first) as runs:
+        for run in runs:
+            if run.status != "ok" or run.verdict != "stiction":
+                break
+            if not confirmations or _window(run)[1] <= _window(confirmations[-1])[0]:
+                confirmations.append(run)
+                if len(confirmations) == needed:
+                    break
+    return confirmations
+
+
+def _window(run: AnalysisRun) -> tuple[float, float]:
+    """The run's window (start, end); a run without one stands for the instant it started."""
+    start = run.started_at if run.window_start is None else run.window_start
+    return start, run.started_at if run.window_end is None else run.window_end
 
 
 def latest_loop_run(session: Session, loop_id: str) -> AnalysisRun | None:
@@ -309,8 +331,8 @@ def _describe(evidence: dict[str, Any]) -> str:
         _utc(t).isoformat(timespec="seconds") for t in (e["window_start"], e["window_end"])
     )
     return "\n".join([
-        f"Valve stiction confirmed by {e['confirmations']} consecutive analyses of loop "
-        f"{e['loop_id']} (valve {e['valve_asset']}).",
+        f"Valve stiction confirmed by {e['confirmations']} analyses of separate windows of "
+        f"loop {e['loop_id']} (valve {e['valve_asset']}).",
         f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
         f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])}).",
         f"Oscillation: period {period}, amplitude OP {_pct(e['amplitude_op'])}, "
@@ -380,7 +402,7 @@ def update_ticket_from_analysis(
         )
         ticket.events.append(TicketEvent(
             at=now, from_state=None, to_state="open", actor=ANALYSIS_ACTOR,
-            note=f"opened: stiction confirmed by {len(streak)} consecutive analyses "
+            note=f"opened: stiction confirmed by {len(streak)} analyses of separate windows "
                  f"(run {stored['run_id']}, priority {priority})",
         ))
         session.add(ticket)

@@ -3,10 +3,12 @@
 The service is built with no plant file and the connectors of the plant file
 (``connector_factory=build_connectors``): the simulated plant is served over
 OPC UA and Modbus TCP on free loopback ports, the service reads it through
-its OPC UA and Modbus connectors, and the last hour -- the analysis window --
-is back-filled at start through the same ingest.  The scheduler, every
-``INTERVAL_S``, then finds the sticky valves: the tickets and alarms are
-read through the REST API, and every sample received is accounted for.
+its OPC UA and Modbus connectors, and the last two hours -- the analysis
+windows of the ticket rule's two confirmations -- are back-filled at start
+through the same ingest.  The scheduler analyses that history, then every
+``INTERVAL_S`` the newest window, and finds the sticky valves: the tickets
+and alarms are read through the REST API, and every sample received is
+accounted for.
 """
 
 import time
@@ -122,5 +124,8 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert modbus.counters.samples == modbus.counters.delivered
     per_second = sum(3 / plant.sample_interval(loop.id) for loop in plant.loops)
     backfilled_s = (books.received - live_samples) / per_second
-    assert 3600 <= backfilled_s < 3600 + 30  # the hour, and the seconds up to the live samples
+    # two hours (the windows of the ticket rule's two confirmations), and the seconds up to
+    # the live samples
+    assert service.feeder.history_s == 7200
+    assert 7200 <= backfilled_s < 7200 + 30
     assert not opcua.stats.outages and not modbus.outages

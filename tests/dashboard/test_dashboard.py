@@ -84,7 +84,7 @@ class RunningService:
 def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningService]:
     database = tmp_path_factory.mktemp("dashboard") / "loopwatch.db"
     settings = Settings(database_url=f"sqlite:///{database}", api_key=ADMIN, window_s=3600,
-                        buffer_horizon_s=7200, ticket_confirmations=2)
+                        buffer_horizon_s=7200, ticket_confirmations=1)
     service = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(service.app, host="127.0.0.1", port=port,
@@ -103,7 +103,7 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningService
             running.keys[role] = created["key"]
         report = running.call("POST", "/api/v1/ingest", "historian", simulated_batch())
         assert report["stored"] == 6 * 3600, report
-        for _ in range(2):  # two confirming analyses open the ticket
+        for _ in range(2):  # the first analysis opens the ticket, the second updates it
             service.scheduler.run_once(T0)
         yield running
     finally:

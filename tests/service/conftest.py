@@ -47,8 +47,8 @@ def make_service(store):
     made: list[Service] = []
 
     def make(executor: Executor | None = None, **overrides: Any) -> Service:
-        settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                            buffer_horizon_s=7200, **overrides)
+        settings = Settings(**{"database_url": store.url, "api_key": ADMIN, "window_s": 3600,
+                               "buffer_horizon_s": 7200, **overrides})
         svc = build_service(settings, plant(), executor=executor or ThreadPoolExecutor(1),
                             clock=lambda: T0)
         made.append(svc)

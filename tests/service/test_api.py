@@ -119,9 +119,10 @@ def test_ingest_is_idempotent_and_reports_refusals(client):
 def test_analysis_alarm_and_ticket_lifecycle(service, client):
     historian, viewer = key(client, "historian"), key(client, "viewer")
     operator, maintenance = key(client, "operator"), key(client, "maintenance")
-    assert client.post("/api/v1/ingest", json=simulated_batch(),
+    # two hours: tickets need stiction found on windows that do not overlap
+    assert client.post("/api/v1/ingest", json=simulated_batch(7200),
                        headers=historian).status_code == 200
-    first = service.scheduler.run_once(T0)
+    first = service.scheduler.run_once(T0 - 3600)
     assert {r.loop_id: r.status for r in first} == {"FIC-1": "ok", "FIC-2": "ok"}
     loops = {x["id"]: x for x in client.get("/api/v1/loops", headers=viewer).json()["data"]}
     assert loops["FIC-1"]["oscillating"] is True

@@ -409,7 +409,7 @@ def test_png_is_the_svg_rasterised():
 @pytest.fixture
 def service(store):
     settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                        buffer_horizon_s=7200, ticket_confirmations=2)
+                        buffer_horizon_s=7200, ticket_confirmations=1)
     svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
     yield svc
     svc.executor.shutdown()
@@ -423,7 +423,8 @@ def client(service):
 
 @pytest.fixture
 def analysed(service, client):
-    """FIC-1 (sticky valve) and FIC-2 (healthy) ingested and analysed twice."""
+    """FIC-1 (sticky valve) and FIC-2 (healthy) ingested and analysed twice (the first
+    analysis opens FV-1's ticket, the second updates it)."""
     assert client.post("/api/v1/ingest", json=simulated_batch(),
                        headers=HEADERS).status_code == 200
     for _ in range(2):

@@ -1,5 +1,7 @@
-"""The scheduler: one loop's failure or hang never holds up the others; housekeeping."""
+"""The scheduler: one loop's failure or hang never holds up the others; housekeeping;
+a new installation analyses the history it holds."""
 
+import math
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -7,7 +9,7 @@ import pytest
 from sqlalchemy import func, select
 
 from service.analysis import analyse_window
-from service.store.models import AnalysisRun, Sample
+from service.store.models import AnalysisRun, Sample, Ticket
 from tests.service.test_api import T0, simulated_batch
 
 
@@ -64,3 +66,30 @@ def test_samples_past_the_retention_period_are_purged(make_service):
     assert oldest >= T0 - 600
     assert after == 6 * 601  # T0 - 600 s to T0 inclusive
     assert svc.state.metrics.value("loopwatch_samples_purged_total") == before - after
+
+
+@pytest.mark.parametrize(("confirmations", "tickets"), [(2, ["FV-1"]), (3, [])])
+def test_a_new_installation_confirms_on_the_history_it_holds(make_service, confirmations,
+                                                             tickets):
+    # Tickets need stiction on windows that do not overlap, and on every window between
+    # them (service.tickets).  With an hour of history and half-hour windows a new
+    # installation analyses four windows (8 min apart) before the newest: the oldest ends
+    # before the newest starts, enough for a ticket when two confirmations are needed, not
+    # for three.
+    svc = make_service(window_s=1800, analysis_interval_s=60,
+                       ticket_confirmations=confirmations)
+    newest = math.floor(T0 / 60) * 60
+    assert svc.scheduler.due_rounds(T0) == [newest]  # nothing held yet: no history round
+    svc.state.ingest(simulated_batch())  # the hour before T0: FIC-1 sticks, FIC-2 does not
+    assert svc.scheduler.due_rounds(T0) == [newest - k * 480 for k in (4, 3, 2, 1, 0)]
+    svc.scheduler.election = None  # the only scheduler: it leads
+    done = svc.scheduler.run_due()
+    assert [(s.loop_id, s.verdict) for s in done] == [
+        ("FIC-1", "stiction"), ("FIC-2", "no_stiction")] * 5
+    with svc.state.store.session() as session:
+        opened = session.scalars(select(Ticket)).all()
+        assert [t.valve_asset for t in opened] == tickets
+        if tickets:
+            assert opened[0].malfunction_start == newest - 4 * 480 - 1800
+            assert opened[0].evidence["confirmations"] == 2
+    assert svc.scheduler.run_due() == []  # the history is not run again

@@ -72,12 +72,12 @@ def events(ticket):
 # --- opening and evidence --------------------------------------------------
 
 
-def test_ticket_opens_on_the_third_consecutive_confirmation(store):
+def test_ticket_opens_on_the_third_confirmation_on_separate_windows(store):
     with store.session() as s:
         add_loop(s)
         runs = []
         for k in range(3):  # the scheduler stores each run, then calls
-            runs.append(add_run(s, at=T0 + WINDOW_S + 60 * k))
+            runs.append(add_run(s, at=T0 + WINDOW_S * (k + 1)))
             ticket = analyse(s, runs[-1])
             assert (ticket is None) == (k < 2)
         ticket_id = ticket.id
@@ -91,8 +91,8 @@ def test_ticket_opens_on_the_third_consecutive_confirmation(store):
         assert ticket.malfunction_start == T0  # window start of the oldest confirming run
         assert ticket.evidence == {
             "loop_id": "FIC-101", "valve_asset": "FV-101", "run_id": runs[2].id,
-            "window_start": T0 + 120, "window_end": T0 + WINDOW_S + 120, "confidence": 0.9,
-            "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
+            "window_start": T0 + 2 * WINDOW_S, "window_end": T0 + 3 * WINDOW_S,
+            "confidence": 0.9, "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
             "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
             "plots": {
                 "trend": "/api/v1/loops/FIC-101/plots/trend",
@@ -103,8 +103,33 @@ def test_ticket_opens_on_the_third_consecutive_confirmation(store):
         assert "S = 4.00 %, J = 1.00 % of valve span (fs = 2.50 %, fd = 1.50 %)" in (
             ticket.description
         )
+        assert ticket.description.startswith(
+            "Valve stiction confirmed by 3 analyses of separate windows of loop FIC-101")
         assert events(ticket) == [(None, "open", "analysis")]
-        assert ticket.events[0].note.startswith("opened: stiction confirmed by 3 consecutive")
+        assert ticket.events[0].note.startswith(
+            "opened: stiction confirmed by 3 analyses of separate windows")
+
+
+def test_findings_on_overlapping_windows_confirm_nothing(store):
+    # Runs a minute apart on 10-minute windows share 90 % of their data: their findings
+    # are one finding.  A healthy loop whose analyses find weak stiction now and then
+    # (the demo's PIC-401) must not get a ticket from two of them.
+    with store.session() as s:
+        add_loop(s)
+        for k in range(10):
+            assert analyse(s, add_run(s, at=T0 + WINDOW_S + 60 * k), needed=2) is None
+        # the first run whose window starts where the first one's ended confirms it
+        ticket = analyse(s, add_run(s, at=T0 + 2 * WINDOW_S), needed=2)
+        assert ticket.evidence["confirmations"] == 2
+        assert ticket.malfunction_start == T0
+
+
+def test_findings_on_separate_windows_need_the_runs_between_to_agree(store):
+    with store.session() as s:
+        add_loop(s)
+        add_run(s, at=T0 + WINDOW_S)
+        add_run(s, at=T0 + 1.5 * WINDOW_S, verdict="undecided")
+        assert analyse(s, add_run(s, at=T0 + 2 * WINDOW_S), needed=2) is None
 
 
 @pytest.mark.parametrize("breaker", [{"status": "failed", "verdict": None},
@@ -113,12 +138,12 @@ def test_ticket_opens_on_the_third_consecutive_confirmation(store):
 def test_any_other_run_ends_the_streak(store, breaker):
     with store.session() as s:
         add_loop(s)
-        add_run(s, at=T0 + 600)
-        add_run(s, at=T0 + 660, **breaker)
-        add_run(s, at=T0 + 720)
-        assert analyse(s, add_run(s, at=T0 + 780)) is None
-        ticket = analyse(s, add_run(s, at=T0 + 840))
-        assert ticket.malfunction_start == T0 + 720 - WINDOW_S
+        add_run(s, at=T0 + WINDOW_S)
+        add_run(s, at=T0 + 2 * WINDOW_S, **breaker)
+        add_run(s, at=T0 + 3 * WINDOW_S)
+        assert analyse(s, add_run(s, at=T0 + 4 * WINDOW_S)) is None
+        ticket = analyse(s, add_run(s, at=T0 + 5 * WINDOW_S))
+        assert ticket.malfunction_start == T0 + 2 * WINDOW_S
 
 
 def test_a_verdict_other_than_stiction_changes_nothing(store):
@@ -140,24 +165,25 @@ def test_confirmations_needed_must_be_positive(store):
 def test_one_open_ticket_per_valve_updated_by_new_evidence(store):
     with store.session() as s:
         add_loop(s)
-        add_run(s, at=T0 + 600)
-        first = add_run(s, at=T0 + 660)
+        add_run(s, at=T0 + WINDOW_S)
+        first = add_run(s, at=T0 + 2 * WINDOW_S)
         ticket = analyse(s, first, needed=2)
         first_id = ticket.id
-        worse = add_run(s, at=T0 + 720, S=7.0, J=2.0)
+        worse = add_run(s, at=T0 + 2 * WINDOW_S + 60, S=7.0, J=2.0)
         assert analyse(s, worse, needed=2) is ticket
         assert analyse(s, worse, needed=2) is None  # the same run twice: nothing new
         # another loop driving the same valve asset adds to the same ticket
         add_loop(s, "FIC-102")
-        add_run(s, at=T0 + 700, loop_id="FIC-102")
-        other = add_run(s, at=T0 + 760, loop_id="FIC-102")
+        add_run(s, at=T0 + WINDOW_S + 100, loop_id="FIC-102")
+        other = add_run(s, at=T0 + 2 * WINDOW_S + 100, loop_id="FIC-102")
         assert analyse(s, other, loop_id="FIC-102", needed=2) is ticket
     with store.session() as s:
         (ticket,), count = list_tickets(s)
         assert (ticket.id, count) == (first_id, 1)
         assert ticket.evidence["run_id"] == other.id
         assert [e.note for e in ticket.events] == [
-            f"opened: stiction confirmed by 2 consecutive analyses (run {first.id}, priority 3)",
+            f"opened: stiction confirmed by 2 analyses of separate windows (run {first.id}, "
+            "priority 3)",
             f"evidence updated: run {worse.id}, priority 3 -> 2",
             f"evidence updated: run {other.id}, priority 2 -> 3",
         ]

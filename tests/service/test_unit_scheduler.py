@@ -26,7 +26,8 @@ from service.store.models import AnalysisRun, Ticket, UnitAnalysisRun
 from service.tickets import change_ticket_state
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
-INTERVAL = 500.0  # rounds end at T0 - 500 and T0
+INTERVAL = 500.0
+FIRST_ROUND = T0 - 8 * INTERVAL  # its window ends before the one of round T0 starts
 WINDOW = 3600.0
 VIEWER_HEADERS = {"X-API-Key": ADMIN}
 
@@ -48,9 +49,9 @@ def column_plant(unit: str | None) -> PlantConfig:
 
 def column_batch() -> list[dict[str, Any]]:
     """The column's OP, PV and SP over the windows of both rounds, ending at T0."""
-    column = column3x3(sticky=(2,), duration=2000.0 + WINDOW + INTERVAL)
+    column = column3x3(sticky=(2,), duration=2000.0 + WINDOW + T0 - FIRST_ROUND)
     run = column.run()
-    late = run.t > run.t[-1] - WINDOW - INTERVAL  # after the start-up transient
+    late = run.t > run.t[-1] - WINDOW - (T0 - FIRST_ROUND)  # after the start-up transient
     times = T0 - run.t[-1] + run.t[late]
     batch = []
     for i, loop in enumerate(COLUMN_LOOPS):
@@ -68,7 +69,7 @@ def make_service(store: Store) -> Iterator[Callable[..., Service]]:
     def make(plant_config: PlantConfig, **overrides: Any) -> Service:
         settings = Settings(**{
             "database_url": store.url, "api_key": ADMIN, "window_s": WINDOW,
-            "buffer_horizon_s": 7200, "analysis_interval_s": INTERVAL,
+            "buffer_horizon_s": 8000, "analysis_interval_s": INTERVAL,
             "ticket_confirmations": 2, **overrides,
         })
         svc = build_service(settings, plant_config, executor=ThreadPoolExecutor(2),
@@ -100,7 +101,7 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
     svc.state.ingest(batch)
     on_demand = client.get("/api/v1/units/column/diagnosis", headers=VIEWER_HEADERS).json()
     assert (on_demand["source"], on_demand["round_end"]) == ("on_demand", None)
-    first = svc.scheduler.run_round(T0 - INTERVAL)
+    first = svc.scheduler.run_round(FIRST_ROUND)
     second = svc.scheduler.run_round(T0)
 
     # the loop battery blames every valve of the column, in both rounds
@@ -113,7 +114,7 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
         units = session.scalars(select(UnitAnalysisRun).order_by(UnitAnalysisRun.round_end))
         assert [(u.round_end, u.status, u.loops, u.sticky_loops, u.incomplete_loops)
                 for u in units] == [
-            (T0 - INTERVAL, "ok", ["AIC-501", "AIC-502", "TIC-503"], ["AIC-502"], []),
+            (FIRST_ROUND, "ok", ["AIC-501", "AIC-502", "TIC-503"], ["AIC-502"], []),
             (T0, "ok", ["AIC-501", "AIC-502", "TIC-503"], ["AIC-502"], [])]
         latest = session.scalars(select(UnitAnalysisRun)
                                  .where(UnitAnalysisRun.round_end == T0)).one()
@@ -138,7 +139,7 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
 def test_without_the_unit_the_loop_battery_tickets_the_neighbours_too(make_service, batch):
     svc = make_service(column_plant(unit=None))
     svc.state.ingest(batch)
-    svc.scheduler.run_round(T0 - INTERVAL)
+    svc.scheduler.run_round(FIRST_ROUND)
     svc.scheduler.run_round(T0)
     assert tickets(svc) == [("FV-501", "AIC-501"), ("FV-502", "AIC-502"),
                             ("PV-503", "TIC-503")]
