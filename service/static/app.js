@@ -124,15 +124,6 @@ async function api(path, options) {
 }
 
 /** GET that answers null on 404: for parts that may not exist (yet). */
-async function optional(path) {
-  try {
-    return await api(path);
-  } catch (error) {
-    if (error instanceof ApiError && error.status === 404) return null;
-    throw error;
-  }
-}
-
 /** An inline server-rendered SVG plot, or a "not available" note with the reason.
  * With a body, the plot is drawn from it (POST): the model check sends its overlay. */
 async function plot(loopId, kind, params = {}, body = undefined) {
@@ -472,12 +463,11 @@ function adviceResult(advice) {
 async function adviceSection(path) {
   const box = h("div", { "data-advice-box": path });
   try {
-    const advice = await optional(path);
-    box.append(advice === null
-      ? h("p", { class: "unavailable" }, "Tuning advice: not available yet.")
-      : adviceResult(advice));
+    box.append(adviceResult(await api(path)));
   } catch (error) {
-    box.append(h("p", { class: "unavailable" }, `Tuning advice: not available (${error.message}).`));
+    // 409: the loop has no estimate or no controller yet; the answer says which
+    box.append(h("p", { class: "unavailable" }, error instanceof ApiError && error.status === 409
+      ? error.message : `Tuning advice: not available (${error.message}).`));
   }
   return section("Tuning advice", "advice-title", box);
 }

@@ -177,9 +177,11 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
     assert {"recommendations", "rejected", "notes", "current_simulated"} <= body.keys()
     for offer in body["recommendations"] + body["rejected"]:  # each checked in simulation
         assert {"predicted", "simulated", "outcome"} <= offer.keys()
-    assert client.get("/api/v1/loops/FIC-2/advice", headers=viewer).json() == {
+    unavailable = client.get("/api/v1/loops/FIC-2/advice", headers=viewer)
+    assert (unavailable.status_code, unavailable.json()) == (409, {
         "detail": "Advice not available: the latest analysis has no stiction estimate (S, J) "
-                  "with an identified process model"}
+                  "with an identified process model"})
+    assert client.get("/api/v1/loops/FIC-9/advice", headers=viewer).status_code == 404
     metrics = client.get("/metrics", headers=viewer).text
     assert 'loopwatch_analyses_total{status="ok"} 4' in metrics
     assert "loopwatch_tickets_open 1" in metrics

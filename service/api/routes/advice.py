@@ -36,19 +36,20 @@ async def loop_advice(loop_id: str, session: SessionDep, _: Reader) -> dict[str,
 
     Built from the latest stiction estimate (S, J and the identified process)
     and the configured controller; every offer carries its predicted effect
-    and was checked in simulation.  404 with the reason when the loop has no
-    estimate or no controller configuration.
+    and was checked in simulation.  404 for an unknown loop; 409 with the reason
+    when the loop has no estimate or no controller configuration (as the unit
+    prediction does).
     """
     loop = session.get(Loop, loop_id)
     if loop is None:
         raise HTTPException(404, "Loop not found")
     run = latest_loop_run(session, loop_id)
     if run is None:
-        raise HTTPException(404, "Advice not available: the loop has not been analysed yet")
+        raise HTTPException(409, "Advice not available: the loop has not been analysed yet")
     try:
         identified_loop(loop.config, run.result)
     except ModelUnavailableError as exc:
-        raise HTTPException(404, f"Advice not available: {exc}") from None
+        raise HTTPException(409, f"Advice not available: {exc}") from None
     try:
         advice = await run_in_threadpool(
             _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
