@@ -121,9 +121,9 @@ def measure(n_tags: int, rate_hz: float, interval_ms: float, seconds: float,
     connector.start()
     try:
         deadline = time.monotonic() + 120
-        while connector.stats.received < n_tags:  # subscribed, initial values in
+        while connector.counters.samples < n_tags:  # subscribed, initial values in
             if time.monotonic() > deadline:
-                raise RuntimeError(f"no data: {connector.stats}")
+                raise RuntimeError(f"no data: {connector.counters}, {connector.last_error}")
             time.sleep(0.2)
         time.sleep(3.0)  # warm up
         sink.take()
@@ -143,7 +143,7 @@ def measure(n_tags: int, rate_hz: float, interval_ms: float, seconds: float,
         connector.stop()
         stop.set()
         server.join(60)
-    stats = connector.stats  # after the stop: everything received is flushed
+    counters = connector.counters  # after the stop: every sample is delivered
     all_delays = np.concatenate(delays)
     return {
         "cpu_per_sample_s": statistics.median(cpu_per_sample),
@@ -152,9 +152,9 @@ def measure(n_tags: int, rate_hz: float, interval_ms: float, seconds: float,
         "expected_per_s": n_tags * rate_hz,
         "delay_median_s": float(np.median(all_delays)),
         "delay_p99_s": float(np.percentile(all_delays, 99)),
-        "received": stats.received,
-        "flushed": stats.flushed,
-        "outages": len(stats.outages),
+        "samples": counters.samples,
+        "delivered": counters.delivered,
+        "outages": len(connector.outages),
     }
 
 
@@ -170,7 +170,7 @@ def report(title: str, result: dict[str, float]) -> None:
     print(f"  delay server change -> sink call: median {result['delay_median_s'] * 1000:.0f} ms, "
           f"p99 {result['delay_p99_s'] * 1000:.0f} ms"
           + ("  [the server fell behind: its backlog dominates the delay]" if behind else ""))
-    print(f"  received {result['received']:,}, flushed {result['flushed']:,}, "
+    print(f"  samples {result['samples']:,}, delivered {result['delivered']:,}, "
           f"outages {result['outages']}")
 
 

@@ -29,10 +29,10 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Coroutine, Iterator, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, tzinfo
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, Self, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -77,8 +77,15 @@ def item(timestamp: float, value: float | None, good: bool = True) -> dict[str, 
 class DeliveryCounters:
     """Samples a connector made and what its sink did with them.
 
-    Once the connector has stopped, ``samples == delivered + undelivered``;
-    while it runs, the difference is still on its way to the sink.
+    ``pending`` (``samples - delivered - undelivered``) are the samples still
+    on their way to the sink while the connector runs.  Once it has stopped,
+    ``pending`` is 0, so ``samples == delivered + undelivered``, unless the
+    connector holds samples to send again on its next run (an OPC UA
+    connector keeps those of a flush the sink refused).
+
+    A connector updates its counters under :attr:`lock` and hands out
+    :meth:`snapshot` copies, so the numbers of one copy belong together,
+    whichever thread reads them.
 
     Attributes
     ----------
@@ -87,12 +94,27 @@ class DeliveryCounters:
     delivered, undelivered : int
         Items the sink took, and items of batches the sink raised on (logged,
         not sent again).
+    lock : threading.Lock
+        Held by every update and by :meth:`snapshot`.
     """
 
     samples: int = 0
     bad: int = 0
     delivered: int = 0
     undelivered: int = 0
+    lock: threading.Lock = field(
+        default_factory=threading.Lock, init=False, repr=False, compare=False
+    )
+
+    @property
+    def pending(self) -> int:
+        """Items neither delivered nor given up (see above)."""
+        return self.samples - self.delivered - self.undelivered
+
+    def snapshot(self) -> Self:
+        """A copy of the counters now, taken under :attr:`lock`."""
+        with self.lock:
+            return replace(self)
 
 
 async def hand_over(
@@ -111,10 +133,12 @@ async def hand_over(
         try:
             sink(batch)
         except Exception:
-            counters.undelivered += count
+            with counters.lock:
+                counters.undelivered += count
             log.exception("%s: the sink refused a batch of %d samples", name, count)
         else:
-            counters.delivered += count
+            with counters.lock:
+                counters.delivered += count
 
     await asyncio.to_thread(call_sink)
 
@@ -292,19 +316,32 @@ class ThreadedRunner:
             raise TimeoutError(f"{self.name}: did not stop within {timeout} s")
 
 
-class BackgroundConnector(ABC):
+CountersT = TypeVar("CountersT", bound=DeliveryCounters)
+
+
+class BackgroundConnector(ABC, Generic[CountersT]):
     """A connector whose work is one coroutine, :meth:`run`, stopped by cancelling it.
 
     ``await connector.run()`` runs it in an event loop of the caller's;
     :meth:`start` and :meth:`stop` run it beside the synchronous service in a
     thread of its own (a :class:`ThreadedRunner`).  :meth:`run` delivers what
-    it holds before it ends, also when cancelled.
+    it holds before it ends, also when cancelled.  Every connector reports
+    its :attr:`counters` (a :class:`DeliveryCounters` of its own kind) and
+    its :attr:`outages`.
     """
 
-    def __init__(self, name: str, clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self, name: str, counters: CountersT, clock: Callable[[], float] = time.time
+    ) -> None:
         self.name = name
         self._runner = ThreadedRunner(self.run, name=name)
+        self._counters = counters
         self._outages = OutageLog(name, clock)
+
+    @property
+    def counters(self) -> CountersT:
+        """A consistent copy of the counters now."""
+        return self._counters.snapshot()
 
     @property
     def outages(self) -> list[Outage]:

@@ -37,7 +37,6 @@ registers, at most 125 per request).
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import itertools
 import logging
 import math
@@ -336,7 +335,7 @@ class ModbusCounters(DeliveryCounters):
     skipped_cycles: int = 0
 
 
-class ModbusConnector(BackgroundConnector):
+class ModbusConnector(BackgroundConnector[ModbusCounters]):
     """Poll the groups of one Modbus TCP device and hand the samples to ``sink``.
 
     Each poll cycle reads every group, one request at a time, stamps each
@@ -362,17 +361,11 @@ class ModbusConnector(BackgroundConnector):
     def __init__(
         self, config: ModbusConnectorConfig, sink: SampleSink, *, backoff: Backoff = DEFAULT_BACKOFF
     ) -> None:
-        super().__init__(f"modbus {config.host}:{config.port}")
+        super().__init__(f"modbus {config.host}:{config.port}", ModbusCounters())
         self.config = config
         self._sink = sink
         self._backoff = backoff
-        self._counters = ModbusCounters()
         self._failing_groups: set[int] = set()
-
-    @property
-    def counters(self) -> ModbusCounters:
-        """A copy of the counters now."""
-        return dataclasses.replace(self._counters)
 
     async def run(self) -> None:
         """Poll until cancelled, reconnecting after every loss."""
@@ -397,7 +390,8 @@ class ModbusConnector(BackgroundConnector):
             try:
                 if await client.connect():
                     if connected_before:
-                        self._counters.reconnects += 1
+                        with self._counters.lock:
+                            self._counters.reconnects += 1
                     connected_before = True
                     self._outages.restored()
                     delays = self._backoff.delays()
@@ -411,7 +405,8 @@ class ModbusConnector(BackgroundConnector):
             finally:
                 client.close()
             if self._outages.lost(reason):
-                self._counters.outages += 1
+                with self._counters.lock:
+                    self._counters.outages += 1
             await asyncio.sleep(next(delays))
 
     async def _poll(
@@ -449,18 +444,17 @@ class ModbusConnector(BackgroundConnector):
             late = loop.time() - next_cycle
             if late > 0:
                 skipped = math.ceil(late / interval)
-                self._counters.skipped_cycles += skipped
+                with self._counters.lock:
+                    self._counters.skipped_cycles += skipped
                 next_cycle += skipped * interval
             await asyncio.sleep(next_cycle - loop.time())
 
     def _samples(self, index: int, response: ModbusPDU, stamp: float) -> list[dict[str, Any]]:
         """The group's tags as ingest entries; all bad if the device answered with an error."""
         group = self.config.groups[index]
-        self._counters.polls += 1
         registers = list(response.registers)
         failed = response.isError() or len(registers) < group.count
         if failed:
-            self._counters.error_responses += 1
             if index not in self._failing_groups:
                 log.warning(
                     "%s: groups[%d] (%s registers %d..%d) answered %s; its tags are sent as bad",
@@ -469,15 +463,18 @@ class ModbusConnector(BackgroundConnector):
                 )
             self._failing_groups.add(index)
         else:
-            self._counters.registers_read += len(registers)
             self._failing_groups.discard(index)
-        entries = []
-        for tag in group.tags:
-            value = None if failed else self._value(tag, registers)
-            self._counters.bad += value is None
-            entries.append({"tag": tag.tag, "items": [item(stamp, value)]})
-        self._counters.samples += len(entries)
-        return entries
+        values = [None if failed else self._value(tag, registers) for tag in group.tags]
+        with self._counters.lock:
+            self._counters.polls += 1
+            if failed:
+                self._counters.error_responses += 1
+            else:
+                self._counters.registers_read += len(registers)
+            self._counters.samples += len(values)
+            self._counters.bad += values.count(None)
+        return [{"tag": tag.tag, "items": [item(stamp, value)]}
+                for tag, value in zip(group.tags, values, strict=True)]
 
     @staticmethod
     def _value(tag: ModbusTagConfig, registers: list[int]) -> float | None:

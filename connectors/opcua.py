@@ -39,7 +39,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -56,12 +56,12 @@ from pydantic import (
     model_validator,
 )
 
-from connectors.base import BackgroundConnector, Backoff, Outage, SampleSink, item
+from connectors.base import BackgroundConnector, Backoff, DeliveryCounters, SampleSink, item
 
 __all__ = [
     "MONITORED_ITEMS_PER_CALL",
-    "ConnectorStats",
     "OpcUaConnector",
+    "OpcUaCounters",
     "OpcUaEndpointConfig",
     "OpcUaNodeConfig",
 ]
@@ -172,71 +172,36 @@ class OpcUaEndpointConfig(_Strict):
         return max(1, math.floor(self.watchdog_s * 1000.0 / self.publishing_interval_ms / 3.0))
 
 
-@dataclass(frozen=True)
-class ConnectorStats:
-    """The connector's counters.
+@dataclass
+class OpcUaCounters(DeliveryCounters):
+    """What an :class:`OpcUaConnector` has done, besides the sample counts of its base class.
 
-    Once the connector has stopped, ``received == flushed + pending`` (pending
-    is not 0 only if the sink refused the last flush); while it runs, the
-    batch inside a sink call is in neither.
+    ``samples`` are the notifications taken from the subscription, ``bad``
+    those sent as bad (status not Good, or not a number).  ``undelivered``
+    stays 0: the samples of a flush the sink refused are kept and sent with
+    the next one, so they count as ``pending``; once the connector has
+    stopped, ``pending`` is 0 unless the sink refused the last flush.
 
     Attributes
     ----------
-    received : int
-        Samples taken from the subscription, bad ones included.
-    flushed : int
-        Samples the sink accepted.
-    bad : int
-        Received samples sent as bad (status not Good, or not a number).
-    pending : int
-        Received samples waiting for the next flush.
     reconnects : int
         Sessions established after a lost one.
     watchdog_timeouts : int
         Times the watchdog found the subscription stale.
     sink_failures : int
         Flushes the sink refused (their samples are kept and sent again).
-    outages : tuple of Outage
-    failed_nodes : dict
-        tag -> status name of the nodes the server refused to monitor.
-    connected : bool
-    last_error : str or None
     """
 
-    received: int = 0
-    flushed: int = 0
-    bad: int = 0
-    pending: int = 0
     reconnects: int = 0
     watchdog_timeouts: int = 0
     sink_failures: int = 0
-    outages: tuple[Outage, ...] = ()
-    failed_nodes: dict[str, str] = field(default_factory=dict)
-    connected: bool = False
-    last_error: str | None = None
 
 
 class _SessionEndedError(Exception):
     """The session is over (transport lost, subscription ended, watchdog); the message says why."""
 
 
-@dataclass
-class _Counters:
-    """The mutable counters behind :class:`ConnectorStats` (one event loop updates them)."""
-
-    received: int = 0
-    flushed: int = 0
-    bad: int = 0
-    reconnects: int = 0
-    watchdog_timeouts: int = 0
-    sink_failures: int = 0
-    sessions: int = 0
-    connected: bool = False
-    last_error: str | None = None
-    failed_nodes: dict[str, str] = field(default_factory=dict)
-
-
-class OpcUaConnector(BackgroundConnector):
+class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
     """Subscribe to the nodes of one endpoint and deliver their samples to ``sink``.
 
     Parameters
@@ -262,27 +227,33 @@ class OpcUaConnector(BackgroundConnector):
         backoff: Backoff = Backoff(),  # noqa: B008 -- frozen, so one shared default is safe
         clock: Callable[[], float] = time.time,
     ) -> None:
-        super().__init__(f"opcua {config.url}", clock)
+        super().__init__(f"opcua {config.url}", OpcUaCounters(), clock)
         self.config = config
         self.sink = sink
         self.backoff = backoff
         self.clock = clock
         self._tags = {handle: node.tag for handle, node in enumerate(config.nodes, start=1)}
-        self._counters = _Counters()
+        self._sessions = 0
+        self._connected = False
+        self._last_error: str | None = None
+        self._failed_nodes: dict[str, str] = {}
         self._pending: dict[str, list[dict[str, Any]]] = {}
-        self._pending_count = 0
         self._warned_tags: set[str] = set()
 
     @property
-    def stats(self) -> ConnectorStats:
-        """A snapshot of the counters."""
-        c = self._counters
-        return ConnectorStats(
-            received=c.received, flushed=c.flushed, bad=c.bad, pending=self._pending_count,
-            reconnects=c.reconnects, watchdog_timeouts=c.watchdog_timeouts,
-            sink_failures=c.sink_failures, outages=self._outages.outages,
-            failed_nodes=dict(c.failed_nodes), connected=c.connected, last_error=c.last_error,
-        )
+    def connected(self) -> bool:
+        """Whether a session is up and subscribed."""
+        return self._connected
+
+    @property
+    def last_error(self) -> str | None:
+        """Why the last session ended or could not begin; None while connected."""
+        return self._last_error
+
+    @property
+    def failed_nodes(self) -> dict[str, str]:
+        """tag -> status name of the nodes the server refused to monitor in the last session."""
+        return dict(self._failed_nodes)
 
     # --- running --------------------------------------------------------------
 
@@ -293,7 +264,7 @@ class OpcUaConnector(BackgroundConnector):
         delays = self.backoff.delays()
         try:
             while True:
-                sessions_before = self._counters.sessions
+                sessions_before = self._sessions
                 try:
                     await self._session()
                 except _SessionEndedError as exc:
@@ -304,30 +275,30 @@ class OpcUaConnector(BackgroundConnector):
                     log.exception("opcua %s: session failed unexpectedly", self.config.url)
                     reason = f"{type(exc).__name__}: {exc}"
                 self._begin_outage(reason)
-                if self._counters.sessions > sessions_before:
+                if self._sessions > sessions_before:
                     delays = self.backoff.delays()
                 delay = next(delays)
                 log.info("opcua %s: reconnecting in %.1f s", self.config.url, delay)
                 await asyncio.sleep(delay)
         finally:
-            self._counters.connected = False
+            self._connected = False
             stop_flushing.set()
             await flusher
 
     def _begin_outage(self, reason: str) -> None:
-        self._counters.connected = False
-        self._counters.last_error = reason
+        self._connected = False
+        self._last_error = reason
         self._outages.lost(reason)
 
     def _session_up(self) -> None:
-        c = self._counters
-        if c.sessions > 0:
-            c.reconnects += 1
-        c.sessions += 1
-        c.connected, c.last_error = True, None
+        if self._sessions > 0:
+            with self._counters.lock:
+                self._counters.reconnects += 1
+        self._sessions += 1
+        self._connected, self._last_error = True, None
         self._outages.restored()
         log.info("opcua %s: subscribed to %d nodes", self.config.url,
-                 len(self._tags) - len(c.failed_nodes))
+                 len(self._tags) - len(self._failed_nodes))
 
     # --- one session ------------------------------------------------------------
 
@@ -418,7 +389,7 @@ class OpcUaConnector(BackgroundConnector):
                         "opcua %s: the server refused to monitor %s (%s): %s",
                         config.url, tag, request.ItemToMonitor.NodeId.to_string(), result.name,
                     )
-        self._counters.failed_nodes = failed
+        self._failed_nodes = failed
         return subscription
 
     def _monitor_request(self, handle: int, node: OpcUaNodeConfig) -> ua.MonitoredItemCreateRequest:
@@ -474,10 +445,9 @@ class OpcUaConnector(BackgroundConnector):
 
     def _add(self, tag: str, timestamp: float, value: float | None) -> None:
         self._pending.setdefault(tag, []).append(item(timestamp, value))
-        self._pending_count += 1
-        self._counters.received += 1
-        if value is None:
-            self._counters.bad += 1
+        with self._counters.lock:
+            self._counters.samples += 1
+            self._counters.bad += value is None
 
     async def _watch(self, subscription: Subscription, end: Callable[[str], None]) -> None:
         """End the session when neither data nor a keep-alive came for ``watchdog_s``."""
@@ -488,7 +458,8 @@ class OpcUaConnector(BackgroundConnector):
             heard = max(since, subscription.last_publish_at or since)
             silent = time.monotonic() - heard
             if silent > watchdog_s:
-                self._counters.watchdog_timeouts += 1
+                with self._counters.lock:
+                    self._counters.watchdog_timeouts += 1
                 end(f"watchdog: no data and no keep-alive for {silent:.1f} s "
                     f"(limit {watchdog_s:g} s)")
                 return
@@ -530,9 +501,9 @@ class OpcUaConnector(BackgroundConnector):
         """Hand the pending samples to the sink; on failure keep them for the next flush."""
         if not self._pending:
             return
-        pending, count = self._pending, self._pending_count
-        self._pending, self._pending_count = {}, 0
+        pending, self._pending = self._pending, {}
         batch = [{"tag": tag, "items": items} for tag, items in pending.items()]
+        count = sum(len(items) for items in pending.values())
         try:
             await asyncio.to_thread(self.sink, batch)
         except Exception:
@@ -543,10 +514,11 @@ class OpcUaConnector(BackgroundConnector):
             for tag, items in self._pending.items():  # arrived during the failed call
                 pending.setdefault(tag, []).extend(items)
             self._pending = pending
-            self._pending_count += count
-            self._counters.sink_failures += 1
+            with self._counters.lock:
+                self._counters.sink_failures += 1
             return
-        self._counters.flushed += count
+        with self._counters.lock:
+            self._counters.delivered += count
 
 
 def _unix_seconds(stamp: datetime) -> float:

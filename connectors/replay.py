@@ -20,7 +20,6 @@ in the file, the header being row 1) and column.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import math
 import time
 from collections.abc import Mapping
@@ -228,7 +227,7 @@ class ReplayCounters(DeliveryCounters):
     rows: int = 0
 
 
-class ReplayConnector(BackgroundConnector):
+class ReplayConnector(BackgroundConnector[ReplayCounters]):
     """Replay ``path`` into ``sink`` at ``speed`` times real time (see the module docstring).
 
     The file is read, checked and sorted when the connector is made, so a
@@ -277,24 +276,20 @@ class ReplayConnector(BackgroundConnector):
             time_column=time_column, date_column=date_column, timezone=timezone,
             max_rows_per_batch=max_rows_per_batch,
         )
-        super().__init__(f"replay {config.path.name}")
-        self.config = config
-        self.export = read_historian_export(
+        export = read_historian_export(
             config.path, list(config.columns), time_column=time_column,
             date_column=date_column, timezone=timezone,
         )
+        super().__init__(f"replay {config.path.name}",
+                         ReplayCounters(total_rows=int(export.times.size)))
+        self.config = config
+        self.export = export
         self._sink = sink
-        self._counters = ReplayCounters(total_rows=int(self.export.times.size))
 
     @classmethod
     def from_config(cls, config: ReplayConnectorConfig, sink: SampleSink) -> ReplayConnector:
         """The connector that ``config`` describes."""
         return cls(config.path, sink, **config.model_dump(exclude={"path"}))
-
-    @property
-    def counters(self) -> ReplayCounters:
-        """A copy of the counters now."""
-        return dataclasses.replace(self._counters)
 
     @property
     def finished(self) -> bool:
@@ -316,22 +311,29 @@ class ReplayConnector(BackgroundConnector):
             end = int(np.searchsorted(due, loop.time() - start, side="right"))
             end = min(max(end, k + 1), k + self.config.max_rows_per_batch)
             stamps = start_wall + due[k:end] if self.config.timestamps == "now" else times[k:end]
-            await self._send(self._batch(k, end, stamps), rows=end - k)
+            batch, bad = self._batch(k, end, stamps)
+            await self._send(batch, bad=bad, rows=end - k)
             k = end
 
-    def _batch(self, first: int, end: int, stamps: NDArray[np.float64]) -> list[dict[str, Any]]:
-        batch = []
+    def _batch(
+        self, first: int, end: int, stamps: NDArray[np.float64]
+    ) -> tuple[list[dict[str, Any]], int]:
+        """The rows ``first`` to ``end`` as an ingest batch, and how many of its items are bad."""
+        batch: list[dict[str, Any]] = []
+        bad = 0
         for column, tag in self.config.columns.items():
             values = self.export.values[column][first:end]
             items = [
                 item(float(stamp), None if math.isnan(value) else float(value))
                 for stamp, value in zip(stamps, values, strict=True)
             ]
-            self._counters.bad += int(np.isnan(values).sum())
+            bad += int(np.isnan(values).sum())
             batch.append({"tag": tag, "items": items})
-        return batch
+        return batch, bad
 
-    async def _send(self, batch: list[dict[str, Any]], rows: int) -> None:
-        self._counters.rows += rows
-        self._counters.samples += sum(len(entry["items"]) for entry in batch)
+    async def _send(self, batch: list[dict[str, Any]], bad: int, rows: int) -> None:
+        with self._counters.lock:
+            self._counters.rows += rows
+            self._counters.samples += sum(len(entry["items"]) for entry in batch)
+            self._counters.bad += bad
         await hand_over(self._sink, batch, self._counters, self.name)

@@ -81,6 +81,23 @@ def test_a_sink_call_cut_short_by_a_stop_is_still_counted() -> None:
     assert (counters.delivered, counters.undelivered) == (3, 0)
 
 
+def test_a_snapshot_of_the_counters_is_a_copy_that_waits_for_an_update_in_progress() -> None:
+    counters = DeliveryCounters(samples=5, bad=1, delivered=3)
+    taken: list[DeliveryCounters] = []
+    reader = threading.Thread(target=lambda: taken.append(counters.snapshot()))
+    with counters.lock:  # an update in progress holds the reader back
+        reader.start()
+        reader.join(0.2)
+        assert reader.is_alive()
+        counters.delivered += 2
+    reader.join(WAIT_S)
+    (snapshot,) = taken
+    assert snapshot == counters and snapshot.pending == 0
+    assert snapshot is not counters and snapshot.lock is not counters.lock
+    counters.samples += 1
+    assert (snapshot.samples, snapshot.pending, counters.pending) == (5, 0, 1)
+
+
 def test_the_outage_log_counts_failed_attempts_and_opens_a_new_outage_after_a_recovery() -> None:
     times = iter([100.0, 104.0, 200.0])
     outages = OutageLog("device", clock=lambda: next(times))

@@ -2,7 +2,7 @@
 
 Each test writes known samples into a server it runs itself and checks what
 reaches the sink: tags, source time stamps, values and quality, and that the
-counters account for every sample (received = flushed) through restarts,
+counters account for every sample (samples = delivered) through restarts,
 stale subscriptions and sink failures.
 """
 
@@ -198,8 +198,8 @@ async def first_sample_or_error(config: OpcUaEndpointConfig) -> OpcUaConnector:
     """Run a connector until its first sample or its first error; the stopped connector."""
     connector = OpcUaConnector(config, Sink(), backoff=FAST_BACKOFF)
     async with running(connector):
-        await wait_for(lambda: connector.stats.received == 1
-                       or connector.stats.last_error is not None)
+        await wait_for(lambda: connector.counters.samples == 1
+                       or connector.last_error is not None)
     return connector
 
 
@@ -217,16 +217,16 @@ def test_samples_arrive_with_their_tags_source_timestamps_and_values():
     async def scenario() -> None:
         connector = OpcUaConnector(endpoint(server), sink, backoff=FAST_BACKOFF)
         async with server, running(connector):
-            await wait_for(lambda: connector.stats.received == 2)  # the initial values
+            await wait_for(lambda: connector.counters.samples == 2)  # the initial values
             for k in range(1, 21):
                 await server.write("FIC-101.PV", 50.0 + 0.25 * k, EPOCH + k)
                 # a stuck valve: the same OP again and again, each sample still counts
                 await server.write("FIC-101.OP", 42.0, EPOCH + k)
             await server.write("FIC-101.PV", 61.5, None, server_time=EPOCH + 30)
-            await wait_for(lambda: connector.stats.received == 2 + 41)
-        stats = connector.stats
-        assert stats.received == stats.flushed == len(sink.items()) == 43
-        assert stats.pending == 0 and stats.bad == 0 and stats.outages == ()
+            await wait_for(lambda: connector.counters.samples == 2 + 41)
+        counters = connector.counters
+        assert counters.samples == counters.delivered == len(sink.items()) == 43
+        assert counters.pending == 0 and counters.bad == 0 and connector.outages == []
 
     run(scenario)
     pv = [(t, v) for _, t, v, _ in sink.items("FIC-101.PV")]
@@ -250,16 +250,16 @@ def test_bad_status_and_non_numbers_are_stored_as_bad_and_a_missing_node_is_repo
     async def scenario() -> None:
         connector = OpcUaConnector(config, sink, backoff=FAST_BACKOFF)
         async with server, running(connector):
-            await wait_for(lambda: connector.stats.received == 2)
+            await wait_for(lambda: connector.counters.samples == 2)
             await server.write("TIC-201.PV", 70.0, EPOCH + 1)
             await server.write("TIC-201.PV", None, EPOCH + 2,
                                status=ua.StatusCodes.BadSensorFailure)
             await server.write("TIC-201.PV", 71.0, EPOCH + 3,
                                status=ua.StatusCodes.UncertainLastUsableValue)
-            await wait_for(lambda: connector.stats.received == 5)
-        stats = connector.stats
-        assert stats.bad == 3 and stats.received == stats.flushed == 5
-        assert stats.failed_nodes == {"GONE.PV": "BadNodeIdUnknown"}
+            await wait_for(lambda: connector.counters.samples == 5)
+        counters = connector.counters
+        assert counters.bad == 3 and counters.samples == counters.delivered == 5
+        assert connector.failed_nodes == {"GONE.PV": "BadNodeIdUnknown"}
 
     run(scenario)
     assert [(t, v, good) for _, t, v, good in sink.items("TIC-201.PV")][1:] == [
@@ -283,17 +283,35 @@ def test_a_refusing_sink_loses_nothing():
     async def scenario() -> None:
         connector = OpcUaConnector(endpoint(server), flaky_sink, backoff=FAST_BACKOFF)
         async with server, running(connector):
-            await wait_for(lambda: connector.stats.received == 1)
+            await wait_for(lambda: connector.counters.samples == 1)
             for k in range(1, 11):
                 await server.write("LIC-301.PV", float(k), EPOCH + k)
                 await asyncio.sleep(0.05)
-            await wait_for(lambda: connector.stats.flushed == 11)
-        assert connector.stats.sink_failures == 2
-        assert connector.stats.received == connector.stats.flushed == 11
+            await wait_for(lambda: connector.counters.delivered == 11)
+        counters = connector.counters
+        assert counters.sink_failures == 2 and counters.undelivered == 0
+        assert counters.samples == counters.delivered == 11
 
     run(scenario)
     stamps = [i["timestamp"] for batch in delivered for entry in batch for i in entry["items"]]
     assert stamps[1:] == [EPOCH + k for k in range(1, 11)]  # in order, once each
+
+
+def test_samples_the_sink_refused_at_the_stop_stay_pending():
+    server = PlainServer(free_port(), ["LIC-302.PV"])
+
+    def refusing_sink(batch: list[dict[str, Any]]) -> None:
+        raise RuntimeError("database is locked")
+
+    async def scenario() -> None:
+        connector = OpcUaConnector(endpoint(server), refusing_sink, backoff=FAST_BACKOFF)
+        async with server, running(connector):
+            await wait_for(lambda: connector.counters.sink_failures >= 1)
+        counters = connector.counters
+        assert (counters.samples, counters.delivered, counters.undelivered) == (1, 0, 0)
+        assert counters.pending == 1  # kept for the next run, not given up
+
+    run(scenario)
 
 
 # --- supervision ----------------------------------------------------------------
@@ -318,24 +336,24 @@ def test_server_restart_reconnects_resubscribes_and_records_the_outage():
         connector = OpcUaConnector(endpoint(server), sink, backoff=FAST_BACKOFF)
         stop = asyncio.Event()
         async with server, running(connector):
-            await wait_for(lambda: connector.stats.received == 1)  # subscribed
+            await wait_for(lambda: connector.counters.samples == 1)  # subscribed
             writer = asyncio.create_task(write_every_50ms(stop))
-            await wait_for(lambda: connector.stats.received > 10)
+            await wait_for(lambda: connector.counters.samples > 10)
             down_at = time.time()
             await server.stop()
             await asyncio.sleep(0.5)
             await server.start()
             up_at = time.time()
-            await wait_for(lambda: connector.stats.reconnects == 1)
-            received_before = connector.stats.received
-            await wait_for(lambda: connector.stats.received > received_before + 10)
+            await wait_for(lambda: connector.counters.reconnects == 1)
+            received_before = connector.counters.samples
+            await wait_for(lambda: connector.counters.samples > received_before + 10)
             stop.set()
             await writer
             await asyncio.sleep(0.3)
-        stats = connector.stats
-        assert stats.received == stats.flushed == len(sink.items())
-        assert len(stats.outages) == 1
-        outage = stats.outages[0]
+        counters = connector.counters
+        assert counters.samples == counters.delivered == len(sink.items())
+        assert len(connector.outages) == 1
+        outage = connector.outages[0]
         assert "connection lost" in outage.reason
         assert down_at <= outage.start < up_at and outage.end is not None
         assert up_at <= outage.end < up_at + 5.0
@@ -357,22 +375,22 @@ def test_the_watchdog_reconnects_when_the_subscription_goes_silent():
     async def scenario() -> None:
         connector = OpcUaConnector(endpoint(server, watchdog_s=1.0), sink, backoff=FAST_BACKOFF)
         async with server, running(connector):
-            await wait_for(lambda: connector.stats.received == 1)
+            await wait_for(lambda: connector.counters.samples == 1)
             assert server.server is not None
             # the server stops publishing (no data, no keep-alive) but the connection stays up
             for subscription in server.server.iserver.subscription_service.subscriptions.values():
                 subscription._task.cancel()
             frozen_at = time.time()
             await server.write("PIC-401.PV", 5.0, EPOCH + 1)
-            await wait_for(lambda: connector.stats.reconnects == 1)
+            await wait_for(lambda: connector.counters.reconnects == 1)
             await server.write("PIC-401.PV", 6.0, EPOCH + 2)
             await wait_for(lambda: (EPOCH + 2) in [t for _, t, _, _ in sink.items()])
-        stats = connector.stats
-        assert stats.watchdog_timeouts == 1
-        outage = stats.outages[0]
+        counters = connector.counters
+        assert counters.watchdog_timeouts == 1
+        outage = connector.outages[0]
         assert outage.reason.startswith("watchdog: no data and no keep-alive")
         assert frozen_at + 0.9 <= outage.start < frozen_at + 3.0  # 0.1: the last publish
-        assert stats.received == stats.flushed
+        assert counters.samples == counters.delivered
 
     run(scenario)
 
@@ -386,9 +404,9 @@ def test_run_in_a_thread_and_stop_flushes():
             await server.write("FIC-101.SP", 12.0, EPOCH + 1)
             connector = OpcUaConnector(endpoint(server, flush_interval_s=60.0), sink)
             connector.start()
-            await wait_for(lambda: connector.stats.received == 1)
+            await wait_for(lambda: connector.counters.samples == 1)
             await asyncio.to_thread(connector.stop)
-        assert connector.stats.flushed == 1  # flushed on stop, long before the interval
+        assert connector.counters.delivered == 1  # flushed on stop, long before the interval
 
     run(scenario)
     assert sink.items() == [("FIC-101.SP", EPOCH + 1, 12.0, True)]
@@ -412,12 +430,12 @@ def test_certificates_sign_and_encrypt(pki, mode):
     async def scenario() -> None:
         async with server:
             trusted, stranger, plain = [await connect(who) for who in ("client", "stranger", None)]
-        assert trusted.stats.outages == () and trusted.stats.received == 1
-        assert stranger.stats.received == 0
-        assert "BadCertificateUntrusted" in (stranger.stats.last_error or "")
-        assert stranger.stats.outages[0].end is None
-        assert plain.stats.received == 0
-        assert "No matching endpoints" in (plain.stats.last_error or "")
+        assert trusted.outages == [] and trusted.counters.samples == 1
+        assert stranger.counters.samples == 0
+        assert "BadCertificateUntrusted" in (stranger.last_error or "")
+        assert stranger.outages[0].end is None
+        assert plain.counters.samples == 0
+        assert "No matching endpoints" in (plain.last_error or "")
 
     run(scenario)
 
@@ -431,8 +449,8 @@ def test_username_and_password():
     async def scenario() -> None:
         async with server:
             right, wrong = await connect("s3cret"), await connect("guess")
-        assert right.stats.received == 1
-        assert wrong.stats.received == 0 and "BadUserAccessDenied" in (wrong.stats.last_error or "")
+        assert right.counters.samples == 1
+        assert wrong.counters.samples == 0 and "BadUserAccessDenied" in (wrong.last_error or "")
 
     run(scenario)
 

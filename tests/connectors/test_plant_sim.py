@@ -106,12 +106,13 @@ def test_every_sample_arrives_over_opcua_with_its_time_stamp_and_value():
     try:
         connector = opcua_connector(sim, sink)
         connector.start()
-        asyncio.run(until(lambda: connector.stats.received > 0, within_s=30))
+        asyncio.run(until(lambda: connector.counters.samples > 0, within_s=30))
         time.sleep(3.0)
         connector.stop()
     finally:
         sim.stop_thread()
-    assert connector.stats.received == connector.stats.flushed
+    counters = connector.counters
+    assert counters.samples == counters.delivered
     over_opcua = {n["tag"] for n in sim.plant_config()["connectors"]["opcua"][0]["nodes"]}
     assert set(sink.items) == over_opcua
     for tag, items in sink.items.items():
@@ -144,7 +145,7 @@ def test_modbus_registers_hold_the_latest_sample_and_bad_tags_go_bad_on_both():
         task = asyncio.create_task(connector.run())
         client = AsyncModbusTcpClient("127.0.0.1", port=sim.modbus_port)
         try:
-            await until(lambda: connector.stats.received >= 21)  # subscribed: initial values
+            await until(lambda: connector.counters.samples >= 21)  # subscribed: initial values
             await client.connect()
             clock.now = start + 5.2
             await sim.release()
@@ -180,7 +181,7 @@ def test_history_is_the_samples_before_the_start_and_serving_goes_on_from_it():
         connector = opcua_connector(sim, sink)
         task = asyncio.create_task(connector.run())
         try:
-            await until(lambda: connector.stats.received >= 21)  # the initial values
+            await until(lambda: connector.counters.samples >= 21)  # the initial values
             clock.now = start + 3.2
             await sim.release()
             await until(lambda: len(sink.items["FIC-101.PV"]) >= 4)

@@ -67,9 +67,9 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
         await asyncio.to_thread(service.start)
         try:
             await until("samples over both protocols",
-                        lambda: opcua.stats.flushed > 50 and modbus.counters.delivered > 20)
+                        lambda: opcua.counters.delivered > 50 and modbus.counters.delivered > 20)
             for server, connected, reconnects in (
-                ("opcua", lambda: opcua.stats.connected, lambda: opcua.stats.reconnects),
+                ("opcua", lambda: opcua.connected, lambda: opcua.counters.reconnects),
                 ("modbus", lambda: not modbus.outages or modbus.outages[-1].end is not None,
                  lambda: modbus.counters.reconnects),
             ):
@@ -85,15 +85,15 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 scraped = await metrics()
                 assert f'loopwatch_connector_up{{connector="{name}"}} 1' in scraped
                 assert f'loopwatch_connector_outages{{connector="{name}"}} 1' in scraped
-            bad_before = (opcua.stats.bad, modbus.counters.bad)
+            bad_before = (opcua.counters.bad, modbus.counters.bad)
             plant.set_bad("FIC-101.PV")  # over OPC UA
             plant.set_bad("FIC-105.PV")  # over Modbus
-            await until("bad samples", lambda: opcua.stats.bad > bad_before[0] + 2
+            await until("bad samples", lambda: opcua.counters.bad > bad_before[0] + 2
                         and modbus.counters.bad > bad_before[1] + 2)
             plant.set_bad("FIC-101.PV", False)
             plant.set_bad("FIC-105.PV", False)
-            received = (opcua.stats.received, modbus.counters.samples)
-            await until("good samples again", lambda: opcua.stats.received > received[0] + 40
+            received = (opcua.counters.samples, modbus.counters.samples)
+            await until("good samples again", lambda: opcua.counters.samples > received[0] + 40
                         and modbus.counters.samples > received[1] + 12)
         finally:
             await asyncio.to_thread(service.stop)
@@ -108,22 +108,23 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
     # every sample received is stored (or was already), none refused, none lost on the way
     assert books.refused == {} and books.spooled == 0
     assert books.received == books.stored + books.already_stored
-    assert opcua.stats.received == opcua.stats.flushed and opcua.stats.pending == 0
-    assert modbus.counters.samples == modbus.counters.delivered
-    assert books.received == opcua.stats.flushed + modbus.counters.delivered
+    opcua_counters, modbus_counters = opcua.counters, modbus.counters
+    for counters in (opcua_counters, modbus_counters):
+        assert counters.samples == counters.delivered, counters
+    assert books.received == opcua_counters.delivered + modbus_counters.delivered
 
     # each outage is recorded, from the loss to the first data after the server came back
-    for server, outages in (("opcua", opcua.stats.outages), ("modbus", modbus.outages)):
+    for server, outages in (("opcua", opcua.outages), ("modbus", modbus.outages)):
         assert len(outages) == 1, (server, outages)
         outage = outages[0]
         assert times[f"{server} down"] <= outage.start < times[f"{server} up"], server
         assert outage.end is not None and times[f"{server} up"] <= outage.end, server
-    assert opcua.stats.reconnects == 1 and modbus.counters.reconnects == 1
+    assert opcua_counters.reconnects == 1 and modbus_counters.reconnects == 1
 
     store = Store(settings.resolved_database_url)
     try:
         # OPC UA: every sample served while connected is stored, with its value
-        opcua_outage = opcua.stats.outages[0]
+        opcua_outage = opcua.outages[0]
         assert opcua_outage.end is not None
         samples = stored(store, "FIC-101.OP")
         numbers = [plant.sample_index("FIC-101", t) for t, _, _ in samples]
