@@ -26,8 +26,11 @@ lint: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
+# Two workers (pytest-xdist, one file per worker at a time) for everything but the
+# timing-sensitive tests, which then run alone so no analysis competes with their clocks.
 pytest: $(VENV)/.installed-test
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadfile -m "not serial"
+	$(PY) -m pytest -m serial
 
 test: lint pytest
 

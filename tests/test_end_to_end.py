@@ -16,6 +16,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from connectors.modbus import ModbusConnector
@@ -23,6 +24,8 @@ from connectors.opcua import OpcUaConnector
 from service.config import Settings
 from service.connector_setup import build_connectors
 from service.server import Service, build_service, running
+
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
 
 ADMIN = "end-to-end-admin-key-0123456789"
 INTERVAL_S = 4.0

@@ -31,6 +31,8 @@ from connectors.modbus import (
 )
 from connectors.modbus_server import ModbusRegisterServer
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 ORDERS = ("ABCD", "CDAB", "BADC", "DCBA")
 TYPES = ("int16", "uint16", "int32", "uint32", "float32")
 FAST_BACKOFF = Backoff(initial=0.05, maximum=0.2, jitter=0.0)

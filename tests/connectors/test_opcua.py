@@ -29,6 +29,8 @@ from connectors.base import Backoff
 from connectors.opcua import OpcUaConnector, OpcUaEndpointConfig
 from tests.servers import free_port
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 FAST_BACKOFF = Backoff(initial=0.1, maximum=0.5, jitter=0.0)
 CLIENT_URI = "urn:loopwatch:connector"
 EPOCH = 1_700_000_000.0

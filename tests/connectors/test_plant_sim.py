@@ -29,6 +29,8 @@ from service.commands.plant_sim import register
 from service.config import load_plant_config, parse_plant_config
 from tests.servers import free_port
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 HORIZON_S = 900.0
 
 

@@ -21,6 +21,8 @@ from connectors.replay import (
 )
 from tests.shared_data import SHARED_DATA, require_file
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 PLANT = SHARED_DATA / "plant_unlabelled"
 EXPORTS = {
     "FIC-211": ("FIC-211_20241121-27.csv", {"FT_211": "FIC-211.PV", "FV_211": "FIC-211.OP"}),

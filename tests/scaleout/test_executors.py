@@ -28,6 +28,8 @@ from service.executors import (
 )
 from tests.servers import free_port, require
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 HAS_DASK = importlib.util.find_spec("distributed") is not None
 
 

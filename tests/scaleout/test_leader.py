@@ -17,6 +17,8 @@ from service.store.db import Store
 from service.store.models import LeaderLease
 from tests.service.conftest import store  # noqa: F401  (the fixture: SQLite and PostgreSQL)
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 LEASE_S = 9.0
 _databases = count()
 

@@ -33,6 +33,8 @@ from tests.scaleout.test_executors import HAS_DASK, cluster  # noqa: F401  (fixt
 from tests.scaleout.test_leader import pg_store  # noqa: F401  (fresh PostgreSQL database)
 from tests.servers import free_port, require
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 ROOT = Path(__file__).resolve().parents[2]
 KEY = "topology-test-admin-key-0123"
 INTERVAL_S = 5

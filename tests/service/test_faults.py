@@ -41,6 +41,8 @@ from service.store.models import AnalysisRun, Sample, UnitAnalysisRun
 from tests.servers import free_port, require
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
+pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
+
 TAGS = ("FIC-1.OP", "FIC-1.PV", "FIC-2.PV")
 
 
