@@ -177,8 +177,8 @@ def _band_update(
 
 
 @njit(cache=True)
-def _band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> float:
-    """:func:`_band_update` on a state vector (updated in place); returns the position."""
+def band_step(params: np.ndarray, state: np.ndarray, u: float, code: int) -> float:
+    """Choudhury et al. (2005) [2] / Kano et al. (2004) [3] step; updates ``state``, returns MV."""
     y, stick_point, stuck, motion, input_slope = _band_update(
         params[0], params[1], code == CHOUDHURY, state[POSITION], state[LAST_INPUT],
         state[STICK_POINT], state[STUCK], state[MOTION], state[INPUT_SLOPE], u,
@@ -237,10 +237,8 @@ def _stenman_update(d: float, y_prev: float, u: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def _he_update(fs: float, fd: float, y_prev: float, u: float) -> float:
-    """He et al. [4]: the residual force ``u - y_prev`` must exceed ``fs``; the
-    valve then moves to within ``fd`` of the input (so a slow ramp climbs in
-    slips of ``fs - fd``)."""
+def he_update(fs: float, fd: float, y_prev: float, u: float) -> float:
+    """He et al. (2007) [4]: move to within ``fd`` of ``u`` once ``|u - y_prev|`` exceeds ``fs``."""
     residual = u - y_prev
     if residual > fs:
         return u - fd
@@ -261,9 +259,9 @@ def valve_step(code: int, params: np.ndarray, state: np.ndarray, u: float, dt: f
     elif code == STENMAN:
         y = _stenman_update(params[0], state[POSITION], u)
     elif code == HE:
-        y = _he_update(params[0], params[1], state[POSITION], u)
+        y = he_update(params[0], params[1], state[POSITION], u)
     elif code == CHOUDHURY or code == KANO:  # noqa: SIM109 (plain compares compile in numba)
-        y = _band_step(params, state, u, code)
+        y = band_step(params, state, u, code)
     else:
         y = _karnopp_step(params, state, u, dt)
     state[POSITION] = y
@@ -287,7 +285,7 @@ def valve_series(
     if code == HE:
         y = state[POSITION]
         for k in range(n):
-            y = _he_update(params[0], params[1], y, op[k])
+            y = he_update(params[0], params[1], y, op[k])
             out[k] = y
     elif code == STENMAN:
         y = state[POSITION]

@@ -96,11 +96,20 @@ class HiddenEffectCase:
 
 
 def _levels(rng: np.random.Generator, count: int, spread: float, gap: float) -> FloatArray:
-    """``count`` values in ``[-spread, spread]`` at least ``gap`` apart (rejection sampling)."""
+    """``count`` values in ``[-spread, spread]`` at least ``gap`` apart (rejection sampling).
+
+    Tens of thousands of draws may be rejected, so they are drawn a block at a
+    time; the generator is then left as drawing one set at a time would leave it.
+    """
     while True:
-        values = rng.uniform(-spread, spread, count)
-        if np.min(np.diff(np.sort(values))) >= gap:
-            return values
+        before = rng.bit_generator.state
+        draws = rng.uniform(-spread, spread, (4096, count))
+        apart = np.min(np.diff(np.sort(draws, axis=1), axis=1), axis=1) >= gap
+        if np.any(apart):
+            first = int(np.argmax(apart))
+            rng.bit_generator.state = before
+            rng.uniform(-spread, spread, (first + 1, count))
+            return draws[first]
 
 
 def _base_loop(

@@ -38,6 +38,11 @@ two effects that explain the data equally well):
     of the samples (the valve must be seen outside it) and is at least half
     its stick band wide.
 
+The two friction searches try thousands of frictions; they are costed many at
+a time (:meth:`ReplayData.friction_errors`: one compiled replay of the valves
+and the process for a grid chunk, or for the next points of the compass
+searches, which run side by side), and no point is costed twice.
+
 References
 ----------
 .. [1] Thesis section 3.4.6 (the three reasons for a mismatch between model
@@ -53,14 +58,15 @@ References
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from copy import copy
 from dataclasses import dataclass, replace
 from itertools import pairwise
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
 from scipy.optimize import minimize_scalar
 
@@ -71,6 +77,7 @@ from analytics.model_check.model import (
     Quantiser,
     StictionZone,
     friction_of,
+    friction_parameters,
     friction_valve,
 )
 
@@ -100,6 +107,10 @@ EFFECTS = (
     "position_dependent_stiction",
 )
 """Effects the check tries, simplest first (``none`` is the base model)."""
+
+FRICTION_CHUNK = 16
+"""Frictions replayed together by :meth:`ReplayData.friction_errors` (bounds the memory
+of a search grid)."""
 
 
 @dataclass(frozen=True)
@@ -245,6 +256,7 @@ class ReplayData:
         self.held_out = which
         self.test: BoolArray = {"odd": odd, "even": scored & ~odd, "none": ~scored}[which]
         self.fit: BoolArray = scored & ~self.test
+        self._fit_samples = np.flatnonzero(self.fit)
         self._columns_fit = self.columns[self.fit]
         self._solve = np.linalg.pinv(self._columns_fit)
         pv_fit, pv_test = self.pv[self.fit], self.pv[self.test]
@@ -282,17 +294,56 @@ class ReplayData:
 
     def fit_error(self, model: LoopModel) -> float:
         """``predict(model).sse_fit``, the cost of the parameter searches, without building
-        the whole prediction (a model with a load or a quantiser takes :meth:`predict`)."""
-        if model.load is not None or model.quantiser is not None:
-            return self.predict(model).sse_fit
-        _, x = self.replay(model)
-        residual = (self._target - x + self._anchored(x))[self.fit]
-        return float(np.sum((residual - self._columns_fit @ (self._solve @ residual)) ** 2))
+        the whole prediction."""
+        valve = model.valve
+        return float(self.friction_errors(model, valve.friction_table(), valve.zone_bounds())[0])
+
+    def friction_errors(self, model: LoopModel, tables: FloatArray, bands: ArrayLike) -> FloatArray:
+        """:meth:`fit_error` of ``model`` with each valve friction table of ``tables`` and
+        zone band of ``bands`` (see :meth:`LoopModel.replay_frictions`; one table and band
+        or as many of each), replayed in one compiled call per chunk."""
+        tables = tables.reshape(-1, *tables.shape[-2:])
+        bands_a = np.broadcast_to(np.asarray(bands, dtype=np.float64), (tables.shape[0], 2))
+        position, lead_in = self.valve_start
+        errors = np.empty(tables.shape[0])
+        for start in range(0, tables.shape[0], FRICTION_CHUNK):
+            chunk = slice(start, start + FRICTION_CHUNK)
+            x = model.replay_frictions(
+                self.op, tables[chunk], bands_a[chunk], initial_position=position, lead_in=lead_in
+            )
+            if model.load is not None or model.quantiser is not None:
+                errors[chunk] = [self._fit_sse(self._simulated_pv(model, row)[0]) for row in x]
+                continue
+            if self.horizon is not None:
+                x -= self._anchored(x.T).T
+            errors[chunk] = _fit_errors(
+                x, self._target, self._fit_samples, self._columns_fit, self._solve
+            )
+        return errors
 
     def predict(self, model: LoopModel, *, fit_gain: bool = False) -> Prediction:
         """Replay ``model``; the offset or ramp (and with ``fit_gain`` a scale of the
         response) are fitted on the fitting blocks."""
         mv, x = self.replay(model)
+        pv, coef = self._simulated_pv(model, x, fit_gain=fit_gain)
+        return Prediction(
+            pv=pv,
+            mv=mv,
+            sse_fit=self._fit_sse(pv),
+            sse_test=float(np.sum((self.pv - pv)[self.test] ** 2)),
+            pv_bias=float(coef[0]) if self.horizon is None else float(self.pv[0]),
+            scale=float(coef[-1]) if fit_gain else 1.0,
+        )
+
+    def _fit_sse(self, pv: FloatArray) -> float:
+        """Squared error of a simulated PV on the fitting blocks."""
+        return float(np.sum((self.pv - pv)[self.fit] ** 2))
+
+    def _simulated_pv(
+        self, model: LoopModel, x: FloatArray, *, fit_gain: bool = False
+    ) -> tuple[FloatArray, FloatArray]:
+        """The PV of :meth:`predict` for the replayed response ``x`` and the fitted
+        coefficients (offset or ramp, then the scale with ``fit_gain``)."""
         if model.load is not None:
             x = x + model.load.series(self.t)
         level = self._anchored(self.pv)
@@ -309,15 +360,7 @@ class ReplayData:
         if model.quantiser is not None:
             scale = float(coef[-1]) if fit_gain else 1.0
             pv = self._on_grid(model.quantiser, pv, scale * x, float(coef[0]))
-        error = self.pv - pv
-        return Prediction(
-            pv=np.asarray(pv, dtype=np.float64),
-            mv=mv,
-            sse_fit=float(np.sum(error[self.fit] ** 2)),
-            sse_test=float(np.sum(error[self.test] ** 2)),
-            pv_bias=float(coef[0]) if self.horizon is None else float(self.pv[0]),
-            scale=float(coef[-1]) if fit_gain else 1.0,
-        )
+        return np.asarray(pv, dtype=np.float64), np.asarray(coef, dtype=np.float64)
 
     def _on_grid(self, grid: Quantiser, pv: FloatArray, x: FloatArray, ramp: float) -> FloatArray:
         """The reported values of ``pv`` on ``grid``, with the level refitted.
@@ -359,6 +402,33 @@ class ReplayData:
         return prediction.sse_fit / self.sst_fit, prediction.sse_test / self.sst_test
 
 
+@njit(cache=True)
+def _fit_errors(
+    response: FloatArray,
+    target: FloatArray,
+    samples: NDArray[np.intp],
+    columns: FloatArray,
+    solve: FloatArray,
+) -> FloatArray:
+    """Squared error of ``target - response`` on ``samples`` after the least-squares fit
+    of ``columns`` (their rows at ``samples``; ``solve`` is their pseudo-inverse), for
+    each row of ``response``: the cost of :meth:`ReplayData.fit_error`, compiled."""
+    errors = np.empty(response.shape[0])
+    residual = np.empty(samples.size)
+    for i in range(response.shape[0]):
+        for k in range(samples.size):
+            residual[k] = target[samples[k]] - response[i, samples[k]]
+        coef = solve @ residual
+        sse = 0.0
+        for k in range(samples.size):
+            error = residual[k]
+            for j in range(coef.size):
+                error -= columns[k, j] * coef[j]
+            sse += error * error
+        errors[i] = sse
+    return errors
+
+
 # ----------------------------------------------------------------------------
 # search helpers
 
@@ -383,18 +453,17 @@ def _scalar_search(cost: Callable[[float], float], grid: Sequence[float]) -> tup
     return x_best, c_best
 
 
-def _compass(
-    cost: Callable[[FloatArray], float],
-    start: FloatArray,
-    steps: FloatArray,
-    lower: FloatArray,
-    upper: FloatArray,
-    halvings: int = 7,
-) -> tuple[FloatArray, float]:
+def _compass_search(
+    start: FloatArray, steps: FloatArray, lower: FloatArray, upper: FloatArray, halvings: int
+) -> Generator[FloatArray, float, tuple[FloatArray, float]]:
     """Compass search: try +-step on each coordinate, keep improvements, halve the steps
-    when none improves (Kolda, Lewis & Torczon 2003, SIAM Review 45:385, Alg. 3.2)."""
+    when none improves (Kolda, Lewis & Torczon 2003, SIAM Review 45:385, Alg. 3.2).
+
+    A generator, so that searches can run side by side (:func:`_compass`): it yields
+    each point to cost, is sent the cost and returns the best point and its cost.
+    """
     x = np.clip(np.asarray(start, dtype=np.float64), lower, upper)
-    best = cost(x)
+    best = yield x
     step = np.asarray(steps, dtype=np.float64).copy()
     for _ in range(halvings):
         improved = True
@@ -406,11 +475,39 @@ def _compass(
                     trial[i] = min(max(trial[i] + sign * step[i], lower[i]), upper[i])
                     if trial[i] == x[i]:
                         continue
-                    value = cost(trial)
+                    value = yield trial
                     if value < best:
                         x, best, improved = trial, value, True
         step /= 2.0
     return x, best
+
+
+def _compass(
+    costs: Callable[[FloatArray], FloatArray],
+    starts: Sequence[Sequence[float]],
+    steps: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    halvings: int = 7,
+) -> tuple[FloatArray, float]:
+    """The best of the compass searches from ``starts`` (the first of equals).
+
+    ``costs`` gives the cost of each row of an array of points.  The searches
+    run side by side: the next point of every search is costed in one call
+    (one compiled replay for several frictions).
+    """
+    searches = [_compass_search(np.array(s), steps, lower, upper, halvings) for s in starts]
+    pending = {i: next(search) for i, search in enumerate(searches)}
+    found: dict[int, tuple[FloatArray, float]] = {}
+    while pending:
+        values = costs(np.array(list(pending.values()))).tolist()
+        for i, value in zip(list(pending), values, strict=True):
+            try:
+                pending[i] = searches[i].send(value)
+            except StopIteration as done:
+                found[i] = done.value
+                del pending[i]
+    return min((found[i] for i in range(len(starts))), key=lambda result: result[1])
 
 
 STARTS = 4
@@ -421,6 +518,29 @@ def _friction_grid(s_high: float) -> list[tuple[float, float]]:
     """``(S, j)`` pairs, ``j = J / S``: no friction, and S on a log grid up to ``s_high``
     with J = S / 2 (the compass search then adjusts J)."""
     return [(0.0, 0.5)] + [(float(S), 0.5) for S in s_high * np.geomspace(0.03, 1.0, 10)]
+
+
+def _remembered(costs: Callable[[FloatArray], FloatArray]) -> Callable[[FloatArray], FloatArray]:
+    """``costs`` of the rows of an array of points, computed once per point: a compass
+    search often steps back to a point it has tried, or starts from a grid point."""
+    seen: dict[tuple[float, ...], float] = {}
+
+    def remembered(points: FloatArray) -> FloatArray:
+        keys = [tuple(point) for point in points.tolist()]
+        new = list(dict.fromkeys(key for key in keys if key not in seen))
+        if new:
+            seen.update(zip(new, costs(np.array(new)).tolist(), strict=True))
+        return np.array([seen[key] for key in keys])
+
+    return remembered
+
+
+def _best(
+    costs: Callable[[FloatArray], FloatArray], points: list[tuple[float, ...]]
+) -> list[tuple[float, ...]]:
+    """The :data:`STARTS` points of lowest cost (ties: the smaller point first)."""
+    values = costs(np.array(points)).tolist()
+    return [point for _, point in sorted(zip(values, points, strict=True))][:STARTS]
 
 
 # ----------------------------------------------------------------------------
@@ -587,9 +707,15 @@ def _fit_asymmetric(
         closing = friction_valve(like, p[2], p[3])
         return replace(base, valve=replace(base.valve, opening=opening, closing=closing))
 
-    def cost(p: FloatArray) -> float:
-        return data.fit_error(model_of(p))
+    def costs(points: FloatArray) -> FloatArray:
+        """``data.fit_error(model_of(p))`` of each row ``p`` of ``points``."""
+        tables = base.valve.friction_table(
+            opening=friction_parameters(like, points[:, 0], points[:, 1]),
+            closing=friction_parameters(like, points[:, 2], points[:, 3]),
+        )
+        return data.friction_errors(base, tables, base.valve.zone_bounds())
 
+    search = _remembered(costs)
     if seeds:
         starts = [tuple(seed) for seed in seeds]
     else:
@@ -599,13 +725,10 @@ def _fit_asymmetric(
         starts = [(*up, *down) for up in grid for down in grid]
         for friction in grid:
             starts += [(*base_friction, *friction), (*friction, *base_friction)]
-        starts = [start for _, start in sorted((cost(np.array(s)), s) for s in starts)][:STARTS]
+        starts = _best(search, starts)
     lower, upper = np.zeros(4), np.array([s_high, 1.0, s_high, 1.0])
     steps = np.array([0.1 * s_high, 0.25, 0.1 * s_high, 0.25])
-    point, _ = min(
-        (_compass(cost, np.array(start), steps, lower, upper) for start in starts),
-        key=lambda found: found[1],
-    )
+    point, _ = _compass(search, starts, steps, lower, upper)
     model = model_of(point)
     params = _friction_params("opening", model.valve.opening)
     params |= _friction_params("closing", model.valve.closing)
@@ -637,32 +760,33 @@ def _fit_zone(
         zone = StictionZone(low, max(high, low + 1e-6), friction_valve(like, p[2], p[3]))
         return replace(base, valve=replace(base.valve, zone=zone))
 
-    def cost(p: FloatArray) -> float:
-        low, high = min(p[0], p[1]), max(p[0], p[1])
+    def costs(points: FloatArray) -> FloatArray:
+        """``data.fit_error(model_of(p))`` of each row ``p`` of ``points`` (inf for a band
+        too wide or too narrow)."""
+        low, high = np.minimum(points[:, 0], points[:, 1]), np.maximum(points[:, 0], points[:, 1])
         inside = np.searchsorted(op, high, "right") - np.searchsorted(op, low)
-        if inside > max_coverage * op.size or high - low < 0.5 * p[2]:
-            return math.inf
-        return data.fit_error(model_of(p))
+        allowed = (inside <= max_coverage * op.size) & (high - low >= 0.5 * points[:, 2])
+        out = np.full(points.shape[0], math.inf)
+        if np.any(allowed):
+            p, low, high = points[allowed], low[allowed], high[allowed]
+            tables = base.valve.friction_table(zone=friction_parameters(like, p[:, 2], p[:, 3]))
+            bands = np.column_stack([low, np.maximum(high, low + 1e-6)])
+            out[allowed] = data.friction_errors(base, tables, bands)
+        return out
 
+    search = _remembered(costs)
     if seeds:
         starts = [tuple(seed) for seed in seeds]
     else:
         bands = [(edges[i], edges[j]) for i in range(edges.size) for j in range(i + 1, edges.size)]
-        scored = sorted(
-            (cost(np.array([*band, *friction])), (*band, *friction))
-            for band in bands
-            for friction in _friction_grid(s_high)
-        )
-        starts = [start for _, start in scored[:STARTS]]
+        frictions = _friction_grid(s_high)
+        starts = _best(search, [(*band, *friction) for band in bands for friction in frictions])
     width = float(edges[-1] - edges[0])
     lower = np.array([edges[0] - 0.1 * width, edges[0] - 0.1 * width, 0.0, 0.0])
     upper = np.array([edges[-1] + 0.1 * width, edges[-1] + 0.1 * width, s_high, 1.0])
     steps = np.array([0.05 * width, 0.05 * width, 0.1 * s_high, 0.25])
-    point, best = min(
-        (_compass(cost, np.array(start), steps, lower, upper) for start in starts),
-        key=lambda found: found[1],
-    )
-    point = _tighten(cost, point, best, 0.05 * width)
+    point, best = _compass(search, starts, steps, lower, upper)
+    point = _tighten(lambda p: float(search(p[None])[0]), point, best, 0.05 * width)
     model = model_of(point)
     zone = model.valve.zone
     assert zone is not None

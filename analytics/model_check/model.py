@@ -29,7 +29,8 @@ extensions are
 
 The model is also driven open loop by a measured OP (:meth:`LoopModel.replay`):
 valve, characteristic and process give the PV deviation ``x`` that the check
-compares with the measured PV.
+compares with the measured PV.  :meth:`LoopModel.replay_frictions` does so for
+many valve frictions at once (the friction searches of the check).
 
 References
 ----------
@@ -67,8 +68,8 @@ from analytics.valves import (
     IdealValve,
     KanoValve,
     ValveModel,
-    _band_step,
-    _he_update,
+    band_step,
+    he_update,
     valve_from_dict,
 )
 
@@ -239,6 +240,25 @@ class PIController:
         return out
 
 
+def friction_parameters(like: FrictionValve, S: ArrayLike, j: ArrayLike) -> FloatArray:
+    """The two parameters of :func:`friction_valve` (He's ``fs, fd``; ``S, J`` of the
+    band models) for arrays of ``S`` and ``j``, as the last axis of the result.
+
+    Examples
+    --------
+    >>> friction_parameters(HeValve(1.0, 0.5), [4.0, 2.0], 0.5).tolist()
+    [[3.0, 1.0], [1.5, 0.5]]
+    """
+    S_a = np.maximum(np.asarray(S, dtype=np.float64), 0.0)
+    j_a = np.minimum(np.maximum(np.asarray(j, dtype=np.float64), 0.0), 1.0)
+    out = np.empty((*np.broadcast_shapes(S_a.shape, j_a.shape), 2))
+    if isinstance(like, HeValve):
+        out[..., 0], out[..., 1] = 0.5 * S_a * (1.0 + j_a), 0.5 * S_a * (1.0 - j_a)
+    else:
+        out[..., 0], out[..., 1] = S_a, j_a * S_a
+    return out
+
+
 def friction_valve(like: FrictionValve, S: float, j: float) -> FrictionValve:
     """A valve of the same model as ``like`` with stick band ``S`` and ``J = j S``.
 
@@ -249,11 +269,8 @@ def friction_valve(like: FrictionValve, S: float, j: float) -> FrictionValve:
     >>> friction_valve(HeValve(1.0, 0.5), 4.0, 0.5)
     HeValve(fs=3.0, fd=1.0)
     """
-    S = max(float(S), 0.0)
-    j = min(max(float(j), 0.0), 1.0)
-    if isinstance(like, HeValve):
-        return HeValve(0.5 * S * (1.0 + j), 0.5 * S * (1.0 - j))
-    return type(like)(S, j * S)
+    first, second = friction_parameters(like, S, j).tolist()
+    return type(like)(first, second)
 
 
 def friction_of(valve: FrictionValve) -> tuple[float, float]:
@@ -379,12 +396,32 @@ class Valve:
             out["characteristic"] = {"type": "exponential", "curvature": self.curvature}
         return out
 
-    def friction_table(self) -> FloatArray:
+    def friction_table(
+        self,
+        *,
+        opening: FloatArray | None = None,
+        closing: FloatArray | None = None,
+        zone: FloatArray | None = None,
+    ) -> FloatArray:
         """Parameter rows for :func:`_scheduled_valve_step`: outside the zone opening,
-        outside closing, inside opening, inside closing."""
-        outside = (self.opening or self.base, self.closing or self.base)
-        inside = (self.zone.valve,) * 2 if self.zone is not None else outside
-        return np.array([v.params_array() for v in (*outside, *inside)], dtype=np.float64)
+        outside closing, inside opening, inside closing (shape (4, 2)).
+
+        ``opening``, ``closing`` or ``zone`` (friction parameters, see
+        :func:`friction_parameters`, of shape (2,) or (m, 2)) replace the valve's
+        own, as :func:`dataclasses.replace` would; with m of them the result
+        holds m tables (shape (m, 4, 2)), for a search over many frictions.
+        """
+        if opening is None:
+            opening = (self.opening or self.base).params_array()
+        if closing is None:
+            closing = (self.closing or self.base).params_array()
+        if zone is None and self.zone is not None:
+            zone = self.zone.valve.params_array()
+        rows = (opening, closing, *((opening, closing) if zone is None else (zone, zone)))
+        table = np.empty((*np.broadcast_shapes(*(row.shape for row in rows))[:-1], 4, 2))
+        for i, row in enumerate(rows):
+            table[..., i, :] = row
+        return table
 
     def zone_bounds(self) -> tuple[float, float]:
         """Band of travel of the zone friction (an empty band without a zone)."""
@@ -515,11 +552,11 @@ def _scheduled_valve_step(
     if zone_low <= position <= zone_high:
         row += 2
     if code == HE:
-        y = _he_update(table[row, 0], table[row, 1], position, u)
+        y = he_update(table[row, 0], table[row, 1], position, u)
     else:  # Choudhury or Kano (friction valves only, see ``_as_friction``)
         params[0] = table[row, 0]
         params[1] = table[row, 1]
-        y = _band_step(params, state, u, code)
+        y = band_step(params, state, u, code)
     state[POSITION] = y
     state[LAST_INPUT] = u
     return y
@@ -534,31 +571,69 @@ def _flow(mv: float, curvature: float, reference: float) -> float:
 
 
 @njit(cache=True)
-def _lead_in(
-    code: int,
-    table: FloatArray,
-    zone_low: float,
-    zone_high: float,
-    state: FloatArray,
-    op: FloatArray,
-) -> None:
-    """Step the valve through OP samples before a replay (its state only).
+def _valve_positions(
+    code: int, tables: FloatArray, bands: FloatArray, states: FloatArray, op: FloatArray
+) -> FloatArray:
+    """Positions of valves stepped through the OP samples ``op``, one row per friction
+    table ``tables[i]``, zone ``bands[i] = (low, high)`` and state ``states[i]``.
 
-    A separate kernel: a second inlined valve step in :func:`_replay` makes
-    the compiled loop several times slower.
+    The valves are stepped together, sample by sample: each step of a valve
+    waits for the one before, but the valves do not wait for each other.  A
+    kernel of its own (:func:`_replay` calls it for the lead-in and for the
+    record): two inlined valve steps in one compiled function make it several
+    times slower.
     """
+    mv = np.empty((tables.shape[0], op.size))
     params = np.empty(2)
-    for k in range(op.shape[0]):
-        _scheduled_valve_step(code, table, zone_low, zone_high, state, params, op[k])
+    for k in range(op.size):
+        for i in range(tables.shape[0]):
+            mv[i, k] = _scheduled_valve_step(
+                code, tables[i], bands[i, 0], bands[i, 1], states[i], params, op[k]
+            )
+    return mv
+
+
+@njit(cache=True)
+def _response(
+    mv: FloatArray,
+    dt: float,
+    curvature: float,
+    reference: float,
+    delay: int,
+    pole: float,
+    K: float,
+    integrating: bool,
+) -> FloatArray:
+    """PV deviation ``x`` for every row of valve positions ``mv``, through the
+    characteristic and the process at rest at the first input (rows stepped
+    together, as in :func:`_valve_positions`)."""
+    m, n = mv.shape
+    x = np.empty((m, n))
+    lag = np.empty(m)
+    level = np.empty(m)
+    for i in range(m):
+        lag[i] = _flow(mv[i, 0], curvature, reference)
+        level[i] = 0.0 if integrating else K * lag[i]
+    for k in range(n):
+        d = max(k - delay, 0)
+        for i in range(m):
+            x[i, k] = level[i]
+            ud = _flow(mv[i, d], curvature, reference)
+            if integrating:
+                lag[i] = pole * lag[i] + (1.0 - pole) * ud
+                level[i] += dt * K * lag[i]
+            else:
+                level[i] = pole * level[i] + (1.0 - pole) * K * ud
+    return x
 
 
 @njit(cache=True)
 def _replay(
     code: int,
-    table: FloatArray,
-    zone_low: float,
-    zone_high: float,
+    tables: FloatArray,
+    bands: FloatArray,
     state: FloatArray,
+    lead_in: FloatArray,
     op: FloatArray,
     dt: float,
     curvature: float,
@@ -568,26 +643,15 @@ def _replay(
     K: float,
     integrating: bool,
 ) -> tuple[FloatArray, FloatArray]:
-    """MV and the PV deviation ``x`` for a measured OP, process at rest at the first input."""
-    n = op.shape[0]
-    params = np.empty(2)
-    mv = np.empty(n)
-    u = np.empty(n)
-    for k in range(n):
-        mv[k] = _scheduled_valve_step(code, table, zone_low, zone_high, state, params, op[k])
-        u[k] = _flow(mv[k], curvature, reference)
-    x = np.empty(n)
-    lag = u[0]
-    level = 0.0 if integrating else K * u[0]
-    for k in range(n):
-        x[k] = level
-        ud = u[max(k - delay, 0)]
-        if integrating:
-            lag = pole * lag + (1.0 - pole) * ud
-            level += dt * K * lag
-        else:
-            level = pole * level + (1.0 - pole) * K * ud
-    return mv, x
+    """MV and the PV deviation ``x`` for a measured OP, one row per friction table
+    ``tables[i]`` and zone ``bands[i]``.  Every valve starts from ``state`` and is
+    stepped through ``lead_in`` first; the process starts at rest at the first input."""
+    states = np.empty((tables.shape[0], state.size))
+    for i in range(tables.shape[0]):
+        states[i] = state
+    _valve_positions(code, tables, bands, states, lead_in)
+    mv = _valve_positions(code, tables, bands, states, op)
+    return mv, _response(mv, dt, curvature, reference, delay, pole, K, integrating)
 
 
 @njit(cache=True)
@@ -786,24 +850,59 @@ class LoopModel:
         >>> mv.tolist(), x.tolist()
         ([50.0, 50.0, 52.0, 52.0], [0.0, 0.0, 0.0, 4.0])
         """
+        series, before, state = self._replay_start(op, initial_position, lead_in)
+        mv, x = _replay(
+            self.valve.base.code,
+            self.valve.friction_table()[None],
+            np.array([self.valve.zone_bounds()]),
+            state,
+            before,
+            series,
+            *self._replay_process(series.size),
+        )
+        return mv[0], x[0]
+
+    def replay_frictions(
+        self,
+        op: ArrayLike,
+        tables: ArrayLike,
+        bands: ArrayLike,
+        *,
+        initial_position: float | None = None,
+        lead_in: ArrayLike = (),
+    ) -> FloatArray:
+        """The PV deviation ``x`` of :meth:`replay` for the model with other valve friction.
+
+        Row ``i`` of the result has the friction table ``tables[i]`` (see
+        :meth:`Valve.friction_table`) and the zone band ``bands[i] = (low, high)``:
+        one compiled call for the frictions a search tries.
+        """
+        series, before, state = self._replay_start(op, initial_position, lead_in)
+        return _replay(
+            self.valve.base.code,
+            np.ascontiguousarray(tables, dtype=np.float64),
+            np.ascontiguousarray(bands, dtype=np.float64),
+            state,
+            before,
+            series,
+            *self._replay_process(series.size),
+        )[1]
+
+    def _replay_start(
+        self, op: ArrayLike, initial_position: float | None, lead_in: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """OP and lead-in of :meth:`replay` as checked arrays, and the valve's initial state."""
         series = np.ascontiguousarray(op, dtype=np.float64)
         before = np.ascontiguousarray(lead_in, dtype=np.float64)
         if series.ndim != 1 or series.size == 0 or before.ndim != 1:
             raise DataError(f"OP must be a non-empty 1-D series, got shape {series.shape}")
         start = before[0] if before.size else series[0]
-        n = series.size
         state = self._valve_state(float(start if initial_position is None else initial_position))
-        table = self.valve.friction_table()
-        low, high = self.valve.zone_bounds()
-        code = self.valve.base.code
-        _lead_in(code, table, low, high, state, before)
-        return _replay(
-            code,
-            table,
-            low,
-            high,
-            state,
-            series,
+        return series, before, state
+
+    def _replay_process(self, n: int) -> tuple[float, float, float, int, float, float, bool]:
+        """Characteristic and process arguments of :func:`_replay` for ``n`` samples."""
+        return (
             self.dt,
             self.valve.curvature,
             self.op_bias,

@@ -11,6 +11,7 @@ held-out data, and no-effect cases named ``none``), and run on real loops.
 import csv
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,11 +20,11 @@ from scipy.special import erf
 from analytics.errors import DataError, ModelSpecError
 from analytics.lti import TransferFunction
 from analytics.model_check import EFFECTS, LoopModel, check_model
-from analytics.model_check.cases import CATALOGUE, hidden_effect_case
+from analytics.model_check.cases import CATALOGUE, _levels, hidden_effect_case
 from analytics.model_check.check import noise_std, valve_synchronisation
-from analytics.model_check.effects import pv_grid
+from analytics.model_check.effects import ReplayData, _compass, pv_grid
 from analytics.model_check.identify import identify_controller
-from analytics.model_check.model import Quantiser
+from analytics.model_check.model import Quantiser, StictionZone
 from analytics.oscillation import detect_loop_oscillation
 from analytics.scenarios import chapter4
 from analytics.simulation import Disturbance, Loop, PIDController, simulate
@@ -255,6 +256,109 @@ class TestIdentification:
         # the Hammerstein model (fitted on block means) replays the loop closely
         assert result.nmse_base_test < 0.1
         assert any("Hammerstein" in note for note in result.notes)
+
+
+# ----------------------------------------------------------------------------
+# the friction searches: many frictions at a time, the same answers
+
+
+FRICTIONS = np.array([[3.0, 1.0], [1.2, 0.2]])
+"""Two frictions in a valve model's own parameters (He's fs, fd; S, J of the band models)."""
+
+
+def friction_model(name: str) -> LoopModel:
+    keys = ("fs", "fd") if name == "he" else ("S", "J")
+    return model_with(valve={"model": name, **dict(zip(keys, FRICTIONS[0], strict=True))})
+
+
+def walk(n: int = 3000, seed: int = 3) -> np.ndarray:
+    return 50.0 + np.cumsum(np.random.default_rng(seed).normal(0.0, 0.8, n))
+
+
+class TestFrictionSearch:
+    @pytest.mark.parametrize("name", ["he", "choudhury", "kano"])
+    def test_friction_tables_are_those_of_the_replaced_valves(self, name) -> None:
+        valve = friction_model(name).valve
+        kind = type(valve.base)
+        tables = valve.friction_table(opening=FRICTIONS, closing=FRICTIONS[::-1])
+        zones = valve.friction_table(zone=FRICTIONS)
+        for i, friction in enumerate(FRICTIONS):
+            other = replace(valve, opening=kind(*friction), closing=kind(*FRICTIONS[1 - i]))
+            np.testing.assert_array_equal(tables[i], other.friction_table())
+            zone = replace(valve, zone=StictionZone(40.0, 60.0, kind(*friction)))
+            np.testing.assert_array_equal(zones[i], zone.friction_table())
+
+    @pytest.mark.parametrize("name", ["he", "choudhury", "kano"])
+    def test_replays_of_many_frictions_are_those_of_each_model(self, name) -> None:
+        model = friction_model(name)
+        kind = type(model.valve.base)
+        bands = np.array([[45.0, 52.0], [30.0, 70.0]])
+        op, lead_in = walk(), np.array([40.0, 44.0, 47.0])
+        x = model.replay_frictions(op, model.valve.friction_table(zone=FRICTIONS), bands,
+                                   initial_position=38.0, lead_in=lead_in)
+        for i, (low, high) in enumerate(bands):
+            zone = StictionZone(low, high, kind(*FRICTIONS[i]))
+            one = replace(model, valve=replace(model.valve, zone=zone))
+            np.testing.assert_array_equal(x[i], one.replay(op, initial_position=38.0,
+                                                           lead_in=lead_in)[1])
+
+    @pytest.mark.parametrize("horizon", [None, 40], ids=["free run", "horizon"])
+    @pytest.mark.parametrize("load", [False, True], ids=["no load", "load"])
+    def test_friction_errors_are_the_fit_errors_of_each_model(self, horizon, load) -> None:
+        op = walk()
+        truth = model_with(valve={"model": "he", "fs": 3.0, "fd": 1.0,
+                                  "opening": {"fs": 2.0, "fd": 0.5}})
+        pv = 50.0 + truth.replay(op)[1] + np.random.default_rng(4).normal(0.0, 0.05, op.size)
+        model = model_with(load={"kind": "sine", "amplitude": 0.3, "period": 90.0}) if load \
+            else model_with()
+        data = ReplayData(op, pv, 1.0, warm_up=100, folds=4, horizon=horizon,
+                          ramp=horizon is not None)
+        params = np.array([[2.0, 0.5], [3.0, 1.0], [0.5, 0.5]])
+        errors = data.friction_errors(model, model.valve.friction_table(opening=params),
+                                      model.valve.zone_bounds())
+        for i, friction in enumerate(params):
+            one = replace(model, valve=replace(model.valve, opening=HeValve(*friction)))
+            assert errors[i] == pytest.approx(data.predict(one).sse_fit, rel=1e-9)
+        assert np.argmin(errors) == 0  # the true friction opening
+
+    def test_compass_searches_side_by_side_are_those_one_at_a_time(self) -> None:
+        def bumpy(p: np.ndarray) -> float:
+            return float(np.sum(np.sin(3.0 * p) + 0.1 * (p - 1.0) ** 2))
+
+        def one_at_a_time(start, steps, lower, upper, halvings=7):
+            # Kolda, Lewis & Torczon (2003), Alg. 3.2, polled one move at a time
+            x, step = np.clip(start, lower, upper), steps.copy()
+            best = bumpy(x)
+            for _ in range(halvings):
+                improved = True
+                while improved:
+                    improved = False
+                    for i in range(x.size):
+                        for sign in (1.0, -1.0):
+                            trial = x.copy()
+                            trial[i] = min(max(trial[i] + sign * step[i], lower[i]), upper[i])
+                            if trial[i] != x[i] and bumpy(trial) < best:
+                                x, best, improved = trial, bumpy(trial), True
+                step /= 2.0
+            return x, best
+
+        lower, upper, steps = np.full(3, -4.0), np.full(3, 4.0), np.full(3, 0.7)
+        starts = np.random.default_rng(5).uniform(-4.0, 4.0, (10, 3))
+        point, value = _compass(lambda ps: np.array([bumpy(p) for p in ps]), starts, steps,
+                                lower, upper)
+        expected = min((one_at_a_time(s, steps, lower, upper) for s in starts),
+                       key=lambda found: found[1])
+        np.testing.assert_array_equal(point, expected[0])
+        assert value == expected[1]
+
+    def test_random_loops_draw_their_levels_as_one_set_at_a_time(self) -> None:
+        rng, reference = np.random.default_rng(0), np.random.default_rng(0)
+        while True:  # the rejection sampling the block-wise draws must reproduce
+            values = reference.uniform(-18.0, 18.0, 5)
+            if np.min(np.diff(np.sort(values))) >= 8.0:
+                break
+        np.testing.assert_array_equal(_levels(rng, 5, 18.0, 8.0), values)
+        assert rng.uniform() == reference.uniform()  # the generators are left alike
 
 
 # ----------------------------------------------------------------------------
