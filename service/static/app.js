@@ -869,7 +869,9 @@ async function start() {
   window.addEventListener("hashchange", async () => {
     if (!session.me) return;
     await route();
-    document.getElementById("main").focus();
+    // The new page gets the focus, unless the user moved it into the page while it loaded
+    const main = document.getElementById("main");
+    if (!main.contains(document.activeElement) || document.activeElement === main) main.focus();
   });
   if (!sessionStorage.getItem(KEY_STORAGE)) {
     renderSignIn("");

@@ -330,8 +330,9 @@ def test_model_check_page_shows_the_simulation_against_the_measurement(
     page.locator("#loops tbody tr").first.wait_for()
     page.goto(f"{running.base_url}/#/loop/FIC-1")
     button = page.get_by_role("button", name="Check the model")
-    button.focus()  # reached and pressed from the keyboard
-    page.keyboard.press("Enter")
+    button.focus()  # reached from the keyboard, maybe while the page still loads ...
+    page.locator("#main:not([aria-busy])").wait_for()
+    page.keyboard.press("Enter")  # ... and the page, once loaded, has left the focus there
     page.get_by_role("heading", level=1, name="Model check: FIC-1").wait_for(
         timeout=MODEL_CHECK_WAIT_MS)
     overlay = page.locator('figure[data-plot="model-check"] svg[data-kind="model-check"]')
