@@ -49,11 +49,18 @@ class Metrics:
                     lines.append(f"# HELP {name} {self._help[name]}")
                 lines.append(f"# TYPE {name} counter")
             label_text = ",".join(f'{k}="{v}"' for k, v in labels)
-            lines.append(f"{name}{{{label_text}}} {value:g}" if labels else f"{name} {value:g}")
+            number = _exposition_number(value)
+            lines.append(f"{name}{{{label_text}}} {number}" if labels else f"{name} {number}")
         for name, value in sorted((gauges or {}).items()):
             base = name.split("{", 1)[0]  # a gauge may carry labels: name{label="value"}
             if base not in seen:
                 seen.add(base)
                 lines.append(f"# TYPE {base} gauge")
-            lines.append(f"{name} {value:g}")
+            lines.append(f"{name} {_exposition_number(value)}")
         return "\n".join(lines) + "\n"
+
+
+def _exposition_number(value: float) -> str:
+    """Every digit of ``value``: whole numbers as integers, others as Python's shortest
+    round-trip form (``:g`` would print 1234567 samples as 1.23457e+06)."""
+    return str(int(value)) if float(value).is_integer() else repr(float(value))

@@ -19,7 +19,7 @@ from typing import Any, Protocol
 
 from sqlalchemy.orm import Session
 
-from connectors.base import Outage
+from connectors.base import DeliveryCounters, Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
@@ -76,9 +76,13 @@ class SampleAccounting:
 
 
 class WatchedSource(Protocol):
-    """What the service reports of a connector: its name and its outages."""
+    """What the service reports of a connector: its name, its counters and its outages."""
 
     name: str
+
+    @property
+    def counters(self) -> DeliveryCounters:
+        """A consistent copy of the samples it made and what the sink did with them."""
 
     @property
     def outages(self) -> list[Outage]:

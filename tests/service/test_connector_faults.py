@@ -85,9 +85,14 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 times[f"{server} up"] = time.time()
                 await plant.bring_back(server)
                 await until(f"{server} to reconnect", lambda r=reconnects: r() == 1)
+                before = (opcua if server == "opcua" else modbus).counters
                 scraped = await metrics()
+                after = (opcua if server == "opcua" else modbus).counters
                 assert f'loopwatch_connector_up{{connector="{name}"}} 1' in scraped
                 assert f'loopwatch_connector_outages{{connector="{name}"}} 1' in scraped
+                delivered = float(scraped.split(
+                    f'loopwatch_connector_delivered{{connector="{name}"}} ')[1].split()[0])
+                assert before.delivered <= delivered <= after.delivered
             bad_before = (opcua.counters.bad, modbus.counters.bad)
             plant.set_bad("FIC-101.PV")  # over OPC UA
             plant.set_bad("FIC-105.PV")  # over Modbus

@@ -25,7 +25,8 @@ def metrics(
     session: SessionDep, state: StateDep, _: Annotated[Principal, Depends(require("read"))]
 ) -> str:
     """Counters and gauges in the Prometheus text format; per connector whether data
-    comes now (``loopwatch_connector_up``), its outages and their total length."""
+    comes now (``loopwatch_connector_up``), its outages and their total length, and its
+    samples since start: made, bad, delivered to ingest, given up, still on their way."""
     gauges = {
         "loopwatch_loops": float(session.scalar(select(func.count()).select_from(Loop)) or 0),
         "loopwatch_alarms_active": float(
@@ -45,4 +46,7 @@ def metrics(
         gauges[f"loopwatch_connector_outages{label}"] = float(len(outages))
         gauges[f"loopwatch_connector_outage_seconds{label}"] = sum(
             (now if o.end is None else o.end) - o.start for o in outages)
+        counters = source.counters
+        for count in ("samples", "bad", "delivered", "undelivered", "pending"):
+            gauges[f"loopwatch_connector_{count}{label}"] = float(getattr(counters, count))
     return state.metrics.render(gauges)
