@@ -395,9 +395,7 @@ def update_ticket_from_analysis(
             valve_asset=asset, loop_id=loop_id, state="open", priority=priority,
             title=_short_text(f"Sticky valve {asset}, loop {loop_id}"),
             description=_describe(stored), location=location,
-            malfunction_start=(
-                oldest.started_at if oldest.window_start is None else oldest.window_start
-            ),
+            malfunction_start=_window(oldest)[0],
             evidence=stored, created_at=now, updated_at=now,
         )
         ticket.events.append(TicketEvent(

@@ -79,15 +79,16 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 times[f"{server} down"] = time.time()
                 await plant.take_down(server)
                 await until(f"the {server} loss to be noticed", lambda c=connected: not c())
-                name = opcua.name if server == "opcua" else modbus.name
+                connector = opcua if server == "opcua" else modbus
+                name = connector.name
                 assert f'loopwatch_connector_up{{connector="{name}"}} 0' in await metrics()
                 await asyncio.sleep(DOWN_S)
                 times[f"{server} up"] = time.time()
                 await plant.bring_back(server)
                 await until(f"{server} to reconnect", lambda r=reconnects: r() == 1)
-                before = (opcua if server == "opcua" else modbus).counters
+                before = connector.counters
                 scraped = await metrics()
-                after = (opcua if server == "opcua" else modbus).counters
+                after = connector.counters
                 assert f'loopwatch_connector_up{{connector="{name}"}} 1' in scraped
                 assert f'loopwatch_connector_outages{{connector="{name}"}} 1' in scraped
                 delivered = float(scraped.split(
