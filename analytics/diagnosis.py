@@ -5,29 +5,39 @@ Steps, each feeding the next:
 1. Data quality (:func:`analytics.quality.assess_quality`).  An unusable
    window stops here with the verdict ``undecided`` and the reasons.
 2. Oscillation (:func:`analytics.oscillation.detect_loop_oscillation`) on OP
-   and/or PV.  A loop without a regular oscillation is still examined when
-   its spectrum shows a weaker cycle (:data:`IRREGULAR_MIN_PROMINENCE`):
-   noise makes a sticky valve slip at random moments.  Only a stiction
-   finding counts there; otherwise, and for a loop with no cycle at all, the
-   verdict is ``no_stiction`` with a note that a valve sticking without
-   causing a cycle is not visible in routine data.
-3. The stiction battery (:mod:`analytics.stiction.battery`) on the window,
-   with the process type given by the user (otherwise inferred, see
-   :func:`_infer_process_type`), plus the Hammerstein
-   identification (:func:`analytics.quantification.quantify_stiction`) as
-   one more method: whether a stiction model explains the data better than
-   a healthy valve (:func:`hammerstein_evidence`).  Quantised or compressed
-   data blind the nonlinearity tests (Thornhill, Choudhury & Shah 2004), so
-   on such data their evidence is set aside with that reason.  The evidence
-   is combined by :func:`analytics.stiction.battery.combine`.
+   and/or PV.  A loop without a regular oscillation is still examined for a
+   cycle when its spectrum shows a weaker one
+   (:data:`IRREGULAR_MIN_PROMINENCE`): noise makes a sticky valve slip at
+   random moments.
+   Every usable window in which the controller moved the valve is examined:
+   a window whose OP travel beyond noise is below
+   :data:`analytics.stiction.stick_jump.MIN_TRAVEL` is ``undecided`` ("not
+   enough valve movement to judge"), one with a cycle or enough travel goes
+   on.  A frozen PV while OP travels :data:`STUCK_MIN_TRAVEL` is the valve
+   (or its positioner or transmitter) stuck, not unusable data.
+3. The stiction battery (:mod:`analytics.stiction.battery`).  With a cycle:
+   the cycle methods, the transient methods of
+   :mod:`analytics.stiction.stick_jump` and the Hammerstein identification
+   (:func:`analytics.quantification.quantify_stiction`) as one more method
+   (:func:`hammerstein_evidence`), with the process type given by the user
+   (otherwise inferred, see :func:`_infer_process_type`).  Quantised or
+   compressed data blind the nonlinearity tests (Thornhill, Choudhury &
+   Shah 2004), so on such data their evidence is set aside with that
+   reason.  Without a cycle, or when an irregular cycle does not show
+   stiction: the transient methods alone (stick-jump episodes and stuck
+   sections, Kano et al. 2004), which need holds, not a period.  The verdict
+   names the pattern: ``limit_cycle``, ``irregular_cycle``, ``stick_jump``
+   or ``stuck`` (:data:`PATTERNS`), with the episodes as evidence.
 4. For a stiction verdict: the size (S, J, fs, fd) from the Hammerstein
    fit and the apparent stiction of the valve signature
-   (:func:`analytics.stiction.signature.fit_signature_ellipse`).
+   (:func:`analytics.stiction.signature.fit_signature_ellipse`) on a
+   cycle, and the stick band read off the episodes
+   (:func:`episode_stick_band`) beside them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,7 +53,14 @@ from analytics.quantification import (
     StictionEstimate,
     quantify_stiction,
 )
-from analytics.stiction.battery import DEFAULT_DETECTORS, BatteryConfig, StictionVerdict, combine
+from analytics.stiction.battery import (
+    DEFAULT_DETECTORS,
+    TRANSIENT_DETECTORS,
+    BatteryConfig,
+    StictionVerdict,
+    TransientDetector,
+    combine,
+)
 from analytics.stiction.evidence import (
     NO_STICTION,
     STICTION,
@@ -54,22 +71,38 @@ from analytics.stiction.evidence import (
     margin_confidence,
 )
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
+from analytics.stiction.stick_jump import (
+    MIN_TRAVEL,
+    EpisodeAnalysis,
+    StickEpisode,
+    analyse_window,
+    op_travel,
+)
 
-__all__ = ["NONLINEARITY_METHODS", "LoopDiagnosis", "diagnose_loop"]
+__all__ = [
+    "NONLINEARITY_METHODS",
+    "PATTERNS",
+    "LoopDiagnosis",
+    "diagnose_loop",
+    "episode_stick_band",
+    "transient_verdict",
+]
 
 FloatArray = NDArray[np.float64]
 
 NONLINEARITY_METHODS = ("bicoherence", "surrogate")
 """Methods that quantisation and historian compression make unreliable."""
 
-NO_OSCILLATION_CONFIDENCE = 0.6
-"""Confidence of ``no_stiction`` for a loop that does not oscillate: a valve can
-stick without causing a cycle (e.g. with P-only control), so it is not 1."""
+PATTERNS = ("limit_cycle", "irregular_cycle", "stick_jump", "stuck")
+"""How a sticky valve shows in the window: a regular stiction cycle, an
+irregular stick-slip cycle, holds and jumps without a sustained cycle, or a
+valve that did not move at all while OP travelled far."""
 
-NO_CYCLE_NOTE = (
-    "the loop does not oscillate; a valve that sticks without causing a limit cycle "
-    "cannot be seen in this window"
-)
+STUCK_MIN_TRAVEL = 10.0
+"""OP travel beyond noise (OP units, % of span) with a frozen PV that makes the
+window a ``stuck`` finding (valve, positioner or transmitter failed) rather
+than unusable data: no controller drives a healthy valve 10 % without the
+process answering."""
 
 IRREGULAR_MIN_PROMINENCE = 1.8
 """Spectral prominence (peak over its octave neighbours, see
@@ -108,6 +141,16 @@ class LoopDiagnosis:
         None unless the verdict is stiction.
     ellipse : EllipseFit or None
         Apparent stiction from the valve signature (Choudhury et al. 2008).
+    pattern : str or None
+        How the sticky valve shows (one of :data:`PATTERNS`); None unless
+        the verdict is stiction.
+    episodes : tuple of StickEpisode
+        The stick-jump episodes found (evidence to mark on the trend).
+    op_travel : float or None
+        OP travel beyond noise over the window (OP units); None if not
+        measured (no OP, or unusable data).
+    episode_stick_band : float or None
+        Stick band read off the episodes (:func:`episode_stick_band`).
     """
 
     samples: int
@@ -120,6 +163,10 @@ class LoopDiagnosis:
     stiction: StictionVerdict
     quantification: StictionEstimate | None
     ellipse: EllipseFit | None
+    pattern: str | None = None
+    episodes: tuple[StickEpisode, ...] = ()
+    op_travel: float | None = None
+    episode_stick_band: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -150,6 +197,15 @@ class LoopDiagnosis:
                 "confidence": self.stiction.confidence,
                 "score": self.stiction.score,
                 "reason": self.stiction.reason,
+                "pattern": self.pattern,
+                "op_travel": self.op_travel,
+                "episode_stick_band": self.episode_stick_band,
+                "episodes": [
+                    {"start_s": e.start * self.ts, "jump_s": e.jump_at * self.ts,
+                     "end_s": e.end * self.ts, "op_travel": e.op_travel,
+                     "pv_jump": e.pv_jump, "op_during_jump": e.op_during_jump}
+                    for e in self.episodes
+                ],
                 "methods": {
                     name: {
                         "decision": e.decision,
@@ -239,17 +295,57 @@ def _irregular_cycle(oscillation: LoopOscillation) -> float | None:
     return period if prominence >= IRREGULAR_MIN_PROMINENCE else None
 
 
-def _irregular_verdict(verdict: StictionVerdict, period_s: float) -> StictionVerdict:
-    """Only a stiction finding stands for an irregular cycle; anything else is the
-    no-oscillation verdict, with the evidence kept for inspection."""
+def transient_verdict(
+    analysis: EpisodeAnalysis,
+    battery: BatteryConfig | None = None,
+    detectors: Sequence[TransientDetector] = TRANSIENT_DETECTORS,
+) -> StictionVerdict:
+    """The verdict of the transient methods alone (no cycle to judge by).
+
+    Only they can apply, so one deciding method is enough; a stiction
+    verdict's reason says what the episodes show.
+    """
+    evidence = [d.decide(analysis) for d in detectors]
+    config = battery or BatteryConfig()
+    verdict = combine(evidence, BatteryConfig(config.weights, config.threshold, 1))
     if verdict.verdict == STICTION:
-        return StictionVerdict(
-            STICTION, verdict.confidence, verdict.score, verdict.methods,
-            f"irregular stick-slip cycle of about {period_s:.0f} s (no regular "
-            f"oscillation); {verdict.reason}",
-        )
-    return StictionVerdict(NO_STICTION, NO_OSCILLATION_CONFIDENCE, verdict.score,
-                           verdict.methods, NO_CYCLE_NOTE)
+        reason = (f"stick-jump without a sustained cycle: {len(analysis.episodes)} "
+                  f"episode(s), {analysis.hold_share:.0%} of the OP travel made while PV "
+                  f"held; {verdict.reason}")
+        return StictionVerdict(STICTION, verdict.confidence, verdict.score,
+                               verdict.methods, reason)
+    return verdict
+
+
+def episode_stick_band(episodes: tuple[StickEpisode, ...]) -> float | None:
+    """Stick band from the episodes: the median OP travel while the valve held.
+
+    Each hold ends when OP has pushed through the stick band (Kano et al.
+    2004: S is the OP change over a sticking section).  After a reversal the
+    travel is the whole band S; in the same direction only ``S - J`` (Kano's
+    model), so the median lies between the two and reads low when the
+    valve slips often in one direction.  None without episodes.
+    """
+    if not episodes:
+        return None
+    return float(np.median([abs(e.op_travel) for e in episodes]))
+
+
+def _stuck_verdict(quality: QualityReport, op: FloatArray | None) -> tuple[
+        StictionVerdict, float] | None:
+    """A frozen PV while OP travelled far: the valve (or its positioner or the
+    transmitter) is stuck.  None unless PV's flat line is the only fatal issue
+    and OP travelled :data:`STUCK_MIN_TRAVEL`."""
+    fatal = {(i.code, i.signal) for i in quality.issues if i.severity == "fatal"}
+    if op is None or not fatal or not fatal <= {("flatline", "pv"), ("constant", "pv")}:
+        return None
+    travel = op_travel(op[np.isfinite(op)])
+    if travel < STUCK_MIN_TRAVEL:
+        return None
+    reason = (f"stuck: OP travelled {travel:.3g} while PV stayed frozen; the valve, its "
+              "positioner or the transmitter does not respond")
+    return StictionVerdict(STICTION, 1.0 - float(np.exp(-travel / STUCK_MIN_TRAVEL)), 1.0, {},
+                           reason), travel
 
 
 def _infer_process_type(estimate: StictionEstimate | None) -> tuple[ProcessType, str]:
@@ -319,6 +415,10 @@ def diagnose_loop(
     quality = assess_quality(t, signals, ts, ranges=ranges)
     samples = quality.samples
     if not quality.usable:
+        stuck = _stuck_verdict(quality, signals.get("op"))
+        if stuck is not None:
+            return LoopDiagnosis(samples, ts, quality, None, process_type, source, None,
+                                 stuck[0], None, None, "stuck", (), stuck[1])
         verdict = StictionVerdict(
             UNDECIDED, 0.0, 0.0, {}, "data unusable: " + "; ".join(quality.reasons())
         )
@@ -329,13 +429,21 @@ def diagnose_loop(
     op_clean, pv_clean = clean.get("op"), clean.get("pv")
     oscillation = detect_loop_oscillation(op_clean, pv_clean, ts)
     period_s = oscillation.period_s if oscillation.detected else _irregular_cycle(oscillation)
-    if period_s is None:
-        verdict = StictionVerdict(NO_STICTION, NO_OSCILLATION_CONFIDENCE, 0.0, {}, NO_CYCLE_NOTE)
+    travel = None
+    if op_clean is not None:
+        travel = op_travel(op_clean)
+    if period_s is None and (travel is None or travel < MIN_TRAVEL):
+        seen = "no OP" if travel is None else f"OP travelled {travel:.3g}"
+        verdict = StictionVerdict(
+            UNDECIDED, 0.0, 0.0, {},
+            f"not enough valve movement to judge: no cycle and {seen} (at least "
+            f"{MIN_TRAVEL:g} needed)",
+        )
         return LoopDiagnosis(samples, ts, quality, oscillation, process_type, source, None,
-                             verdict, None, None)
+                             verdict, None, None, None, (), travel)
 
     estimate = None
-    if quantify and op_clean is not None and pv_clean is not None:
+    if quantify and period_s is not None and op_clean is not None and pv_clean is not None:
         estimate = quantify_stiction(
             op_clean, pv_clean, ts, process_type=process_type, period_s=period_s
         )
@@ -345,32 +453,60 @@ def diagnose_loop(
         ts=ts, op=op_clean, pv=pv_clean, sp=clean.get("sp"), mv=clean.get("mv"),
         process_type=process_type, period_s=period_s,
     )
-    evidence = [d.detect(window) for d in DEFAULT_DETECTORS]
-    if estimate is not None:
-        evidence.append(hammerstein_evidence(estimate))
-    blinding = quality.codes() & {"quantisation", "compression"}
-    if blinding:
-        why = (f"set aside: {' and '.join(sorted(blinding))} in the data make "
-               "nonlinearity tests unreliable")
-        evidence = [
-            _set_aside(e, why) if e.method in NONLINEARITY_METHODS and e.decision != UNDECIDED
-            else e
-            for e in evidence
+    analysis = analyse_window(window)
+    transient = [] if analysis is None else [d.decide(analysis) for d in TRANSIENT_DETECTORS]
+    pattern = None
+    if period_s is not None:
+        # On a cycle the transient methods add evidence of holds; health is for
+        # the cycle methods to judge (a stiction cycle's noisy holds split).
+        evidence = [d.detect(window) for d in DEFAULT_DETECTORS] + [
+            e if e.decision != NO_STICTION
+            else _set_aside(e, "set aside: on a cycle only holds count, not their absence")
+            for e in transient
         ]
-    verdict = combine(evidence, battery)
-    if not oscillation.detected:
-        verdict = _irregular_verdict(verdict, period_s)
+        if estimate is not None:
+            evidence.append(hammerstein_evidence(estimate))
+        blinding = quality.codes() & {"quantisation", "compression"}
+        if blinding:
+            why = (f"set aside: {' and '.join(sorted(blinding))} in the data make "
+                   "nonlinearity tests unreliable")
+            evidence = [
+                _set_aside(e, why) if e.method in NONLINEARITY_METHODS and e.decision != UNDECIDED
+                else e
+                for e in evidence
+            ]
+        verdict = combine(evidence, battery)
+        if oscillation.detected:
+            pattern = "limit_cycle"
+        elif verdict.verdict == STICTION:
+            pattern = "irregular_cycle"
+            verdict = StictionVerdict(
+                STICTION, verdict.confidence, verdict.score, verdict.methods,
+                f"irregular stick-slip cycle of about {period_s:.0f} s (no regular "
+                f"oscillation); {verdict.reason}",
+            )
+    if pattern is None and analysis is not None:
+        # No cycle, or an irregular one that did not show stiction: judge the holds.
+        verdict = transient_verdict(analysis, battery)
+        pattern = "stick_jump"
+        period_s = None
+    elif pattern is None:
+        verdict = StictionVerdict(UNDECIDED, 0.0, 0.0, {},
+                                  "without a cycle the valve is judged from OP and PV together")
 
     ellipse = None
-    if verdict.verdict == STICTION and op_clean is not None and pv_clean is not None:
+    episodes = () if analysis is None else analysis.episodes
+    if verdict.verdict == STICTION and period_s is not None and op_clean is not None \
+            and pv_clean is not None:
         try:
             ellipse = fit_signature_ellipse(op_clean, pv_clean, period_s / ts)
         except DataError:
             ellipse = None  # too few cycles for a signature; the verdict stands
-    else:
+    if verdict.verdict != STICTION:
         estimate = None  # sizes are reported for sticky valves only
+        pattern = None
     return LoopDiagnosis(
         samples, ts, quality, oscillation, process_type, source, period_s, verdict, estimate,
-        ellipse,
+        ellipse, pattern, episodes, travel,
+        episode_stick_band(episodes) if verdict.verdict == STICTION else None,
     )
-

@@ -35,13 +35,16 @@ from analytics.stiction.evidence import (
 )
 from analytics.stiction.shape_rules import ShapeRulesDetector
 from analytics.stiction.signature import EllipseDetector, ParallelogramDetector
+from analytics.stiction.stick_jump import StickJumpDetector, StuckSectionsDetector
 from analytics.stiction.surrogate import SurrogateDetector
 
 __all__ = [
     "DEFAULT_DETECTORS",
     "DEFAULT_WEIGHTS",
+    "TRANSIENT_DETECTORS",
     "BatteryConfig",
     "StictionVerdict",
+    "TransientDetector",
     "combine",
     "run_battery",
 ]
@@ -56,7 +59,16 @@ DEFAULT_DETECTORS: tuple[Detector, ...] = (
     EllipseDetector(),
     ParallelogramDetector(),
 )
-"""The battery with each method's published settings."""
+"""The battery with each method's published settings (they judge a cycle)."""
+
+TransientDetector = StickJumpDetector | StuckSectionsDetector
+"""A method that decides from an :class:`~analytics.stiction.stick_jump.EpisodeAnalysis`."""
+
+TRANSIENT_DETECTORS: tuple[TransientDetector, ...] = (
+    StickJumpDetector(), StuckSectionsDetector(),
+)
+"""Methods that need holds of the valve, not a period (Kano et al. 2004): they
+judge windows with and without a cycle."""
 
 DEFAULT_WEIGHTS: Mapping[str, float] = {
     "cross_correlation": 1.0,
@@ -68,6 +80,8 @@ DEFAULT_WEIGHTS: Mapping[str, float] = {
     "bicoherence": 0.5,
     "surrogate": 0.5,
     "hammerstein": 1.5,
+    "stick_jump": 1.5,
+    "stuck_sections": 0.5,
 }
 """Weights of the combination.  The ellipse and parallelogram repeat the
 cross-correlation's phase test on the OP-PV signature (half weight each);
@@ -75,12 +89,15 @@ bicoherence and the surrogate index are two estimates of one thing, the
 nonlinearity of PV (half each); the area ratio is fooled by any asymmetric
 cycle (a quarter); the Hammerstein comparison (:mod:`analytics.diagnosis`)
 tests a physical stiction model against a healthy valve on the whole record
-(1.5).  Tuned on the synthetic library only (analytics.synthetic_cases): a
-grid over {0, 0.5, 1} per method, thresholds 0.1-0.3 and 2-3 deciding
-methods found many settings at the library's ceiling; of those, the weights
-above keep every method voting (the area ratio at 0.25 rather than 0), with
-``threshold = 0.1`` and ``min_decided = 2``.  The ISDB loops were held out;
-``benchmarks/detection.py`` reports them."""
+(1.5), and the stick-jump episodes observe the valve holding and slipping in
+the time domain (1.5; the stuck-sections share reads the same holds, 0.5;
+both chosen on the plant_dev windows and the ISDB loops, see
+``benchmarks/detection.py``).  The others were tuned on the synthetic library
+only (analytics.synthetic_cases): a grid over {0, 0.5, 1} per method,
+thresholds 0.1-0.3 and 2-3 deciding methods found many settings at the
+library's ceiling; of those, the weights above keep every method voting (the
+area ratio at 0.25 rather than 0), with ``threshold = 0.1`` and
+``min_decided = 2``."""
 
 
 @dataclass(frozen=True)
