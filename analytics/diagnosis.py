@@ -310,8 +310,8 @@ def transient_verdict(
     verdict = combine(evidence, BatteryConfig(config.weights, config.threshold, 1))
     if verdict.verdict == STICTION:
         reason = (f"stick-jump without a sustained cycle: {len(analysis.episodes)} "
-                  f"episode(s), {analysis.hold_share:.0%} of the OP travel made while PV "
-                  f"held; {verdict.reason}")
+                  f"episode(s) of PV holding while OP pushed, then jumping; PV held through "
+                  f"an OP reversal of {analysis.hold_reversal:.3g}; {verdict.reason}")
         return StictionVerdict(STICTION, verdict.confidence, verdict.score,
                                verdict.methods, reason)
     return verdict
@@ -453,17 +453,24 @@ def diagnose_loop(
         ts=ts, op=op_clean, pv=pv_clean, sp=clean.get("sp"), mv=clean.get("mv"),
         process_type=process_type, period_s=period_s,
     )
-    analysis = analyse_window(window)
+    # Historian compression and a coarse transmitter hold PV and let it jump by
+    # themselves: holds and jumps then say nothing about the valve.
+    archived = sorted(quality.codes("pv") & {"quantisation", "compression"})
+    analysis = None if archived else analyse_window(window)
     transient = [] if analysis is None else [d.decide(analysis) for d in TRANSIENT_DETECTORS]
     pattern = None
     if period_s is not None:
-        # On a cycle the transient methods add evidence of holds; health is for
-        # the cycle methods to judge (a stiction cycle's noisy holds split).
-        evidence = [d.detect(window) for d in DEFAULT_DETECTORS] + [
-            e if e.decision != NO_STICTION
-            else _set_aside(e, "set aside: on a cycle only holds count, not their absence")
-            for e in transient
-        ]
+        # On an irregular cycle the transient methods add the evidence of its
+        # holds; a regular cycle is for the cycle methods to judge (a slow
+        # external sine holds PV at its peaks while OP works, much like a valve),
+        # and so is health (a stiction cycle's noisy holds split).
+        evidence = [d.detect(window) for d in DEFAULT_DETECTORS]
+        if not oscillation.detected:
+            evidence += [
+                e if e.decision != NO_STICTION
+                else _set_aside(e, "set aside: on a cycle only holds count, not their absence")
+                for e in transient
+            ]
         if estimate is not None:
             evidence.append(hammerstein_evidence(estimate))
         blinding = quality.codes() & {"quantisation", "compression"}
@@ -491,8 +498,10 @@ def diagnose_loop(
         pattern = "stick_jump"
         period_s = None
     elif pattern is None:
+        why = (f"PV shows {' and '.join(archived)}, which holds it and lets it jump like a "
+               "sticky valve" if archived else "stick-jump episodes need both OP and PV")
         verdict = StictionVerdict(UNDECIDED, 0.0, 0.0, {},
-                                  "without a cycle the valve is judged from OP and PV together")
+                                  f"no cycle, and the holds cannot be judged: {why}")
 
     ellipse = None
     episodes = () if analysis is None else analysis.episodes

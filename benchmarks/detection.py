@@ -63,8 +63,13 @@ MAIN_FIGURES = {
 }
 """Figures of the code before the transient methods, measured with this script's
 predecessor on the same data, printed beside the branch's ("river style")."""
-STUCK_SHARES = tuple(round(0.6 + 0.05 * k, 2) for k in range(8))
-"""Grid of the stuck-sections threshold searched in leave-one-tag-out."""
+THRESHOLD_GRID = tuple(
+    (reversal, strong) for reversal in (0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
+    for strong in (0.15, 0.25, 0.35, 0.5)
+)
+"""The two thresholds chosen on plant_dev, searched in leave-one-tag-out: the
+stuck-sections reversal share and the strong stick-jump episode's travel
+share (``min_reversal_share``, ``strong_range_share``)."""
 SHORT = {"stiction": "S", "no_stiction": "-", "undecided": "?"}
 
 
@@ -99,13 +104,16 @@ def ticket_accuracy(pairs: Sequence[tuple[str, str]]) -> float:
                               for truth, v in pairs])
 
 
-def _verdict_at(diagnosis: LoopDiagnosis, window: LoopWindow, stuck_share: float) -> str:
-    """The verdict ``diagnosis`` would have with another stuck-sections threshold."""
+def _verdict_at(diagnosis: LoopDiagnosis, window: LoopWindow,
+                thresholds: tuple[float, float]) -> str:
+    """The verdict ``diagnosis`` would have with other transient thresholds."""
     if diagnosis.cycle_period_s is not None or not diagnosis.stiction.methods:
         return diagnosis.stiction.verdict  # decided on a cycle, or before any method ran
     analysis = analyse_window(window)
     assert analysis is not None
-    detectors = (StickJumpDetector(), StuckSectionsDetector(stuck_share=stuck_share))
+    reversal, strong = thresholds
+    detectors = (StickJumpDetector(strong_range_share=strong),
+                 StuckSectionsDetector(min_reversal_share=reversal))
     return transient_verdict(analysis, None, detectors).verdict
 
 
@@ -142,17 +150,17 @@ def plant_dev() -> None:
         by_tag[row["tag"]].append((row["label"], d.stiction.verdict))
     print("per tag: " + ", ".join(
         f"{tag} {sum(t == v for t, v in got)}/{len(got)}" for tag, got in sorted(by_tag.items())))
-    # Leave-one-tag-out: the stuck-sections threshold is the one value chosen on these
-    # data; choose it on the other tags (best ticket accuracy; of tied values the
-    # median, the widest margin) and score the tag left out with it.
-    verdicts = {t: [_verdict_at(d, w, t) for _, d, w in rows] for t in STUCK_SHARES}
+    # Leave-one-tag-out: the two transient thresholds are the values chosen on these
+    # data; choose them on the other tags (best ticket accuracy; of tied values the
+    # median, the widest margin) and score the tag left out with them.
+    verdicts = {t: [_verdict_at(d, w, t) for _, d, w in rows] for t in THRESHOLD_GRID}
     held_out: list[tuple[str, str]] = []
     chosen: dict[str, float] = {}
     for tag in sorted(by_tag):
         train = [i for i, (row, _, _) in enumerate(rows) if row["tag"] != tag]
         score = {t: ticket_accuracy([(rows[i][0]["label"], verdicts[t][i]) for i in train])
-                 for t in STUCK_SHARES}
-        tied = [t for t in STUCK_SHARES if score[t] == max(score.values())]
+                 for t in THRESHOLD_GRID}
+        tied = [t for t in THRESHOLD_GRID if score[t] == max(score.values())]
         chosen[tag] = tied[len(tied) // 2]
         held_out += [(row["label"], verdicts[chosen[tag]][i])
                      for i, (row, _, _) in enumerate(rows) if row["tag"] == tag]

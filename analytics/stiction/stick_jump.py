@@ -21,29 +21,31 @@ Algorithm (:func:`find_stick_episodes`):
 2. ``y`` is cut into *holds*: runs in which it stays inside a band of
    ``band_sigmas`` noise standard deviations (of the smoothed signal).
    Neighbouring holds whose levels differ by less than the band are merged,
-   so a hold's own noise does not split it.
-3. Holds at least ``min_hold`` samples long whose ends sit within the band
-   of each other (flat: not a piece of a ramp or a slow swing) count.  Each
-   such hold followed within a short transition by the next is an *episode
-   candidate*: OP travelled
-   ``op_travel`` during the hold, PV then moved ``pv_jump`` between the two
-   levels, and OP moved ``op_during_jump`` during the transition.
+   so a hold's own noise does not split it.  Holds at least ``min_hold``
+   samples long whose ends sit within the band of each other (flat: not a
+   piece of a ramp or of a slow swing) count, and consecutive ones at one
+   level make a *stuck period*: the valve stood still through it.
+3. Each stuck period followed within a short transition by the next is an
+   *episode candidate*: OP travelled ``op_travel`` during the period, PV
+   then moved ``pv_jump`` between the two levels, and OP moved
+   ``op_during_jump`` during the jump.
 4. A candidate is a *stick-jump episode* when PV's jump is clear (at least
-   ``min_jump_bands`` bands), fast (the transition is shorter than a
-   quarter of the hold: the process could have followed OP within the hold,
-   yet did not), not caused by OP (OP moved less during the jump than
-   during the hold), from a hold off the reference (the set point, else
-   the median PV: the error is why the controller pushed) towards it, and
-   in the direction in which OP had been pushing the valve (the sign of the
-   process gain, from the controller's integral action, see
-   :func:`loop_gain_sign`).  Any other clear jump after a hold is a
-   *contrary* one: a load disturbance moves PV away from the reference
-   whatever OP did.
+   ``min_jump_bands`` bands), fast (the transition is shorter than a quarter
+   of the hold, and half the jump beyond the band is made within an eighth
+   of it: the
+   process could have followed OP within the hold, yet did not), followed by
+   a hold at least a quarter as long (the valve sticks again), not caused
+   by OP (OP moved the jump's way less during the jump than during the hold,
+   and not in a kick but in a ramp through the hold), from a hold off the
+   reference (the set point just after the jump, else the median PV: the
+   error is why the controller pushed) towards it, and in the direction in
+   which OP had been pushing the valve (the sign of the process gain, read
+   from the controller, see :func:`loop_gain_sign`). Any other clear jump
+   after a hold is a *contrary* one: a load disturbance moves PV away from
+   the reference whatever OP did.
 
-:class:`StickJumpDetector` votes stiction when the window holds
-``min_episodes`` episodes and at most a third as many contrary ones; no
-stiction when OP travelled enough to expose a stick band and PV followed
-it without any episode.
+:class:`StickJumpDetector` decides from the episodes,
+:class:`StuckSectionsDetector` from OP reversals made while PV held.
 
 References
 ----------
@@ -88,6 +90,7 @@ __all__ = [
     "loop_gain_sign",
     "op_travel",
     "robust_noise",
+    "travel_increments",
     "valve_travel",
 ]
 
@@ -145,7 +148,13 @@ class EpisodeAnalysis:
     op_travel_total : float
         OP travel beyond noise over the window (:func:`valve_travel`).
     hold_travel : float
-        OP travel inside holds of PV long enough to count (``min_hold``).
+        OP travel while PV held (stuck periods: flat holds ``min_hold`` long
+        at one level, :func:`find_stick_episodes`).
+    hold_reversal : float
+        The largest OP reversal made within one stuck period (OP went one
+        way and back while PV held, :func:`_reversal`).
+    op_range : float
+        Range of the smoothed OP over the window.
     pv_noise, op_noise : float
         Noise standard deviations of the valve proxy and OP.
     band : float
@@ -161,6 +170,8 @@ class EpisodeAnalysis:
     contrary: tuple[StickEpisode, ...]
     op_travel_total: float
     hold_travel: float
+    hold_reversal: float
+    op_range: float
     pv_noise: float
     op_noise: float
     band: float
@@ -203,24 +214,30 @@ def _moving_average(x: FloatArray, width: int) -> FloatArray:
     return np.asarray((csum[width:] - csum[:-width]) / width, dtype=np.float64)
 
 
-def valve_travel(op: FloatArray, deadband: float) -> float:
-    """OP travel beyond noise: the total of OP moves a positioner would make.
+def travel_increments(op: FloatArray, deadband: float) -> FloatArray:
+    """OP moves beyond noise, sample by sample: what a positioner would travel.
 
     A backlash of half width ``deadband`` follows OP (the output moves only
-    when OP leaves the band around it) and its total variation is the
-    travel; noise within the band adds nothing, so a noisy but steady OP
-    has (almost) no travel.
+    when OP leaves the band around it); element ``k`` is how far it moved at
+    sample ``k``.  Noise within the band adds nothing, so a noisy but steady
+    OP has (almost) no travel.
     """
+    moves = np.zeros(op.size)
     position = float(op[0])
-    travel = 0.0
-    for value in op[1:]:
+    for k in range(1, op.size):
+        value = float(op[k])
         if value > position + deadband:
-            travel += value - deadband - position
-            position = float(value) - deadband
+            moves[k] = value - deadband - position
+            position = value - deadband
         elif value < position - deadband:
-            travel += position - (value + deadband)
-            position = float(value) + deadband
-    return travel
+            moves[k] = position - (value + deadband)
+            position = value + deadband
+    return moves
+
+
+def valve_travel(op: FloatArray, deadband: float) -> float:
+    """Total OP travel beyond noise (:func:`travel_increments`)."""
+    return float(travel_increments(op, deadband).sum())
 
 
 def op_travel(op: FloatArray, *, smoothing: int = 3, noise_sigmas: float = 3.0) -> float:
@@ -231,27 +248,38 @@ def op_travel(op: FloatArray, *, smoothing: int = 3, noise_sigmas: float = 3.0) 
 
 
 def loop_gain_sign(op: FloatArray, pv: FloatArray, sp: FloatArray | None) -> int:
-    """Sign of the process gain read from the controller's integral action.
+    """Sign of the process gain, read from the controller itself.
 
-    A stable loop's controller moves OP to cancel the error: with integral
-    action ``dOP/dt`` follows ``g (SP - PV)`` where ``g`` is the sign of the
-    process gain (reverse action for a positive gain).  The sign of the
-    correlation between the error and the next OP move is ``g``; without a
-    set point the window's median PV stands for it.  0 if the correlation
-    is too weak to tell (below 2 standard errors).
+    A PI controller in velocity form moves OP by
+    ``dOP_k = Kc (e_k - e_{k-1}) + Kc ts / Ti e_k`` with the error
+    ``e = SP - PV`` (Astrom & Hagglund 2006, sec. 3.5); a least-squares fit of
+    ``dOP`` on ``de``, ``e`` and a constant (the set point's offset when it is
+    not given: the window's median PV stands for it) gives the controller's
+    signs, whatever the valve does.  A stable loop has controller and process
+    gains of one sign (reverse action for a positive process gain), so the
+    sign of the better determined term (the larger |t|: the proportional one
+    for P-only control) is the process gain's.  0 when neither term is
+    significant (|t| < 3).
     """
     ref = np.median(pv) if sp is None else sp
-    err = (ref - pv)[:-1]
+    err = ref - pv
     dop = np.diff(op)
-    err = err - err.mean()
-    dop = dop - dop.mean()
-    denom = float(np.sqrt(np.dot(err, err) * np.dot(dop, dop)))
-    if denom == 0:
+    regressors = np.column_stack((np.diff(err), err[1:], np.ones(dop.size)))
+    coef, *_ = np.linalg.lstsq(regressors, dop, rcond=None)
+    residual = dop - regressors @ coef
+    dof = max(dop.size - 3, 1)
+    variance = float(residual @ residual) / dof
+    try:
+        cov = variance * np.linalg.inv(regressors.T @ regressors)
+    except np.linalg.LinAlgError:
         return 0
-    corr = float(np.dot(err, dop)) / denom
-    if abs(corr) * np.sqrt(err.size) < 2.0:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_stat = coef[:2] / np.sqrt(np.maximum(np.diag(cov)[:2], 0.0))
+    t_stat = np.nan_to_num(t_stat)
+    k = int(np.argmax(np.abs(t_stat)))  # the better determined of the two terms
+    if abs(t_stat[k]) < 3.0:
         return 0
-    return 1 if corr > 0 else -1
+    return 1 if coef[k] > 0 else -1
 
 
 def _holds(y: FloatArray, band: float) -> list[tuple[int, int, float]]:
@@ -286,6 +314,30 @@ def _is_flat(y: FloatArray, band: float) -> bool:
     return abs(float(np.median(y[-third:]) - np.median(y[:third]))) <= band
 
 
+KICK_SAMPLES = 3
+"""Span (samples) over which an OP step counts as a kick rather than a ramp: a
+set-point step under proportional action or an operator's move is one or two
+samples, spread over three by the smoothing."""
+
+
+def _stuck_periods(
+    flat: list[tuple[int, int, float]], band: float, max_gap_fraction: float
+) -> list[tuple[int, int, float]]:
+    """Consecutive flat holds at one level (within two bands of the first), with
+    short gaps between them, joined into one period in which the valve stood
+    still: ``(start, end, level of the last hold)``.  Noise that drifts a hold
+    across its band edge splits it; the valve did not move for that."""
+    periods: list[tuple[int, int, float, float]] = []  # start, end, first and last level
+    for s, e, level in flat:
+        if periods:
+            ps, pe, first, _ = periods[-1]
+            if abs(level - first) < 2.0 * band and s - pe <= max_gap_fraction * (pe - ps):
+                periods[-1] = (ps, e, first, level)
+                continue
+        periods.append((s, e, level, level))
+    return [(s, e, last) for s, e, _, last in periods]
+
+
 def find_stick_episodes(
     op: FloatArray,
     proxy: FloatArray,
@@ -299,6 +351,8 @@ def find_stick_episodes(
     travel_sigmas: float = 3.0,
     min_hold_travel_sigmas: float = 10.0,
     max_jump_op_share: float = 0.5,
+    min_sharp_share: float = 0.5,
+    min_range_share: float = 0.1,
     reference: FloatArray | None = None,
 ) -> EpisodeAnalysis:
     """Holds of the valve proxy with OP travel, and the jumps that end them.
@@ -308,20 +362,28 @@ def find_stick_episodes(
     op, proxy : ndarray
         OP and the valve proxy (PV, or its slope for an integrating process).
     gain_sign : int
-        Sign of the process gain (:func:`loop_gain_sign`); with 0 every
-        clear jump after a hold counts as consistent if it goes the way OP
-        pushed under either sign, i.e. no direction test is made.
+        Sign of the process gain (:func:`loop_gain_sign`); with 0 no
+        direction test is made.
     smoothing, band_sigmas, min_hold, min_jump_bands, max_transition_fraction
         See the module docstring, steps 1-4.
     travel_sigmas : float
         OP noise standard deviations below which an OP move is noise (the
-        backlash of :func:`valve_travel`).
+        backlash of :func:`travel_increments`).
     min_hold_travel_sigmas : float
         Smallest net OP travel during an episode's hold, in OP noise
         standard deviations: a ramp the controller made, not jitter.
     max_jump_op_share : float
-        Largest OP move during the jump, as a share of the hold's travel: a
-        PV jump that OP made at the same time is the process following OP.
+        Largest OP move during the jump in the direction that makes it, as a
+        share of the hold's travel: a PV jump that OP made at the same time is
+        the process following OP.
+    min_sharp_share : float
+        Share of the jump beyond the band PV must make within an eighth of the
+        hold's length (at least 3 samples) after the hold ends.
+    min_range_share : float
+        Smallest hold travel as a share of OP's range over the window: in
+        closed loop the controller must push through the whole stick band, so
+        a stick band is a sizeable part of OP's excursions, whereas a healthy
+        valve's resolution steps (0.1-0.2 %) are a small part.
     reference : ndarray, optional
         What a stick-jump heads for (the set point); the proxy's median if
         None.
@@ -332,31 +394,55 @@ def find_stick_episodes(
     u = _moving_average(op, smoothing)
     span = float(np.ptp(y))
     band = max(band_sigmas * pv_noise / np.sqrt(smoothing), 1e-9 * max(span, 1.0))
-    op_deadband = travel_sigmas * op_noise
-    holds = _holds(y, band)
     if reference is None:
         reference = np.full(y.size, float(np.median(y)))
+    moves = travel_increments(u, travel_sigmas * op_noise)
+    flat = [h for h in _holds(y, band) if h[1] - h[0] >= min_hold and _is_flat(y[h[0]:h[1]], band)]
+    periods = _stuck_periods(flat, band, max_transition_fraction)
+    hold_travel = sum(float(moves[s:e].sum()) for s, e, _ in periods)
+    reversal = max((_reversal(u[s:e], moves[s:e]) for s, e, _ in periods), default=0.0)
+    min_travel = max(min_hold_travel_sigmas * op_noise, min_range_share * float(np.ptp(u)))
     episodes: list[StickEpisode] = []
     contrary: list[StickEpisode] = []
-    flat = [h for h in holds if h[1] - h[0] >= min_hold and _is_flat(y[h[0]:h[1]], band)]
-    hold_travel = sum(valve_travel(u[s:e], op_deadband) for s, e, _ in flat)
-    for (s, e, level), (s_after, e_after, level_after) in pairwise(flat):
+    for (s, e, level), (s_after, e_after, level_after) in pairwise(periods):
         length = e - s
-        transition = s_after - e
-        if transition > max_transition_fraction * length:
-            continue
         pv_jump = level_after - level
-        if abs(pv_jump) < min_jump_bands * band:
+        # A slip is sharp: most of the jump happens within an eighth of the hold
+        # (a ramp cut into pieces by the band changes level just as much, slowly).
+        reach = min(e + max(3, length // 8), y.size - 1)
+        # (Counted from the band's edge, where a ramp's piece ends as well.)
+        beyond = band + min_sharp_share * max(abs(pv_jump) - band, 0.0)
+        risen = np.flatnonzero(np.abs(y[e:reach + 1] - level) >= beyond)
+        # After a slip the valve sticks again: PV settles at its new level for a
+        # while (a slow swing through its peak does not).
+        if (s_after - e > max_transition_fraction * length
+                or (e_after < y.size  # a hold cut by the window's end may be short
+                    and e_after - s_after < max_transition_fraction * length)
+                or abs(pv_jump) < min_jump_bands * band or risen.size == 0):
             continue
-        op_travel = float(u[e - 1] - u[s])
+        # OP's move over the jump starts twice the jump's rise time before PV left
+        # the hold: the process answers a kick of OP only after its delay and lag.
+        lead = max(s, e - 1 - max(2, 2 * int(risen[0])))
+        op_travel = float(u[lead] - u[s])
         op_during_jump = float(u[min(s_after + min(2, e_after - s_after - 1), u.size - 1)]
-                               - u[e - 1])
-        if (abs(op_travel) < max(min_hold_travel_sigmas * op_noise, 1e-12)
-                or abs(op_during_jump) > max_jump_op_share * abs(op_travel)):
+                               - u[lead])
+        # OP moving with the jump (the way that makes it) caused it; OP moving
+        # against it is the controller answering the jump (proportional action).
+        pushing = abs(op_during_jump) if gain_sign == 0 else max(
+            0.0, op_during_jump * gain_sign * float(np.sign(pv_jump)))
+        # The controller's push is a ramp through the hold; a kick of OP (a set
+        # point step under proportional action) with PV answering after its dead
+        # time is the process following OP.
+        kick = float(np.max(np.abs(u[s + KICK_SAMPLES:lead + 1] - u[s:lead + 1 - KICK_SAMPLES]),
+                            initial=0.0))
+        if (abs(op_travel) < min_travel or pushing > max_jump_op_share * abs(op_travel)
+                or kick > max_jump_op_share * abs(op_travel)):
             continue
         # The controller pushed because PV held off its reference, and the slip
-        # moved PV towards it (a load moves PV away from where it held).
-        offset = float(np.median(reference[s:e])) - level
+        # moved PV towards it (a load moves PV away from where it held).  The
+        # reference is read just after the jump: operators often move the set
+        # point to where a sticky valve's flow ended up.
+        offset = float(np.median(reference[s_after:s_after + min_hold])) - level
         toward = abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
         direction = np.sign(pv_jump) * np.sign(op_travel)
         consistent = toward and (gain_sign == 0 or direction == gain_sign)
@@ -364,15 +450,23 @@ def find_stick_episodes(
                                bool(consistent))
         (episodes if consistent else contrary).append(episode)
     return EpisodeAnalysis(
-        tuple(episodes), tuple(contrary), valve_travel(u, op_deadband), hold_travel,
-        pv_noise, op_noise, band, gain_sign, span,
+        tuple(episodes), tuple(contrary), float(moves.sum()), hold_travel, reversal,
+        float(np.ptp(u)), pv_noise, op_noise, band, gain_sign, span,
     )
 
 
+def _reversal(u: FloatArray, moves: FloatArray) -> float:
+    """OP travel back and forth within one hold: ``(travel - |net change|) / 2``,
+    the smaller of the two legs of a reversal (0 for a one-way ramp)."""
+    return float(moves.sum() - abs(u[-1] - u[0])) / 2.0 if u.size else 0.0
+
+
 def valve_proxy(pv: FloatArray, ts: float, process_type: ProcessType | None,
-                smoothing: int = 5) -> FloatArray:
+                smoothing: int = 20) -> FloatArray:
     """The signal that follows the valve position: PV, or for an integrating
-    process the slope of PV (a moving average of ``smoothing`` differences)."""
+    process the slope of PV (a moving average of ``smoothing`` differences: a
+    difference amplifies the level's noise, and holds last hundreds of
+    samples)."""
     if process_type == INTEGRATING:
         slope = np.diff(pv, prepend=pv[0]) / ts
         return _moving_average(slope, smoothing)
@@ -399,18 +493,22 @@ class StickJumpDetector:
     """Stiction from stick-jump episodes (Kano et al. 2004; module docstring).
 
     Works on transient windows as well as on cycles: it needs holds, not a
-    period.  Stiction when at least ``min_episodes`` episodes go the way OP
-    pushed and at most ``max_contrary_share`` of the clear jumps go against
-    it; no stiction when the jumps go either way (``min_random_share``), or
-    when OP travelled at least ``min_travel`` (OP units, % of span) with
-    fewer episodes than needed and no more than contrary jumps and PV following OP through most of it (the
-    share of travel made during holds below ``max_hold_share``); undecided
-    otherwise.
+    period. Stiction when at least ``min_episodes`` episodes (or one strong
+    one) go the way OP pushed and at most ``max_contrary_share`` of the
+    clear jumps go against it; no stiction when the jumps go either way
+    (``min_random_share``), or when OP travelled at least ``min_travel`` (OP
+    units, % of span) with fewer episodes than needed, no more of them than
+    contrary jumps, and PV following OP through most of it (the share of
+    travel made during holds below ``max_hold_share``); undecided otherwise.
 
     Attributes
     ----------
     min_episodes : int
         Consistent episodes needed to vote stiction.
+    strong_range_share : float
+        One episode is enough when OP travelled this share of its range over
+        the window while PV held: the controller pushed the valve through a
+        quarter of its whole excursion, and nothing moved.
     max_contrary_share : float
         Largest share of contrary jumps among all clear jumps.
     min_random_share : float
@@ -424,11 +522,12 @@ class StickJumpDetector:
         valve that held through more has perhaps not slipped yet (a little
         below :class:`StuckSectionsDetector`'s ``stuck_share``).
     confidence_scale : float
-        Episodes beyond ``min_episodes - 1`` that give confidence 0.63.
+        Number of episodes that gives confidence 0.63.
     """
 
     name: ClassVar[str] = "stick_jump"
     min_episodes: int = 2
+    strong_range_share: float = 0.25
     max_contrary_share: float = 0.25
     min_random_share: float = 0.4
     min_travel: float = MIN_TRAVEL
@@ -441,11 +540,13 @@ class StickJumpDetector:
         details = {"episodes": float(n), "contrary": float(n_contrary),
                    "op_travel": analysis.op_travel_total}
         share = n_contrary / (n + n_contrary) if n + n_contrary else 0.0
-        if n >= self.min_episodes and share <= self.max_contrary_share:
+        strong = any(abs(e.op_travel) >= self.strong_range_share * analysis.op_range
+                     for e in analysis.episodes)
+        if (n >= self.min_episodes or strong) and share <= self.max_contrary_share:
             travel = np.median([abs(e.op_travel) for e in analysis.episodes])
             return MethodEvidence(
                 self.name, STICTION, float(n),
-                margin_confidence(n, self.min_episodes - 1, self.confidence_scale),
+                margin_confidence(n, 0.0, self.confidence_scale),
                 f"{n} stick-jump episodes: PV held while OP travelled about {travel:.3g}, "
                 f"then jumped the way OP pushed ({n_contrary} contrary)", details,
             )
@@ -481,33 +582,30 @@ class StickJumpDetector:
 
 @dataclass(frozen=True, kw_only=True)
 class StuckSectionsDetector:
-    """Stiction from the share of OP travel made while PV held (Kano et al. 2004).
+    """Stiction from an OP reversal that PV did not follow (Kano et al. 2004).
 
-    Kano et al.'s sticking sections -- OP moves, the valve does not -- read
-    over the whole window as Yamashita (2006) reads his movement patterns:
-    the index is the OP travel inside holds of PV (flat stretches at least
-    ``min_hold`` samples long, see :func:`find_stick_episodes`) over the OP
-    travel in the window.  A healthy valve on a process that responds moves
-    PV whenever OP travels, so most travel falls outside holds; a sticky
-    valve holds PV through most of it, whether or not it slipped inside the
-    window.
+    Kano et al.'s sticking sections -- OP moves, the valve does not -- taken
+    where they are least ambiguous: within one stuck period (PV flat at one
+    level, see :func:`find_stick_episodes`) OP went one way and came back.
+    A healthy valve turns every OP reversal into a PV reversal unless a load
+    happens to mirror it; a valve with a stick band wider than the reversal
+    holds through it.  A one-way OP ramp with PV flat is not used: a loop
+    rejecting a slow load looks just like it.
 
     * Undecided when OP travelled less than ``min_travel`` (too little
       movement to expose a stick band) or PV never left its noise band by
-      ``min_response_bands`` (the process does not visibly respond to the
-      valve at all: a held PV then says nothing about the valve).
-    * Stiction from ``stuck_share``; otherwise undecided.  The test is one
-      sided: in a stiction limit cycle PV moves during every slip and the
-      noise splits its holds, so a low share is no evidence of health (the
-      sticky ISDB loops give 0.07-0.6).
+      ``min_response_bands`` (the process shows no response to the valve).
+    * Stiction when the reversal reaches ``min_reversal_share`` of OP's range
+      over the window (and 10 OP noise standard deviations); otherwise
+      undecided: the test is one sided.
 
     Attributes
     ----------
-    stuck_share : float
-        Index threshold.  Chosen on the labelled plant windows (healthy
-        loops reach 0.77 when a well-controlled flow holds its set point
-        while OP compensates a load; the sticky flow valve stayed 0.73-0.98)
-        and checked leave-one-tag-out in ``benchmarks/detection.py``.
+    min_reversal_share : float
+        Smallest reversal, as a share of OP's range.  Healthy plant_dev
+        windows reach 0.17 (noisy simulated loads 0.23), the sticky valve's
+        windows with a reversal 0.59-0.82; checked leave-one-tag-out in
+        ``benchmarks/detection.py``.
     min_travel : float
         OP travel beyond noise (OP units, % of span) needed to judge.
     min_response_bands : float
@@ -516,14 +614,15 @@ class StuckSectionsDetector:
     """
 
     name: ClassVar[str] = "stuck_sections"
-    stuck_share: float = 0.85
+    min_reversal_share: float = 0.4
     min_travel: float = MIN_TRAVEL
     min_response_bands: float = 3.0
 
     def decide(self, analysis: EpisodeAnalysis) -> MethodEvidence:
         """The evidence of an :class:`EpisodeAnalysis`."""
-        share = analysis.hold_share
-        details = {"hold_travel": analysis.hold_travel, "op_travel": analysis.op_travel_total}
+        share = analysis.hold_reversal / analysis.op_range if analysis.op_range > 0 else 0.0
+        details = {"hold_reversal": analysis.hold_reversal, "hold_travel": analysis.hold_travel,
+                   "op_travel": analysis.op_travel_total}
         if analysis.op_travel_total < self.min_travel:
             return MethodEvidence.undecided(
                 self.name, f"OP travelled {analysis.op_travel_total:.3g}, less than "
@@ -532,15 +631,15 @@ class StuckSectionsDetector:
             return MethodEvidence.undecided(
                 self.name, "PV never left its noise band: the process shows no response "
                 "to judge the valve by", share, details)
-        note = (f"{share:.0%} of the OP travel ({analysis.op_travel_total:.3g}) was made "
-                "while PV held")
-        if share >= self.stuck_share:
+        note = (f"PV held while OP went {analysis.hold_reversal:.3g} one way and back "
+                f"({share:.0%} of its range)")
+        if share >= self.min_reversal_share and analysis.hold_reversal >= 10 * analysis.op_noise:
             return MethodEvidence(self.name, STICTION, share,
-                                  margin_confidence(share, self.stuck_share - 0.1, 0.1),
+                                  margin_confidence(share, self.min_reversal_share - 0.1, 0.2),
                                   note, details)
         return MethodEvidence.undecided(
-            self.name, f"{note}: below {self.stuck_share:.0%}, which says nothing either way",
-            share, details)
+            self.name, f"{note}: below {self.min_reversal_share:.0%}, which says nothing "
+            "either way", share, details)
 
     def detect(self, window: LoopWindow) -> MethodEvidence:
         analysis = analyse_window(window)
