@@ -29,6 +29,7 @@ __all__ = [
     "analyse_unit",
     "analyse_window",
     "health_score",
+    "stiction_pattern_text",
     "to_percent_of_span",
     "unit_windows",
     "valve_decisions",
@@ -45,25 +46,56 @@ def to_percent_of_span(x: FloatArray | None, span: tuple[float, float] | None) -
     return np.asarray(100.0 * (x - low) / (high - low), dtype=np.float64)
 
 
+STICTION_PATTERN_WORDS: dict[str, str] = {
+    "limit_cycle": "limit cycle",
+    "irregular_cycle": "irregular stick-slip cycle",
+    "stick_jump": "stick-jump: the valve holds while OP ramps, then jumps; no sustained cycle",
+    "stuck": "stuck: OP travels with no PV response",
+}
+"""How each stiction pattern of the diagnosis
+(:data:`analytics.diagnosis.PATTERNS`) is named in alarm and ticket texts."""
+
+
+def stiction_pattern_text(pattern: str | None, op_travel: float | None = None) -> str | None:
+    """The stiction pattern in words (:data:`STICTION_PATTERN_WORDS`); None without one.
+
+    A ``stuck`` valve with a known ``op_travel`` (% of span) says how far OP went.
+
+    >>> stiction_pattern_text("stuck", 23.4)
+    'stuck: OP travelled 23.4 % with no PV response'
+    """
+    if pattern is None:
+        return None
+    if pattern == "stuck" and op_travel is not None:
+        return f"stuck: OP travelled {op_travel:.1f} % with no PV response"
+    return STICTION_PATTERN_WORDS[pattern]
+
+
 def health_score(diagnosis: dict[str, Any]) -> float | None:
     """Loop health from 0 (bad actor) to 100 (healthy); None when data are unusable.
 
     A loop that does not oscillate scores 100 less 5 per data-quality warning
     (at most 20).  An oscillating loop starts at 70 and loses up to 30 for a
     regular oscillation (regularity r, ``min(r, 10) / 10 * 30``, Thornhill et
-    al. 2003: the more regular, the more certainly a persistent cycle) and up
-    to 40 for a stiction verdict (confidence * 40): a regularly cycling loop
-    with a confidently sticky valve is the worst actor.
+    al. 2003: the more regular, the more certainly a persistent cycle).
+    Either loses up to 40 for a stiction verdict (confidence * 40): a
+    regularly cycling loop with a confidently sticky valve is the worst
+    actor, and a valve that sticks without a sustained cycle (pattern
+    ``stick_jump``, or ``stuck``) is a bad actor too, if a milder one.  A
+    stuck valve freezes PV, which makes the data unusable for everything
+    else; its stiction verdict is scored all the same.
     """
-    if not diagnosis["quality"]["usable"]:
+    stiction = diagnosis["stiction"]
+    sticky = stiction["verdict"] == "stiction"
+    if not diagnosis["quality"]["usable"] and not sticky:
         return None
     warnings = sum(1 for i in diagnosis["quality"]["issues"] if i["severity"] == "warning")
     osc = diagnosis["oscillation"]
-    if not osc["detected"]:
-        return float(100 - min(20, 5 * warnings))
-    score = 70.0 - min(float(osc["regularity"] or 0.0), 10.0) / 10.0 * 30.0
-    stiction = diagnosis["stiction"]
-    if stiction["verdict"] == "stiction":
+    if osc["detected"]:
+        score = 70.0 - min(float(osc["regularity"] or 0.0), 10.0) / 10.0 * 30.0
+    else:
+        score = 100.0 - min(20, 5 * warnings)
+    if sticky:
         score -= 40.0 * float(stiction["confidence"])
     return max(0.0, score)
 
@@ -84,6 +116,14 @@ def analyse_window(
         Sampling interval and sample times (s).
     signals : dict
         ``op``, ``pv``, ``sp``, ``mv`` arrays (NaN where missing) or None.
+
+    Returns
+    -------
+    dict
+        :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` plus ``health``
+        (:func:`health_score`) and ``first_sample_at``, the time of the
+        window's first sample (UNIX s): the stiction episodes' times
+        (``start_s``, ...) count from it.
     """
     ranges: dict[str, tuple[float, float]] = {
         k: (float(v[0]), float(v[1])) for k, v in (loop.get("ranges") or {}).items()
@@ -97,6 +137,7 @@ def analyse_window(
         ranges={name: (0.0, 100.0) for name in ranges},
     ).to_dict()
     diagnosis["health"] = health_score(diagnosis)
+    diagnosis["first_sample_at"] = float(t[0]) if t.size else None
     return diagnosis
 
 

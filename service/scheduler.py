@@ -62,6 +62,7 @@ from service.analysis import (
     UnitWindowsError,
     analyse_unit,
     analyse_window,
+    stiction_pattern_text,
     unit_windows,
     valve_decisions,
 )
@@ -668,13 +669,19 @@ class AnalysisScheduler:
 
     @staticmethod
     def _message(diagnosis: dict[str, Any]) -> str:
+        """The alarm message of an analysis; a stiction finding names its pattern (a stuck
+        valve freezes PV, so it comes with unusable data)."""
+        stiction = diagnosis["stiction"]
+        pattern = stiction_pattern_text(stiction["pattern"], stiction["op_travel"])
+        valve = f"valve: {stiction['verdict']}" + ("" if pattern is None else f" ({pattern})")
         if not diagnosis["quality"]["usable"]:
-            return "data unusable: " + diagnosis["stiction"]["reason"]
+            if stiction["verdict"] == "stiction":
+                return f"data unusable, {valve}"
+            return "data unusable: " + stiction["reason"]
         osc = diagnosis["oscillation"]
         if not osc["detected"]:
-            return "no oscillation"
-        return (f"oscillation, period {osc['period_s']:.0f} s; "
-                f"valve: {diagnosis['stiction']['verdict']}")
+            return "no oscillation" + ("" if pattern is None else f"; {valve}")
+        return f"oscillation, period {osc['period_s']:.0f} s; {valve}"
 
     def start(self) -> None:
         """Run the due rounds at every grid time in a background thread, while leading.

@@ -15,7 +15,9 @@ is at most one active ticket per valve asset: a further confirmation updates
 the evidence of that ticket and records an ``evidence updated`` event instead
 of opening another.  A ticket that is ``done`` or ``cancelled`` does not block
 a new one.  A verdict other than stiction never closes a ticket: maintenance
-does that.
+does that.  Every stiction pattern of the diagnosis counts alike: a valve that
+sticks without a sustained cycle (``stick_jump``, ``stuck``) gets a ticket too,
+whose long text names the pattern and lists the stick-jump episodes.
 
 Units.  In a unit of interacting loops one sticky valve makes its neighbours
 cycle, and their own analyses then find stiction too (thesis chapter 2).  So
@@ -56,14 +58,18 @@ from typing import Any, Literal, get_args
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload
 
+from analytics.diagnosis import PATTERNS
 from analytics.valves import sj_to_fsfd
+from service.analysis import stiction_pattern_text
 from service.config import Importance
 from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
 
 __all__ = [
     "ACTIVE_STATES",
     "ANALYSIS_ACTOR",
+    "EPISODE_KEYS",
     "EVIDENCE_KEYS",
+    "MAX_TICKET_EPISODES",
     "PLOT_KINDS",
     "TICKET_STATES",
     "TICKET_TRANSITIONS",
@@ -78,6 +84,7 @@ __all__ = [
     "latest_loop_run",
     "latest_unit_run",
     "list_tickets",
+    "run_episodes",
     "ticket_payload",
     "ticket_priority",
     "ticket_to_dict",
@@ -114,6 +121,10 @@ EVIDENCE_KEYS: dict[str, bool] = {
     "period_s": False,
     "amplitude_op": False,
     "amplitude_pv": False,
+    "pattern": False,
+    "op_travel": False,
+    "episode_stick_band": False,
+    "episodes": False,
 }
 """Keys of the ``evidence`` argument; True for required, False for None-when-unknown.
 
@@ -121,9 +132,35 @@ EVIDENCE_KEYS: dict[str, bool] = {
 (UNIX s); ``confidence``: of the stiction verdict (0..1); ``S``, ``J``:
 stiction in % of valve span; ``period_s``: oscillation period;
 ``amplitude_op``, ``amplitude_pv``: oscillation amplitude (half peak-to-peak)
-in % of span.  The stored evidence adds ``loop_id``, ``valve_asset``, ``fs``,
-``fd`` (He's parameters, % of span), ``confirmations`` and ``plots``.
+in % of span; ``pattern``: how the sticky valve shows, one of
+:data:`analytics.diagnosis.PATTERNS`; ``op_travel``: OP travel over the window
+(% of span); ``episode_stick_band``: the stick band read off the episodes (%
+of span), the size estimate of a valve that sticks without a cycle;
+``episodes``: the stick-jump episodes, a list of dicts with the keys
+:data:`EPISODE_KEYS` (None or missing: none).  The stored evidence adds
+``loop_id``, ``valve_asset``, ``fs``, ``fd`` (He's parameters, % of span),
+``confirmations``, ``plots`` and ``episodes_found``, the number of episodes
+the analysis found; it keeps only the latest :data:`MAX_TICKET_EPISODES` of
+them.  Evidence stored before a key existed reads as None for it, ``[]`` for
+``episodes`` and 0 for ``episodes_found`` (:func:`ticket_to_dict`).
 """
+
+EPISODE_KEYS = ("start", "jump", "end", "op_travel", "pv_jump")
+"""Keys of one stick-jump episode of the evidence: the valve holds from ``start``
+until it slips at ``jump``, PV settles at ``end`` (UNIX s); ``op_travel`` is the
+OP travel during the hold, ``pv_jump`` the PV jump (% of span)."""
+
+MAX_TICKET_EPISODES = 20
+"""Episodes a ticket keeps and lists (the latest ones): enough to show the pattern
+without burying the long text of a valve that slips every minute."""
+
+_NON_NUMERIC_KEYS = ("pattern", "episodes")
+_NO_CYCLE_PATTERNS = ("stick_jump", "stuck")
+_DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
+    "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
+    "episodes_found": 0,
+}
+"""What stored evidence older than these keys reads as."""
 
 RUNS_READ_PER_BATCH = 100
 """Runs fetched at a time while looking back for confirmations (one window of minute
@@ -213,10 +250,14 @@ def ticket_priority(*, S: float | None, amplitude_pv: float | None, importance: 
 def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
     """The ``evidence`` argument of :func:`update_ticket_from_analysis` from a stored run.
 
-    Reads the run's columns and the oscillation amplitudes of its ``result``
-    (the :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` form).
+    Reads the run's columns, and from its ``result`` (the
+    :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` form as
+    :func:`service.analysis.analyse_window` stores it) the oscillation
+    amplitudes and the stiction pattern and episodes (:func:`run_episodes`).
     """
-    oscillation = (run.result or {}).get("oscillation") or {}
+    result = run.result or {}
+    oscillation = result.get("oscillation") or {}
+    stiction = result.get("stiction") or {}
     return {
         "run_id": run.id,
         "window_start": run.window_start,
@@ -227,7 +268,53 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
         "period_s": run.period_s,
         "amplitude_op": oscillation.get("amplitude_op"),
         "amplitude_pv": oscillation.get("amplitude_pv"),
+        "pattern": stiction.get("pattern"),
+        "op_travel": stiction.get("op_travel"),
+        "episode_stick_band": stiction.get("episode_stick_band"),
+        "episodes": run_episodes(run),
     }
+
+
+def _is_finite_number(value: object) -> bool:
+    return (isinstance(value, int | float) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
+def run_episodes(run: AnalysisRun) -> list[dict[str, float]]:
+    """The stick-jump episodes of the run's diagnosis at UNIX times (:data:`EPISODE_KEYS`).
+
+    The diagnosis counts their times in seconds from the window's first sample,
+    ``first_sample_at`` of :func:`service.analysis.analyse_window`; a result
+    without it counts from the window start.  A result without episodes (or
+    older than them): ``[]``.
+    """
+    result = run.result or {}
+    origin = result.get("first_sample_at", _window(run)[0])
+    return [
+        {"start": origin + e["start_s"], "jump": origin + e["jump_s"],
+         "end": origin + e["end_s"], "op_travel": e["op_travel"], "pv_jump": e["pv_jump"]}
+        for e in (result.get("stiction") or {}).get("episodes") or []
+    ]
+
+
+def _checked_episodes(where: str, episodes: object) -> list[dict[str, float]]:
+    """The evidence's episodes, validated (:data:`EPISODE_KEYS`); None reads as none."""
+    if episodes is None:
+        return []
+    if not isinstance(episodes, list):
+        raise ValueError(f"{where}: 'episodes' must be a list, got {episodes!r}")
+    for k, episode in enumerate(episodes):
+        if not isinstance(episode, dict) or set(episode) != set(EPISODE_KEYS):
+            raise ValueError(f"{where}: episode {k} must be a dict with the keys "
+                             f"{', '.join(EPISODE_KEYS)}, got {episode!r}")
+        bad = [key for key in EPISODE_KEYS if not _is_finite_number(episode[key])]
+        if bad:
+            raise ValueError(f"{where}: episode {k}: {', '.join(bad)} must be finite numbers, "
+                             f"got {episode!r}")
+        if not episode["start"] <= episode["jump"] <= episode["end"]:
+            raise ValueError(f"{where}: episode {k} must hold, jump and settle in that order, "
+                             f"got {episode!r}")
+    return [{key: episode[key] for key in EPISODE_KEYS} for episode in episodes]
 
 
 def _checked_evidence(
@@ -244,9 +331,13 @@ def _checked_evidence(
             if required:
                 raise ValueError(f"{where}: {key!r} is required")
             continue
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if not number or not math.isfinite(value):
+        if key not in _NON_NUMERIC_KEYS and not _is_finite_number(value):
             raise ValueError(f"{where}: {key!r} must be a finite number, got {value!r}")
+    pattern = evidence.get("pattern")
+    if pattern is not None and pattern not in PATTERNS:
+        raise ValueError(f"{where}: 'pattern' must be one of {', '.join(PATTERNS)} or None, "
+                         f"got {pattern!r}")
+    episodes = _checked_episodes(where, evidence.get("episodes"))
     S, J = evidence.get("S"), evidence.get("J")
     fs = fd = None
     if S is not None and J is not None:
@@ -258,6 +349,8 @@ def _checked_evidence(
         "loop_id": loop_id,
         "valve_asset": valve_asset,
         **{key: evidence.get(key) for key in EVIDENCE_KEYS},
+        "episodes": episodes[-MAX_TICKET_EPISODES:],
+        "episodes_found": len(episodes),
         "fs": fs,
         "fd": fd,
         "confirmations": confirmations,
@@ -323,6 +416,36 @@ def _pct(value: float | None) -> str:
     return "not quantified" if value is None else f"{value:.2f} %"
 
 
+def _utc_clock(t: float) -> str:
+    return _utc(t).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _describe_size(e: dict[str, Any]) -> str:
+    """The stiction size: Hammerstein S and J, else the stick band read off the episodes."""
+    if e["S"] is None and e["episode_stick_band"] is not None:
+        return (f"Stiction: S about {e['episode_stick_band']:.2f} % of valve span (from the "
+                f"episodes), J = {_pct(e['J'])}.")
+    return (f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
+            f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])}).")
+
+
+def _describe_episodes(e: dict[str, Any]) -> list[str]:
+    """A heading and one line per episode (each fits a SAP long-text line); none without."""
+    episodes = e["episodes"]
+    if not episodes:
+        return []
+    shown = (f"{len(episodes)}" if len(episodes) == e["episodes_found"]
+             else f"the latest {len(episodes)} of {e['episodes_found']}")
+    return [
+        f"Stick-jump episodes ({shown}; times UTC): the valve held from the start until it "
+        "jumped, PV settled at the end; OP travel while it held and PV jump in % of span.",
+        *(f"Episode {k}: hold {_utc_clock(x['start'])}, jump {_utc_clock(x['jump'])}, settled "
+          f"{_utc_clock(x['end'])}; OP travel {x['op_travel']:.2f} %, PV jump "
+          f"{x['pv_jump']:.2f} %."
+          for k, x in enumerate(episodes, 1)),
+    ]
+
+
 def _describe(evidence: dict[str, Any]) -> str:
     """The ticket's long text, one paragraph per line."""
     e = evidence
@@ -330,13 +453,19 @@ def _describe(evidence: dict[str, Any]) -> str:
     window = " to ".join(
         _utc(t).isoformat(timespec="seconds") for t in (e["window_start"], e["window_end"])
     )
+    pattern = stiction_pattern_text(e["pattern"], e["op_travel"])
+    oscillation = (
+        "Oscillation: none sustained." if e["pattern"] in _NO_CYCLE_PATTERNS
+        else f"Oscillation: period {period}, amplitude OP {_pct(e['amplitude_op'])}, "
+             f"PV {_pct(e['amplitude_pv'])} of span."
+    )
     return "\n".join([
         f"Valve stiction confirmed by {e['confirmations']} analyses of separate windows of "
         f"loop {e['loop_id']} (valve {e['valve_asset']}).",
-        f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
-        f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])}).",
-        f"Oscillation: period {period}, amplitude OP {_pct(e['amplitude_op'])}, "
-        f"PV {_pct(e['amplitude_pv'])} of span.",
+        *([] if pattern is None else [f"Pattern: {pattern}."]),
+        _describe_size(e),
+        oscillation,
+        *_describe_episodes(e),
         f"Confidence {e['confidence']:.2f}; analysis run {e['run_id']}, window {window}.",
         "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e["plots"].items()),
     ])
@@ -363,7 +492,10 @@ def update_ticket_from_analysis(
     loop of a unit of interacting loops, lets the unit's latest diagnosis
     clear the valve (see the module docstring).  The ticket's
     ``malfunction_start`` is the window start of the oldest confirming run.
-    Calling twice for the same run changes nothing the second time.
+    Calling twice for the same run changes nothing the second time.  The
+    priority (:func:`ticket_priority`) takes the stick band read off the
+    episodes for S when the Hammerstein fit did not size the valve (a valve
+    that sticks without a cycle).
     """
     if confirmations_needed < 1:
         raise ValueError(f"confirmations_needed must be at least 1, got {confirmations_needed}")
@@ -381,7 +513,8 @@ def update_ticket_from_analysis(
                         "valve %s and names %s: no ticket", loop_id, unit_id, unit_run.id,
                         asset, ", ".join(unit_run.sticky_loops) or "no valve")
             return None
-    priority = ticket_priority(S=stored["S"], amplitude_pv=stored["amplitude_pv"],
+    size = stored["S"] if stored["S"] is not None else stored["episode_stick_band"]
+    priority = ticket_priority(S=size, amplitude_pv=stored["amplitude_pv"],
                                importance=importance)
     ticket = session.scalars(
         select(Ticket)
@@ -391,6 +524,7 @@ def update_ticket_from_analysis(
     ).first()
     if ticket is None:
         oldest = streak[-1]
+        pattern = "" if stored["pattern"] is None else f", pattern {stored['pattern']}"
         ticket = Ticket(
             valve_asset=asset, loop_id=loop_id, state="open", priority=priority,
             title=_short_text(f"Sticky valve {asset}, loop {loop_id}"),
@@ -401,7 +535,7 @@ def update_ticket_from_analysis(
         ticket.events.append(TicketEvent(
             at=now, from_state=None, to_state="open", actor=ANALYSIS_ACTOR,
             note=f"opened: stiction confirmed by {len(streak)} analyses of separate windows "
-                 f"(run {stored['run_id']}, priority {priority})",
+                 f"(run {stored['run_id']}{pattern}, priority {priority})",
         ))
         session.add(ticket)
     elif ticket.evidence.get("run_id") == stored["run_id"]:
@@ -531,7 +665,8 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
 
 
 def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
-    """The ticket's fields, JSON-ready."""
+    """The ticket's fields, JSON-ready; evidence stored before a key existed gets it with
+    its default (see :data:`EVIDENCE_KEYS`)."""
     return {
         "id": ticket.id,
         "valve_asset": ticket.valve_asset,
@@ -542,7 +677,7 @@ def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
         "description": ticket.description,
         "location": ticket.location,
         "malfunction_start": ticket.malfunction_start,
-        "evidence": ticket.evidence,
+        "evidence": _DEFAULTS_OF_LATER_KEYS | ticket.evidence,
         "created_at": ticket.created_at,
         "updated_at": ticket.updated_at,
     }

@@ -108,7 +108,8 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert found == {
         "FIC-101": (True, "stiction"), "FIC-105": (True, "stiction"),  # sticky valves
         "FIC-102": (True, "no_stiction"), "TIC-201": (True, "no_stiction"),  # tuning, disturbance
-        "LIC-301": (False, "no_stiction"), "PIC-401": (False, "no_stiction"),  # healthy
+        # healthy and quiet: their valves hardly move, too little to judge (issue 17)
+        "LIC-301": (False, "undecided"), "PIC-401": (False, "undecided"),
         # the column's cycle reaches every loop; its unit diagnosis clears FV-501 and PV-503
         "AIC-501": (True, found["AIC-501"][1]), "AIC-502": (True, "stiction"),
         "TIC-503": (True, found["TIC-503"][1]),

@@ -406,11 +406,21 @@ function methodsTable(diagnosis) {
     "Evidence"], rows, "No detection method ran (no oscillation, or the data were unusable).");
 }
 
+/** The stick-jump episodes (GET /loops/ID/health "episodes", or a ticket's evidence):
+ * UNIX times, OP travel while the valve held and the PV jump, % of span. */
+function episodesTable(episodes, emptyText) {
+  return table("Stick-jump episodes", ["Hold from", "Jump at", "PV settled", "OP travel (%)",
+    "PV jump (%)"], (episodes || []).map((e) => h("tr", { "data-episode": "" },
+    h("td", {}, utc(e.start)), h("td", {}, utc(e.jump)), h("td", {}, utc(e.end)),
+    h("td", {}, num(e.op_travel)), h("td", {}, num(e.pv_jump)))), emptyText);
+}
+
 function estimateFacts(diagnosis) {
   const q = (diagnosis || {}).quantification;
   const apparent = (diagnosis || {}).apparent_stiction;
-  if (!q && !apparent) return h("p", { class: "empty" }, "No stiction estimate: S and J are "
-    + "estimated for sticky valves only.");
+  const band = ((diagnosis || {}).stiction || {}).episode_stick_band;
+  if (!q && !apparent && (band === null || band === undefined)) return h("p", { class: "empty" },
+    "No stiction estimate: S and J are estimated for sticky valves only.");
   const pairs = [];
   if (q) {
     pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
@@ -425,6 +435,9 @@ function estimateFacts(diagnosis) {
   if (apparent) {
     pairs.push(["Apparent stiction (ellipse)", `${num(apparent.apparent_stiction)} % of span `
       + `(width ratio ${num(apparent.width_ratio)})`]);
+  }
+  if (band !== null && band !== undefined) {
+    pairs.push(["Stick band (episodes)", `S about ${num(band)} % of span`]);
   }
   return definitionList(pairs);
 }
@@ -522,6 +535,7 @@ async function renderLoop(loopId) {
         + `${num(oscillation.period_s, 0)} s, regularity ${num(oscillation.regularity, 1)}`
         : "no regular oscillation") : "not analysed"],
       ["Valve verdict", verdictPill(stiction && stiction.verdict, stiction && stiction.confidence)],
+      ["Stiction pattern", health.stiction_pattern || "—"],
       ["Why", stiction ? stiction.reason : "—"],
       ["Analysed", latest ? `${utc(latest.started_at)} (window ${utc(latest.window_start)} to `
         + `${utc(latest.window_end)})` : "not yet"],
@@ -539,6 +553,10 @@ async function renderLoop(loopId) {
           + "stiction model (valve S, J and process) replayed on the measured OP: its predicted "
           + "PV, and its valve position MV.")),
       section("Spectrum and autocorrelation", "spectrum-title", await plot(loopId, "spectrum"))),
+    section("Stick-jump episodes", "episodes-title",
+      h("p", { class: "help" }, "Where the valve held while OP moved, then jumped: the "
+        + "evidence of a valve that sticks without a sustained cycle."),
+      episodesTable(health.episodes, "No stick-jump episodes in the analysed window.")),
     h("div", { class: "grid-2" },
       section("Detection methods", "methods-title", methodsTable(diagnosis)),
       section("Stiction estimate", "estimate-title", estimateFacts(diagnosis),
@@ -812,6 +830,8 @@ async function renderTicket(ticketId) {
         h("tr", {}, h("th", { scope: "row" }, k.replace(/_/g, " ")),
           h("td", {}, typeof v === "number" && !Number.isInteger(v) ? num(v, 3)
             : (k.startsWith("window") ? utc(v) : String(v))))), "No evidence recorded."),
+      h("h3", {}, "Stick-jump episodes"),
+      episodesTable(e.episodes, "No stick-jump episodes recorded."),
       h("div", { class: "evidence-plots" }, figures),
       h("p", { class: "help" }, "Signature and spectrum: the latest analysis of the loop."),
       h("h2", {}, "History"),

@@ -16,6 +16,7 @@ from analytics.synthetic_cases import synthetic_library
 from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings
 from service.server import build_service
+from service.store.models import AnalysisRun
 
 ADMIN = "test-admin-key-0123456789"
 T0 = 1_700_000_000.0  # window end used by the tests (UNIX s)
@@ -136,6 +137,8 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
     ticket = client.get(f"/api/v1/tickets/{ticket_id}", headers=viewer).json()
     assert ticket["valve_asset"] == "FV-1" and ticket["state"] == "open"
     assert ticket["evidence"]["S"] is not None and ticket["evidence"]["period_s"] > 0
+    assert ticket["evidence"]["pattern"] == "limit_cycle"
+    assert "\nPattern: limit cycle.\n" in ticket["description"]
     assert client.get(f"/api/v1/tickets/{ticket_id}/cmms",
                       headers=viewer).json()["sap_pm"]["NOTIF_TYPE"] == "M2"
     bad_actors = client.get("/api/v1/plant/bad-actors", headers=viewer).json()["data"]
@@ -144,6 +147,7 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
     alarms = client.get("/api/v1/alarms", headers=viewer).json()["data"]
     assert [(a["loop_id"], a["kind"], a["state"]) for a in alarms] == [
         ("FIC-1", "oscillation", "unacknowledged")]
+    assert alarms[0]["message"].endswith("; valve: stiction (limit cycle)")
     alarm_id = alarms[0]["id"]
     url = f"/api/v1/alarms/{alarm_id}/acknowledge"
     assert client.post(url, json={}, headers=viewer).status_code == 403
@@ -164,6 +168,8 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
 
     health = client.get("/api/v1/loops/FIC-1/health", headers=viewer).json()
     assert health["diagnosis"]["stiction"]["verdict"] == "stiction"
+    assert health["stiction_pattern"] == "limit cycle"
+    assert health["diagnosis"]["first_sample_at"] == T0 - 3600 + 1  # the buffer grid
     assert len(health["trend"]) == 2
     data = client.get("/api/v1/loops/FIC-1/data", params={"start": T0 - 600, "end": T0,
                                                           "max_points": 100},
@@ -185,6 +191,32 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
     metrics = client.get("/metrics", headers=viewer).text
     assert 'loopwatch_analyses_total{status="ok"} 4' in metrics
     assert "loopwatch_tickets_open 1" in metrics
+
+
+def test_health_names_the_pattern_and_lists_the_episodes_at_utc_times(service, client):
+    """A stored stick-jump finding: the episodes, seconds from the window's first sample in
+    the diagnosis, come back at UNIX times."""
+    viewer = key(client, "viewer")
+    first_sample = T0 - 3600 + 1
+    with service.state.store.session() as session:
+        session.add(AnalysisRun(
+            loop_id="FIC-1", started_at=T0, finished_at=T0 + 3, window_start=T0 - 3600,
+            window_end=T0, status="ok", usable=True, oscillating=False, verdict="stiction",
+            confidence=0.7, health=72.0,
+            result={"first_sample_at": first_sample, "stiction": {
+                "verdict": "stiction", "pattern": "stick_jump", "op_travel": 14.0,
+                "episode_stick_band": 2.5,
+                "episodes": [{"start_s": 120.0, "jump_s": 190.0, "end_s": 215.0,
+                              "op_travel": 2.5, "pv_jump": 1.1, "op_during_jump": 0.3}]}},
+        ))
+    health = client.get("/api/v1/loops/FIC-1/health", headers=viewer).json()
+    assert health["stiction_pattern"] == ("stick-jump: the valve holds while OP ramps, then "
+                                          "jumps; no sustained cycle")
+    assert health["episodes"] == [{"start": first_sample + 120.0, "jump": first_sample + 190.0,
+                                   "end": first_sample + 215.0, "op_travel": 2.5,
+                                   "pv_jump": 1.1}]
+    quiet = client.get("/api/v1/loops/FIC-2/health", headers=viewer).json()
+    assert (quiet["stiction_pattern"], quiet["episodes"]) == (None, [])
 
 
 def test_restart_rebuilds_the_rolling_window_from_the_store(service, client, store):

@@ -105,7 +105,8 @@ def test_analyze_readable_report_of_a_healthy_loop(tmp_path, capsys):
     assert main(["analyze", str(path)]) == 0
     out = capsys.readouterr().out
     assert "oscillation: none found" in out
-    assert "stiction: NO_STICTION" in out
+    # Its valve hardly moved: too little to judge (issue 17), with the travel seen.
+    assert "stiction: UNDECIDED" in out and "not enough valve movement to judge" in out
 
 
 @pytest.mark.parametrize(

@@ -84,8 +84,9 @@ def test_a_new_installation_confirms_on_the_history_it_holds(make_service, confi
     assert svc.scheduler.due_rounds(T0) == [newest - k * 480 for k in (4, 3, 2, 1, 0)]
     svc.scheduler.election = None  # the only scheduler: it leads
     done = svc.scheduler.run_due()
+    # FIC-2's healthy valve hardly moves: too little travel to judge (issue 17).
     assert [(s.loop_id, s.verdict) for s in done] == [
-        ("FIC-1", "stiction"), ("FIC-2", "no_stiction")] * 5
+        ("FIC-1", "stiction"), ("FIC-2", "undecided")] * 5
     with svc.state.store.session() as session:
         opened = session.scalars(select(Ticket)).all()
         assert [t.valve_asset for t in opened] == tickets

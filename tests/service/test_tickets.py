@@ -10,6 +10,7 @@ import pytest
 
 from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent, Unit, UnitAnalysisRun
 from service.tickets import (
+    MAX_TICKET_EPISODES,
     TicketNotFoundError,
     TicketStateError,
     TicketWebhook,
@@ -19,6 +20,7 @@ from service.tickets import (
     get_ticket,
     list_tickets,
     ticket_priority,
+    ticket_to_dict,
     to_cmms_notification,
     update_ticket_from_analysis,
 )
@@ -42,6 +44,36 @@ def add_run(session, *, at, loop_id="FIC-101", status="ok", verdict="stiction", 
         verdict=verdict, confidence=0.9, S=S, J=J, health=0.4,
         result={"oscillation": {"detected": True, "period_s": 48.0, "amplitude_op": 3.0,
                                 "amplitude_pv": amplitude_pv}},
+        error=None,
+    )
+    session.add(run)
+    session.flush()
+    return run
+
+
+def add_sticky_run_without_cycle(session, *, at, pattern="stick_jump", episodes=(),
+                                 band=None, op_travel=12.0):
+    """A run of FIC-101 whose valve sticks without a sustained cycle: no S, J or period.
+
+    ``episodes`` are ``(start_s, jump_s, end_s, op_travel, pv_jump)`` in seconds from the
+    window's first sample, which lies one second after the window start (the buffer grid).
+    """
+    run = AnalysisRun(
+        loop_id="FIC-101", started_at=at, finished_at=at + 5, window_start=at - WINDOW_S,
+        window_end=at, status="ok", usable=True, oscillating=False, period_s=None,
+        verdict="stiction", confidence=0.8, S=None, J=None, health=68.0,
+        result={
+            "first_sample_at": at - WINDOW_S + 1.0,
+            "oscillation": {"detected": False, "period_s": None, "amplitude_op": None,
+                            "amplitude_pv": None},
+            "stiction": {
+                "verdict": "stiction", "pattern": pattern, "op_travel": op_travel,
+                "episode_stick_band": band,
+                "episodes": [{"start_s": a, "jump_s": b, "end_s": c, "op_travel": op,
+                              "pv_jump": pv, "op_during_jump": 0.2}
+                             for a, b, c, op, pv in episodes],
+            },
+        },
         error=None,
     )
     session.add(run)
@@ -94,6 +126,8 @@ def test_ticket_opens_on_the_third_confirmation_on_separate_windows(store):
             "window_start": T0 + 2 * WINDOW_S, "window_end": T0 + 3 * WINDOW_S,
             "confidence": 0.9, "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
             "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
+            "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
+            "episodes_found": 0,
             "plots": {
                 "trend": "/api/v1/loops/FIC-101/plots/trend",
                 "signature": "/api/v1/loops/FIC-101/plots/signature",
@@ -280,6 +314,16 @@ def test_loop_without_valve_asset_is_ticketed_under_its_id(store):
     ({"S": float("nan")}, "evidence of loop 'FIC-101': 'S' must be a finite number, got nan"),
     ({"period_s": "48"}, "'period_s' must be a finite number, got '48'"),
     ({"S": 1.0, "J": 2.0}, "evidence of loop 'FIC-101': slip jump J=2.0 cannot exceed"),
+    ({"pattern": "wobble"}, "'pattern' must be one of limit_cycle, irregular_cycle, "
+                            "stick_jump, stuck or None, got 'wobble'"),
+    ({"episode_stick_band": float("inf")}, "'episode_stick_band' must be a finite number"),
+    ({"episodes": "none"}, "'episodes' must be a list, got 'none'"),
+    ({"episodes": [{"start": 1.0, "jump": 2.0, "end": 3.0, "op_travel": 1.0}]},
+     "episode 0 must be a dict with the keys start, jump, end, op_travel, pv_jump"),
+    ({"episodes": [{"start": 1.0, "jump": 2.0, "end": 3.0, "op_travel": float("nan"),
+                    "pv_jump": True}]}, "episode 0: op_travel, pv_jump must be finite numbers"),
+    ({"episodes": [{"start": 1.0, "jump": 4.0, "end": 3.0, "op_travel": 1.0,
+                    "pv_jump": 1.0}]}, "episode 0 must hold, jump and settle in that order"),
 ])
 def test_bad_evidence_is_refused_with_the_reason(store, change, message):
     # refused on the first stiction finding, before the confirmations are complete
@@ -324,6 +368,120 @@ def test_unknown_importance_is_refused():
 def test_get_ticket_unknown(store):
     with store.session() as s, pytest.raises(TicketNotFoundError, match="ticket 5 not found"):
         get_ticket(s, 5)
+
+
+# --- valves that stick without a cycle -------------------------------------------
+
+STICK_JUMP_EPISODES = [(30.0, 75.0, 90.0, 5.2, 1.4), (400.0, 452.5, 470.0, -5.8, -1.6)]
+
+
+def test_a_stick_jump_valve_gets_a_ticket_naming_the_pattern_and_its_episodes(store):
+    with store.session() as s:
+        add_loop(s)
+        for k in range(3):
+            run = add_sticky_run_without_cycle(s, at=T0 + WINDOW_S * (k + 1),
+                                               episodes=STICK_JUMP_EPISODES, band=5.5)
+            ticket = analyse(s, run)
+            assert (ticket is None) == (k < 2)
+        ticket_id = ticket.id
+    with store.session() as s:
+        ticket = get_ticket(s, ticket_id)
+        first_sample = T0 + 2 * WINDOW_S + 1.0  # of the newest run's window
+        assert ticket.evidence["pattern"] == "stick_jump"
+        assert ticket.evidence["episodes"] == [
+            {"start": first_sample + 30.0, "jump": first_sample + 75.0,
+             "end": first_sample + 90.0, "op_travel": 5.2, "pv_jump": 1.4},
+            {"start": first_sample + 400.0, "jump": first_sample + 452.5,
+             "end": first_sample + 470.0, "op_travel": -5.8, "pv_jump": -1.6},
+        ]
+        assert ticket.evidence["episodes_found"] == 2
+        assert ticket.priority == 2  # the episodes' stick band of 5.5 % is severe
+        assert ticket.events[0].note == (
+            f"opened: stiction confirmed by 3 analyses of separate windows (run "
+            f"{ticket.evidence['run_id']}, pattern stick_jump, priority 2)")
+        lines = ticket.description.split("\n")
+        assert lines[1:6] == [
+            "Pattern: stick-jump: the valve holds while OP ramps, then jumps; no sustained "
+            "cycle.",
+            "Stiction: S about 5.50 % of valve span (from the episodes), J = not quantified.",
+            "Oscillation: none sustained.",
+            "Stick-jump episodes (2; times UTC): the valve held from the start until it jumped, "
+            "PV settled at the end; OP travel while it held and PV jump in % of span.",
+            # the window starts 2023-11-14 22:33:20 UTC, its first sample a second later
+            "Episode 1: hold 2023-11-14 22:33:51, jump 2023-11-14 22:34:36, settled "
+            "2023-11-14 22:34:51; OP travel 5.20 %, PV jump 1.40 %.",
+        ]
+        assert lines[6] == ("Episode 2: hold 2023-11-14 22:40:01, jump 2023-11-14 22:40:53, "
+                            "settled 2023-11-14 22:41:11; OP travel -5.80 %, PV jump -1.60 %.")
+        sap = to_cmms_notification(ticket)["sap_pm"]
+        assert lines[5] in sap["LONG_TEXT"] and lines[6] in sap["LONG_TEXT"]  # not wrapped
+        assert all(len(line) <= 132 for line in sap["LONG_TEXT"])
+        maximo = to_cmms_notification(ticket)["maximo"]
+        assert "Pattern: stick-jump" in maximo["description_longdescription"]
+
+
+def test_a_ticket_keeps_only_the_latest_episodes(store):
+    episodes = [(10.0 * k, 10.0 * k + 4, 10.0 * k + 6, 3.0, float(k)) for k in range(25)]
+    with store.session() as s:
+        ticket = opened_ticket_without_cycle(s, episodes=episodes, band=3.0)
+        kept = ticket.evidence["episodes"]
+        assert len(kept) == MAX_TICKET_EPISODES == 20
+        assert [e["pv_jump"] for e in kept] == [float(k) for k in range(5, 25)]
+        assert ticket.evidence["episodes_found"] == 25
+        assert "Stick-jump episodes (the latest 20 of 25; times UTC)" in ticket.description
+        assert "Episode 20: " in ticket.description
+        assert "Episode 21: " not in ticket.description
+
+
+def test_a_stuck_valve_ticket_says_how_far_op_travelled(store):
+    with store.session() as s:
+        ticket = opened_ticket_without_cycle(s, pattern="stuck", op_travel=23.4)
+        assert ticket.evidence["pattern"] == "stuck"
+        assert ticket.priority == 3  # size unknown: moderate
+        assert "Pattern: stuck: OP travelled 23.4 % with no PV response." in ticket.description
+        assert "Stiction: S = not quantified, J = not quantified" in ticket.description
+        assert "episodes" not in ticket.description
+
+
+def opened_ticket_without_cycle(session, **run_args):
+    """A loop FIC-101 with a ticket opened by one run finding stiction without a cycle."""
+    add_loop(session)
+    run = add_sticky_run_without_cycle(session, at=T0 + WINDOW_S, **run_args)
+    return analyse(session, run, needed=1)
+
+
+def test_a_ticket_stored_before_patterns_still_reads_exports_and_updates(store):
+    old_evidence = {
+        "loop_id": "FIC-101", "valve_asset": "FV-101", "run_id": None,
+        "window_start": T0, "window_end": T0 + WINDOW_S, "confidence": 0.9, "S": 4.0,
+        "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0, "amplitude_op": 3.0,
+        "amplitude_pv": 1.5, "confirmations": 1,
+        "plots": {"trend": "/api/v1/loops/FIC-101/plots/trend"},
+    }
+    with store.session() as s:
+        add_loop(s)
+        old_evidence["run_id"] = add_run(s, at=T0 + WINDOW_S).id
+        old = Ticket(valve_asset="FV-101", loop_id="FIC-101", state="open", priority=3,
+                     title="Sticky valve FV-101, loop FIC-101", description="Valve stiction "
+                     "confirmed by 1 analyses.", location=None, malfunction_start=T0,
+                     evidence=old_evidence, created_at=T0, updated_at=T0)
+        s.add(old)
+        s.flush()
+        ticket_id = old.id
+    with store.session() as s:
+        ticket = get_ticket(s, ticket_id)
+        evidence = ticket_to_dict(ticket)["evidence"]
+        assert evidence == old_evidence | {"pattern": None, "op_travel": None,
+                                           "episode_stick_band": None, "episodes": [],
+                                           "episodes_found": 0}
+        assert to_cmms_notification(ticket)["sap_pm"]["LONG_TEXT"] == [
+            "Malfunction start: 2023-11-14T22:13:20+00:00",
+            "Valve stiction confirmed by 1 analyses."]
+        run = add_sticky_run_without_cycle(s, at=T0 + 2 * WINDOW_S,
+                                           episodes=STICK_JUMP_EPISODES, band=2.0)
+        assert analyse(s, run, needed=1) is ticket
+        assert ticket.evidence["pattern"] == "stick_jump"
+        assert "Pattern: stick-jump" in ticket.description
 
 
 # --- CMMS ---------------------------------------------------------------------

@@ -10,10 +10,12 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel, ValidationError
 from sqlalchemy import func, select
 
+from service.analysis import stiction_pattern_text
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.api.routes import advice, unit_diagnosis
 from service.config import LoopConfig
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
+from service.tickets import run_episodes
 
 router = APIRouter(prefix="/api/v1", tags=["loops"])
 router.include_router(advice.router)
@@ -75,13 +77,21 @@ class RunsPublic(BaseModel):
 
 
 class HealthPublic(BaseModel):
-    """The latest diagnosis of a loop and the trend of its health."""
+    """The latest diagnosis of a loop and the trend of its health.
+
+    ``stiction_pattern`` names how the latest diagnosis's sticky valve shows
+    (:func:`service.analysis.stiction_pattern_text`; None unless it found
+    stiction); ``episodes`` are its stick-jump episodes at UNIX times
+    (:func:`service.tickets.run_episodes`).
+    """
 
     loop_id: str
     health: float | None
     latest: RunPublic | None
     diagnosis: dict[str, Any] | None
     trend: list[tuple[float, float | None]]
+    stiction_pattern: str | None = None
+    episodes: list[dict[str, float]] = []
 
 
 class UnitPublic(BaseModel):
@@ -275,12 +285,16 @@ def loop_health(
         .order_by(AnalysisRun.id.desc()).limit(trend)
     ))
     latest = runs[0] if runs else None
+    diagnosis = latest.result if latest else None
+    stiction = (diagnosis or {}).get("stiction") or {}
     return HealthPublic(
         loop_id=loop_id,
         health=latest.health if latest else None,
         latest=_run_public(latest) if latest else None,
-        diagnosis=latest.result if latest else None,
+        diagnosis=diagnosis,
         trend=[(r.started_at, r.health) for r in reversed(runs)],
+        stiction_pattern=stiction_pattern_text(stiction.get("pattern"), stiction.get("op_travel")),
+        episodes=[] if latest is None else run_episodes(latest),
     )
 
 
