@@ -115,9 +115,10 @@ def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
     print(f"stiction: {v.verdict.upper()} (confidence {v.confidence:.2f}): {v.reason}", file=out)
     if d.pattern is not None:
         print(f"pattern: {d.pattern}", file=out)
-    for e in d.episodes:
-        print(f"  episode: held {e.start * d.ts:.0f}-{e.jump_at * d.ts:.0f} s while OP travelled "
-              f"{e.op_travel:+.3g}, then PV jumped {e.pv_jump:+.3g}", file=out)
+    for episode in d.episodes:
+        print(f"  episode: held {episode.start * d.ts:.0f}-{episode.jump_at * d.ts:.0f} s while "
+              f"OP travelled {episode.op_travel:+.3g}, then PV jumped {episode.pv_jump:+.3g}",
+              file=out)
     for name, e in v.methods.items():
         print(f"  {name:18s} {e.decision:12s} index {_fmt(e.index, '.3g'):>8s}  {e.note}", file=out)
     q = d.quantification
