@@ -164,7 +164,9 @@ class OscillationReport:
         True if at least one band is both a prominent spectral peak and
         regular (``r > 1``); see :func:`detect_oscillations`.
     oscillations : tuple of Oscillation
-        All significant oscillations, strongest (largest power) first.
+        All significant oscillations: those found in the whole window first,
+        then those found only in segments of it, each strongest (largest
+        power) first.
     methods : dict of str to MethodResult
         Per-method verdicts, keys ``"spectral_peak"``, ``"acf_regularity"``
         and ``"iae"``.
@@ -553,8 +555,8 @@ def _segments(n: int, min_samples: int, levels: int) -> list[tuple[int, int]]:
         if n / parts < min_samples:
             break
         spans += [
-            (round(i * n / (2 * parts)), round((i + 2) * n / (2 * parts)))
-            for i in range(2 * parts - 1)
+            (round(i * n / (4 * parts)), round((i + 4) * n / (4 * parts)))
+            for i in range(4 * parts - 3)
         ]
     return spans
 
@@ -705,14 +707,18 @@ def detect_oscillations(
        riding on a drifting mean, is not diluted by the rest of the window
        (the spectrogram argument of Thornhill et al. 2003, sec. 5, and of
        Hägglund 1995, who supervises a moving time ``T_sup``).  Detections
-       with the same period (within 15 %) are one oscillation; it is reported
-       when the window and segments where it was found cover at least
-       ``min_presence`` of the window, so a short burst is not a loop
+       with the same period (within 15 %) are one oscillation.  One found in
+       the whole window is reported; one found only in segments is reported
+       when segments at different positions (neither inside the other)
+       detect it over one contiguous stretch of at least ``min_presence`` of
+       the window, so a short burst or one lucky segment is not a loop
        oscillation.
     6. Oscillations at a harmonic of a stronger one (square or triangular
        stiction cycles have odd harmonics) are merged; the rest are reported
-       strongest first with the amplitude of the band-passed component and,
-       from its Hilbert envelope, the part of the window where it is present.
+       with the amplitude of the band-passed component and, from its Hilbert
+       envelope, the part of the window where it is present: those of the
+       whole window first, then those of segments only, each strongest
+       first.
     7. Hagglund's (1995) IAE test runs on the detrended signal with the
        dominant period and is reported in ``methods["iae"]``.
 
@@ -844,9 +850,8 @@ def detect_oscillations(
                 clusters.append(_Cluster(period, r, power, b - a, [(a, b)]))
             elif _same_or_harmonic(period, match.period, harmonics=False):
                 match.spans.append((a, b))
-                match.regularity = max(match.regularity, r)
                 if b - a > match.window_samples:  # the longest window measures best
-                    match.period, match.window_samples = period, b - a
+                    match.period, match.regularity, match.window_samples = period, r, b - a
     assert whole is not None  # the window itself is always the first segment
 
     oscillations: list[Oscillation] = []
@@ -868,7 +873,8 @@ def detect_oscillations(
                 method="acf_regularity" if c.window_samples == n else "segment_acf_regularity",
             )
         )
-    oscillations.sort(key=lambda o: o.power_fraction, reverse=True)
+    # Oscillations of the whole window first: one seen only in segments is secondary.
+    oscillations.sort(key=lambda o: (o.method != "acf_regularity", -o.power_fraction))
     oscillations = oscillations[:max_oscillations]
     detected = bool(oscillations)
 
@@ -960,7 +966,8 @@ def detect_loop_oscillation(
     -------
     LoopOscillation
         Oscillating if either signal oscillates.  When both do, the strongest
-        OP/PV pair with matching periods is the loop oscillation (period: their
+        OP/PV pair with matching periods, preferring oscillations of the whole
+        window to those of segments only, is the loop oscillation (period: their
         mean; regularity: the larger; amplitudes: each signal's own).  If no
         pair matches, the more regular of the two dominant oscillations is
         reported with ``periods_consistent`` False.  If only one signal
@@ -995,12 +1002,13 @@ def detect_loop_oscillation(
             return 0.0
         return _measure(spec, period_s / ts, band_ratio, order)[0]
 
-    best: tuple[float, Oscillation, Oscillation] | None = None
+    best: tuple[tuple[bool, float], Oscillation, Oscillation] | None = None
     for o in osc_op:
         for p in osc_pv:
             tol = max(period_tolerance, 1.0 / (3.0 * min(o.regularity, p.regularity)))
             if abs(o.period_s - p.period_s) <= tol * max(o.period_s, p.period_s):
-                score = o.power_fraction + p.power_fraction
+                whole = o.method == p.method == "acf_regularity"
+                score = (whole, o.power_fraction + p.power_fraction)
                 if best is None or score > best[0]:
                     best = (score, o, p)
     if best is not None:
