@@ -191,6 +191,16 @@ class LoopDiagnosis:
                 "amplitude_op": osc.amplitude_op if osc else None,
                 "amplitude_pv": osc.amplitude_pv if osc else None,
                 "analysed_period_s": self.cycle_period_s,
+                "oscillations": [
+                    {"signal": signal, "period_s": o.period_s, "amplitude": o.amplitude,
+                     "regularity": o.regularity, "presence": o.presence,
+                     "present_from_s": o.present_from_s, "present_to_s": o.present_to_s,
+                     "method": o.method}
+                    for signal, report in (("op", osc.op if osc else None),
+                                           ("pv", osc.pv if osc else None))
+                    if report is not None
+                    for o in report.oscillations
+                ],
             },
             "stiction": {
                 "verdict": self.stiction.verdict,

@@ -35,3 +35,18 @@ def isdb_labels() -> list[dict[str, str]]:
     """Rows of isdb14/labels.csv: loop, label, oscillating, ts_s, process_type_note."""
     with require_file(ISDB / "labels.csv").open(newline="") as handle:
         return list(csv.DictReader(handle))
+
+
+OSC_DEV = Path(os.environ.get("LOOPWATCH_OSC_DEV", SHARED_DATA / "osc_dev"))
+
+
+def osc_dev_labels() -> list[dict[str, str]]:
+    """Rows of osc_dev/labels.csv: loop, oscillating (0/1), ts_s (Jelali & Huang 2010)."""
+    with require_file(OSC_DEV / "labels.csv").open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def load_osc_dev_loop(name: str) -> np.ndarray:
+    """OP of one osc_dev loop (the files hold ``time,op``)."""
+    table = np.genfromtxt(require_file(OSC_DEV / f"{name}.csv"), delimiter=",", names=True)
+    return np.asarray(table["op"], dtype=np.float64)

@@ -122,13 +122,25 @@ def test_random_walk_not_detected() -> None:
     assert len(hits) <= 1, f"random walk reported as oscillating for seeds {hits}"
 
 
-def test_irregular_cycles_are_not_regular() -> None:
-    """Cycle lengths spread by 60 % are no regular oscillation; 5 % are."""
-    assert not any(detect_oscillations(_jittered(0.6, s), 1.0).detected for s in range(5))
-    for s in range(5):
-        osc = detect_oscillations(_jittered(0.05, s), 1.0).dominant
-        assert osc is not None and osc.regularity > 1
-        assert osc.period_s == pytest.approx(60.0, rel=0.05)
+def test_regularity_falls_with_the_cycle_length_spread() -> None:
+    """Half-cycle lengths spread by 5 % give a regular oscillation at the right
+    period; spread by 60 % the cycles are irregular: the industrial loops the
+    Jelali & Huang benchmark flags as oscillating (chemicals_loop21) have that
+    spread, so such a signal may be reported, but with a regularity near
+    Thornhill's limit of 1, well below that of 30 % and 5 % spreads."""
+    medians = {}
+    for spread in (0.05, 0.3, 0.6):
+        regularity = []
+        for s in range(10):
+            osc = detect_oscillations(_jittered(spread, s), 1.0).dominant
+            regularity.append(0.0 if osc is None else osc.regularity)
+            if spread == 0.05:
+                assert osc is not None and osc.regularity > 10
+                assert osc.period_s == pytest.approx(60.0, rel=0.05)
+            if spread == 0.6:
+                assert regularity[-1] < 3
+        medians[spread] = float(np.median(regularity))
+    assert medians[0.05] > medians[0.3] > medians[0.6]
 
 
 # ----------------------------------------------------------------------------
@@ -419,7 +431,7 @@ def test_isdb_periods_agree_with_independent_estimates(isdb_results: list[_IsdbR
 def test_isdb_pap7_non_oscillating_loop_not_reported(isdb_results: list[_IsdbResult]) -> None:
     """PAP7 is labelled non-oscillating.  Its OP carries a faint 30 s ripple
     (visible in the raw ACF) on top of step disturbances, but no band stands
-    out of the spectral background (prominence ~2.4 < 3), so no oscillation."""
+    out of the spectral background (prominence 2.35 < 2.5), so no oscillation."""
     (pap7,) = [r for r in isdb_results if r.loop == "PAP7"]
     assert pap7.label == "no"
     assert not pap7.op.detected
