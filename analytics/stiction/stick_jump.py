@@ -497,9 +497,9 @@ class StickJumpDetector:
     one) go the way OP pushed and at most ``max_contrary_share`` of the
     clear jumps go against it; no stiction when the jumps go either way
     (``min_random_share``), or when OP travelled at least ``min_travel`` (OP
-    units, % of span) with fewer episodes than needed, no more of them than
-    contrary jumps, and PV following OP through most of it (the share of
-    travel made during holds below ``max_hold_share``); undecided otherwise.
+    units, % of span) with fewer episodes than needed, none strong, and PV
+    following OP through most of it (the share of travel made during holds
+    below ``max_hold_share``); undecided otherwise.
 
     Attributes
     ----------
@@ -557,7 +557,7 @@ class StickJumpDetector:
                 f"{n_contrary} of {n + n_contrary} jumps after a hold went against OP: PV "
                 "jumps either way, as disturbances make it, not the valve", details,
             )
-        if (n < self.min_episodes and n <= n_contrary
+        if (n < self.min_episodes and not strong
                 and analysis.op_travel_total >= self.min_travel
                 and analysis.hold_share < self.max_hold_share):
             return MethodEvidence(

@@ -133,9 +133,10 @@ def test_synthetic_library_floor():
         idle = d.stiction.reason.startswith("not enough valve movement")
         verdicts.append("no_stiction" if idle and case.label == "no_stiction"
                         else d.stiction.verdict)
-        if d.quantification is not None and case.S is not None and case.J is not None:
-            errors_S.append(abs(d.quantification.S - case.S) / case.S)
-            errors_J.append(abs(d.quantification.J - case.J) / case.J)
+        q = d.quantification
+        if q is not None and q.S is not None and q.J is not None and case.S and case.J:
+            errors_S.append(abs(q.S - case.S) / case.S)
+            errors_J.append(abs(q.J - case.J) / case.J)
     recalls = [np.mean([v == label for t, v in zip(truth, verdicts, strict=True) if t == label])
                for label in ("stiction", "no_stiction")]
     assert np.mean(recalls) >= 0.95
