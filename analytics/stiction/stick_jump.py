@@ -30,19 +30,19 @@ Algorithm (:func:`find_stick_episodes`):
    then moved ``pv_jump`` between the two levels, and OP moved
    ``op_during_jump`` during the jump.
 4. A candidate is a *stick-jump episode* when PV's jump is clear (at least
-   ``min_jump_bands`` bands), fast (the transition is shorter than a quarter
-   of the hold, and half the jump beyond the band is made within an eighth
-   of it: the
-   process could have followed OP within the hold, yet did not), followed by
-   a hold at least a quarter as long (the valve sticks again), not caused
-   by OP (OP moved the jump's way less during the jump than during the hold,
-   and not in a kick but in a ramp through the hold), from a hold off the
-   reference (the set point just after the jump, else the median PV: the
-   error is why the controller pushed) towards it, and in the direction in
-   which OP had been pushing the valve (the sign of the process gain, read
-   from the controller, see :func:`loop_gain_sign`). Any other clear jump
-   after a hold is a *contrary* one: a load disturbance moves PV away from
-   the reference whatever OP did.
+   ``min_jump_bands`` bands) and fast (the transition is shorter than a
+   quarter of the hold, and half the jump beyond the band is made within an
+   eighth of it: the process could have followed OP within the hold, yet did
+   not), followed by a hold at least a quarter as long (the valve sticks
+   again), not caused by OP (OP moved the jump's way less during the jump
+   than during the hold, and in a ramp through the hold, not in a kick),
+   from a hold off the reference (the set point during the hold or just
+   after the jump, else the median PV: the error is why the controller
+   pushed) towards it, and in the direction in which OP had been pushing the
+   valve (the sign of the process gain, read from the controller, see
+   :func:`loop_gain_sign`). Any other clear jump after a hold is a
+   *contrary* one: a load disturbance moves PV away from the reference
+   whatever OP did.
 
 :class:`StickJumpDetector` decides from the episodes,
 :class:`StuckSectionsDetector` from OP reversals made while PV held.
@@ -440,10 +440,12 @@ def find_stick_episodes(
             continue
         # The controller pushed because PV held off its reference, and the slip
         # moved PV towards it (a load moves PV away from where it held).  The
-        # reference is read just after the jump: operators often move the set
-        # point to where a sticky valve's flow ended up.
-        offset = float(np.median(reference[s_after:s_after + min_hold])) - level
-        toward = abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
+        # reference during the hold, or just after the jump: operators often
+        # move the set point to where a sticky valve's flow ended up.
+        toward = any(
+            abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
+            for offset in (float(np.median(reference[s:e])) - level,
+                           float(np.median(reference[s_after:s_after + min_hold])) - level))
         direction = np.sign(pv_jump) * np.sign(op_travel)
         consistent = toward and (gain_sign == 0 or direction == gain_sign)
         episode = StickEpisode(s, s_after, e, op_travel, float(pv_jump), op_during_jump,
