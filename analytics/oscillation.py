@@ -574,7 +574,7 @@ def _f_quantile(level: float, dfn: float, dfd: float) -> float:
 
 
 def _segments(n: int, min_samples: int, levels: int) -> list[tuple[int, int]]:
-    """The window, its halves, quarters, ... (``levels`` of them), 50 % overlap.
+    """The window, its halves, quarters, ... (``levels`` of them), 75 % overlap.
 
     Level ``m`` has segments of ``n / 2^m`` samples starting every
     ``n / 2^(m+1)``; levels whose segments would be shorter than
@@ -740,13 +740,14 @@ def detect_oscillations(
        intervals ``dt_i``, ``Tp = mean(2 dt_i)`` and
        ``r = Tp / (3 std(2 dt_i))``; ``r > regularity_threshold`` and ``1/Tp``
        inside the candidate's band make it an oscillation.
-    5. Sliding-window analysis: steps 1-4 also run on the halves, quarters,
-       ... (``segment_levels`` levels, 50 % overlap, each segment detrended on
-       its own) so that an oscillation present in only part of the window, or
-       riding on a drifting mean, is not diluted by the rest of the window
-       (the spectrogram argument of Thornhill et al. 2003, sec. 5, and of
-       Hägglund 1995, who supervises a moving time ``T_sup``).  Detections
-       with the same period (within 15 %) are one oscillation.  One found in
+    5. Sliding-window analysis, when the whole window shows no oscillation:
+       steps 1-4 also run on the halves, quarters, ... (``segment_levels``
+       levels, 75 % overlap, each segment detrended on its own) so that an
+       oscillation present in only part of the window, or riding on a
+       drifting mean, is not diluted by the rest of the window (the
+       spectrogram argument of Thornhill et al. 2003, sec. 5, and of
+       Hägglund 1995, who supervises a moving time ``T_sup``). Detections
+       with the same period (within 15 %) are one oscillation. One found in
        the whole window is reported; one found only in segments is reported
        when segments at different positions (neither inside the other)
        detect it over one contiguous stretch of at least ``min_presence`` of
@@ -901,6 +902,8 @@ def detect_oscillations(
                 match.spans.append((a, b))
                 if b - a > match.window_samples:  # the longest window measures best
                     match.period, match.regularity, match.window_samples = period, r, b - a
+        if whole.found:
+            break  # the segments look for what the whole window misses; it missed nothing
     assert whole is not None
 
     oscillations: list[Oscillation] = []

@@ -67,6 +67,7 @@ from itertools import pairwise
 from typing import ClassVar
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from analytics.stiction.evidence import (
@@ -214,6 +215,7 @@ def _moving_average(x: FloatArray, width: int) -> FloatArray:
     return np.asarray((csum[width:] - csum[:-width]) / width, dtype=np.float64)
 
 
+@njit(cache=True)
 def travel_increments(op: FloatArray, deadband: float) -> FloatArray:
     """OP moves beyond noise, sample by sample: what a positioner would travel.
 
@@ -223,9 +225,9 @@ def travel_increments(op: FloatArray, deadband: float) -> FloatArray:
     OP has (almost) no travel.
     """
     moves = np.zeros(op.size)
-    position = float(op[0])
+    position = op[0]
     for k in range(1, op.size):
-        value = float(op[k])
+        value = op[k]
         if value > position + deadband:
             moves[k] = value - deadband - position
             position = value - deadband
@@ -282,36 +284,49 @@ def loop_gain_sign(op: FloatArray, pv: FloatArray, sp: FloatArray | None) -> int
     return 1 if coef[k] > 0 else -1
 
 
+@njit(cache=True)
+def _hold_kernel(y: FloatArray, band: float) -> tuple[NDArray[np.int64], NDArray[np.int64],
+                                                      FloatArray]:
+    """Starts, ends and median levels of the holds of :func:`_holds`, compiled."""
+    starts = np.empty(y.size, dtype=np.int64)
+    ends = np.empty(y.size, dtype=np.int64)
+    levels = np.empty(y.size)
+    count = 0
+    start = 0
+    lo = hi = y[0]
+    for k in range(1, y.size + 1):
+        if k < y.size:
+            new_lo, new_hi = min(lo, y[k]), max(hi, y[k])
+            if new_hi - new_lo <= 2.0 * band:
+                lo, hi = new_lo, new_hi
+                continue
+        level = np.median(y[start:k])
+        if count > 0 and abs(level - levels[count - 1]) < band:
+            ends[count - 1] = k
+            levels[count - 1] = np.median(y[starts[count - 1]:k])
+        else:
+            starts[count], ends[count], levels[count] = start, k, level
+            count += 1
+        if k < y.size:
+            start = k
+            lo = hi = y[k]
+    return starts[:count], ends[:count], levels[:count]
+
+
 def _holds(y: FloatArray, band: float) -> list[tuple[int, int, float]]:
-    """Runs of ``y`` inside a band of half width ``band``, merged when their
+    """Runs of ``y`` inside a band of half width ``band`` (cut greedily, a new run
+    wherever the band would widen past ``2 band``), merged when their median
     levels differ by less than the band: ``(start, end, level)`` per hold."""
-    runs: list[tuple[int, int]] = []
-    start, lo, hi = 0, float(y[0]), float(y[0])
-    for k in range(1, y.size):
-        value = float(y[k])
-        new_lo, new_hi = min(lo, value), max(hi, value)
-        if new_hi - new_lo > 2.0 * band:
-            runs.append((start, k))
-            start, lo, hi = k, value, value
-        else:
-            lo, hi = new_lo, new_hi
-    runs.append((start, y.size))
-    merged: list[tuple[int, int, float]] = []
-    for s, e in runs:
-        level = float(np.median(y[s:e]))
-        if merged and abs(level - merged[-1][2]) < band:
-            ps, _, _ = merged[-1]
-            merged[-1] = (ps, e, float(np.median(y[ps:e])))
-        else:
-            merged.append((s, e, level))
-    return merged
+    starts, ends, levels = _hold_kernel(np.ascontiguousarray(y, dtype=np.float64), band)
+    return list(zip(starts.tolist(), ends.tolist(), levels.tolist(), strict=True))
 
 
+@njit(cache=True)
 def _is_flat(y: FloatArray, band: float) -> bool:
     """True if the last third of ``y`` sits within ``band`` of its first third: a
     hold, not a piece of a ramp or of a slow swing cut by the band."""
     third = max(y.size // 3, 1)
-    return abs(float(np.median(y[-third:]) - np.median(y[:third]))) <= band
+    return bool(abs(np.median(y[y.size - third:]) - np.median(y[:third])) <= band)
 
 
 KICK_SAMPLES = 3
