@@ -319,9 +319,15 @@ def transient_verdict(
     config = battery or BatteryConfig()
     verdict = combine(evidence, BatteryConfig(config.weights, config.threshold, 1))
     if verdict.verdict == STICTION:
-        reason = (f"stick-jump without a sustained cycle: {len(analysis.episodes)} "
-                  f"episode(s) of PV holding while OP pushed, then jumping; PV held through "
-                  f"an OP reversal of {analysis.hold_reversal:.3g}; {verdict.reason}")
+        seen = []
+        if analysis.episodes:
+            seen.append(f"{len(analysis.episodes)} episode(s) of PV holding while OP pushed, "
+                        "then jumping")
+        stuck = verdict.methods.get("stuck_sections")
+        if stuck is not None and stuck.decision == STICTION:
+            seen.append(f"PV held through an OP reversal of {analysis.hold_reversal:.3g}")
+        reason = (f"stick-jump without a sustained cycle: {'; '.join(seen)}; "
+                  f"{verdict.reason}")
         return StictionVerdict(STICTION, verdict.confidence, verdict.score,
                                verdict.methods, reason)
     return verdict

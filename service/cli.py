@@ -129,6 +129,9 @@ def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
             f"fd = {q.fd:.2f} (OP units), fit R2 = {q.fit_r2:.2f}{caveats}",
             file=out,
         )
+    if d.episode_stick_band is not None:
+        print(f"stick band from the episodes: {d.episode_stick_band:.2f} (OP units; between J "
+              "and S: S after a reversal, J in the same direction)", file=out)
     if d.ellipse is not None:
         print(
             f"apparent stiction (ellipse fit): {d.ellipse.apparent_stiction:.2f} (OP units)",
