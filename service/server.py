@@ -281,12 +281,19 @@ DEMO_SETTINGS = {"analysis_interval_s": DEMO_INTERVAL_S, "window_s": 3600.0,
 """Demo defaults (a variable set in the environment wins)."""
 
 
+QUIET_LIBRARIES = ("asyncua", "pymodbus")
+"""Libraries whose INFO messages would flood the console (asyncua logs every
+subscription publish and every standard node it skips); their warnings show."""
+
+
 def serve(config: Path | None, *, host: str | None = None, port: int | None = None,
           role: str | None = None) -> None:
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    for library in QUIET_LIBRARIES:  # they log every publish and node at INFO
+        logging.getLogger(library).setLevel(logging.WARNING)
     plant = load_plant_config(config) if config is not None else None
     settings = Settings()
     updates: dict[str, Any] = {
