@@ -233,7 +233,8 @@ def hidden_effect_case(
     ) and (rng.random() < 0.3)
     base, offsets = _base_loop(rng, integrating)
     noise_std = float(rng.uniform(0.02, 0.12))
-    true, parameters = base, {}
+    true: LoopModel = base
+    parameters: dict[str, float] = {}
     for name in hidden:
         true, found, noise_std = _hide(name, rng, true, offsets, noise_std)
         parameters |= found

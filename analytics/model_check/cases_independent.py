@@ -40,6 +40,7 @@ Two effects can be hidden at once (:func:`independent_case` with a pair).
 from __future__ import annotations
 
 import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -149,7 +150,9 @@ class _TrueLoop:
         return op, mv, pv
 
 
-def _base_loop(rng: np.random.Generator, integrating: bool) -> tuple[LoopModel, tuple[float, float]]:
+def _base_loop(
+    rng: np.random.Generator, integrating: bool
+) -> tuple[LoopModel, tuple[float, float]]:
     """A PI loop with lambda tuning and a friction valve (or a healthy one)."""
     ts = float(rng.choice([0.5, 1.0, 2.0]))
     theta = ts * float(rng.integers(1, 10))
@@ -219,7 +222,6 @@ def _hide(
 ) -> dict[str, float]:
     """Put ``effect`` into ``true`` (in place); its parameters."""
     base = true.base
-    friction = true.params[(1, False)]
     like = base.valve.base
     S = float(like.S)
     if effect == "gain_mismatch":
@@ -235,7 +237,8 @@ def _hide(
         if true.integrating:
             true.tau = max(true.theta, base.dt) * float(rng.uniform(2.0, 6.0))
         else:
-            true.tau *= float(rng.uniform(1.4, 3.0) if rng.random() < 0.5 else rng.uniform(0.3, 0.7))
+            longer = rng.random() < 0.5
+            true.tau *= float(rng.uniform(1.4, 3.0) if longer else rng.uniform(0.3, 0.7))
         return {"tau": true.tau}
     if effect == "valve_characteristic":
         if rng.random() < 0.6:
@@ -268,7 +271,8 @@ def _hide(
     if effect == "position_dependent_stiction":
         centre = float(rng.choice(positions))
         half = 0.5 * float(rng.uniform(4.0, 12.0))
-        inside = friction_valve(like, S + float(rng.uniform(2.0, 6.0)), float(rng.uniform(0.2, 0.8)))
+        stuck = S + float(rng.uniform(2.0, 6.0))
+        inside = friction_valve(like, stuck, float(rng.uniform(0.2, 0.8)))
         true.zone = (centre - half, centre + half)
         for d in (1, -1):
             true.params[(d, True)] = inside.params_array()
