@@ -98,9 +98,9 @@ BATCHES = 24
 (:func:`_better`)."""
 
 EXPLAINED_FOR_CONFIDENCE = 0.5
-"""Fraction of the held-out PV variance the base model must explain for a confident
-verdict: below it the confidence is at most the fraction explained (an effect fitted on
-top of a model that predicts nothing is not evidence of that effect)."""
+"""Share of the held-out PV variance below which the findings say that no cause can be
+named with confidence and what data would decide (the confidence of every verdict is at
+most the share the final model explains)."""
 
 CONFIDENT = 0.9
 """Confidence below which the findings name the runner-up and the data that would decide."""
@@ -221,8 +221,8 @@ class Cause:
     added, times the probability that it predicts the held-out data better
     than ``runner_up`` (:func:`_better`).  For ``none`` it is the probability
     that the effect closest to explaining the data (the runner-up) does not
-    remove ``min_gain``.  Both are capped when the base model explains little
-    of the data (:data:`EXPLAINED_FOR_CONFIDENCE`).
+    remove ``min_gain``.  Neither exceeds the share of the held-out PV
+    variance that the final model explains.
 
     Attributes
     ----------
@@ -1032,11 +1032,16 @@ def check_model(
         named.append((final, Cause(final.effect, confidence, final.parameters, runner_up,
                                    base_cv.nmse_test, first_cv.nmse_test)))
         extended, extended_cv, extended_fit = final.model, first_cv, final.prediction
-        # A second effect, when the first leaves more than noise: each other effect and the
-        # first together, scored the same way against the first alone.
-        if first_cv.nmse_test > ADEQUATE_NOISE_RATIO * noise_nmse:
+        # A second effect: each other effect and the first together, scored the same way
+        # against the first alone; only an effect evident in the data when the first leaves
+        # no more than noise.
+        others = (
+            effects if first_cv.nmse_test > ADEQUATE_NOISE_RATIO * noise_nmse
+            else tuple(e for e in effects if e in evident)
+        )
+        if set(others) - {chosen.effect}:
             second = _second_effect(
-                chosen.effect, effects, halves, fitted, first_cv, residuals, residual,
+                chosen.effect, others, halves, fitted, first_cv, residuals, residual,
                 min_gain, simpler_tolerance, evident, period,
             )
             if second is not None:
@@ -1057,18 +1062,16 @@ def check_model(
                                               runner_up2, first_cv.nmse_test, pair_cv.nmse_test))
                 named.append(added)
                 extended, extended_cv, extended_fit = pair.model, pair_cv, pair.prediction
-    explained = 1.0 - base_cv.nmse_test
-    if explained < EXPLAINED_FOR_CONFIDENCE:  # an effect on top of a model that predicts nothing
-        def capped(cause: Cause) -> Cause:
-            return replace(cause, confidence=min(cause.confidence, max(explained, 0.0)))
-        named = [(fit, capped(cause)) for fit, cause in named]
-        confidence = min(confidence, max(explained, 0.0))
-
+    # Confidence never exceeds the share of the held-out PV variance the (extended) model
+    # explains: an effect fitted on top of a model that predicts little is little evidence.
+    explained = max(1.0 - extended_cv.nmse_test, 0.0)
+    named = [(fit, replace(cause, confidence=min(cause.confidence, explained)))
+             for fit, cause in named]
+    confidence = min(confidence, explained)
 
     def bias(prediction: Prediction) -> float:
         return float(sp_a[0]) if process.kind == "integrating" else prediction.pv_bias
 
-    period = oscillation.period_s
     cycle_base = _cycle(base, sp_a, bias(base_fit), noise, period, pv_a, warm_up)
     cycle_ext = (
         _cycle(extended, sp_a, bias(extended_fit), noise, period, pv_a, warm_up)
@@ -1151,10 +1154,11 @@ def check_model(
         )
     if explained < EXPLAINED_FOR_CONFIDENCE:
         findings.append(
-            f"The base model explains only {100 * max(explained, 0.0):.0f} % of the held-out PV "
-            "variance, so no cause is named with confidence: data with steps of OP large "
-            "against the noise (an open-loop step test, or set-point steps), each held until "
-            "PV settles, would identify the process first and then decide the cause."
+            f"The {'extended' if named else 'base'} model explains only {100 * explained:.0f} % "
+            "of the held-out PV variance, so no cause is named with confidence: data with "
+            "steps of OP large against the noise (an open-loop step test, or set-point steps), "
+            "each held until PV settles, would identify the process first and then decide "
+            "the cause."
         )
     return ModelCheck(
         model_source=source,
