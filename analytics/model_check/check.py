@@ -118,6 +118,9 @@ DECIDING = {
 }
 """What data show each effect apart from the others (said when a cause is uncertain)."""
 
+DYNAMICS = ("deadtime_mismatch", "time_constant_mismatch")
+"""Two effects that imitate each other in part, told apart by :func:`_dynamics_verdict`."""
+
 OUTPUT_EFFECTS = ("external_disturbance", "measurement_quantization")
 """Effects on the measured PV rather than in the loop, in the order they act."""
 
@@ -727,6 +730,54 @@ def _second_effect(
     return cross_validated[second.effect], orders[second.effect], confidence, runner_up
 
 
+def _dynamics_verdict(
+    halves: tuple[ReplayData, ReplayData],
+    base: LoopModel,
+    fitted: dict[str, list[Candidate]],
+    residual: Callable[[_CrossValidated], FloatArray],
+    residuals: dict[str, FloatArray],
+    min_gain: float,
+    period_s: float | None,
+) -> tuple[str, float, str]:
+    """Dead time or time constant, from a joint fit of the two: the effect the data need.
+
+    A longer dead time and an added lag both delay the response to an OP
+    move, but differently: a dead time shifts the whole response (a phase
+    lag growing with frequency, the gain unchanged), a lag rounds its start
+    (phase lag and attenuation).  Either single fit imitates the other in
+    part, most of all on an integrating process, where a lag ``tau`` delays
+    the ramp's asymptote by ``tau``.  The joint model (dead time over the
+    whole samples between the base's and the single fit's, two either side,
+    with the time constant fitted at each) is scored held out like every
+    effect; the dead time is needed when the joint model beats the
+    time-constant fit alone, the time constant when it beats the dead-time
+    fit alone (by ``min_gain``, :func:`_better`), as in the nested-model
+    comparison of Ljung (1999, sec. 16.4).
+
+    Returns the effect, its confidence (needed, and the other one not) and the
+    other effect.
+    """
+    joint: list[Candidate] = []
+    for h, delay_fit in zip(halves, fitted["deadtime_mismatch"], strict=True):
+        d0 = base.process.delay_samples(h.ts)
+        d1 = delay_fit.model.process.delay_samples(h.ts)
+        best: Candidate | None = None
+        for d in range(max(0, min(d0, d1) - 2), max(d0, d1) + 3):
+            delayed = replace(base, process=replace(base.process, theta=d * h.ts))
+            fit = fit_effect("time_constant_mismatch", h, delayed, h.predict(delayed),
+                             period_s=period_s)
+            if best is None or fit.prediction.sse_fit < best.prediction.sse_fit:
+                best = fit
+        assert best is not None
+        joint.append(best)
+    both = residual(_CrossValidated(halves, tuple(c.prediction for c in joint)))
+    delay = _better(residuals["time_constant_mismatch"], both, min_gain)
+    lag = _better(residuals["deadtime_mismatch"], both, min_gain)
+    if delay >= lag:
+        return "deadtime_mismatch", delay * (1.0 - lag), "time_constant_mismatch"
+    return "time_constant_mismatch", lag * (1.0 - delay), "deadtime_mismatch"
+
+
 def _undecided_sentence(cause: Cause) -> str:
     """The runner-up of an uncertain cause, and the data that would tell the two apart."""
     assert cause.runner_up is not None
@@ -1046,6 +1097,11 @@ def check_model(
     chosen, confidence, runner_up = _select(
         scored, residuals, residual(base_cv), min_gain, simpler_tolerance, evident
     )
+    if chosen is not None and {chosen.effect, runner_up} == set(DYNAMICS):
+        effect, confidence, runner_up = _dynamics_verdict(
+            halves, base, fitted, residual, residuals, min_gain, period
+        )
+        chosen = next(c for c in scored if c.effect == effect)
     whole = halves[0].holding_out("none")
     base_fit = whole.predict(base)
     named: list[tuple[Candidate, Cause]] = []

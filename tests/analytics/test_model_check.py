@@ -650,6 +650,29 @@ def test_two_hidden_effects_are_both_named_and_each_gains(pair, seed) -> None:
         assert part, f"{effect} missing from {extended}"
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+class TestDeadTimeAgainstTimeConstant:
+    """A joint fit of dead time and lag says which of the two the data need."""
+
+    def test_a_longer_dead_time_on_an_integrating_process(self) -> None:
+        case = hidden_effect_case("deadtime_mismatch", 0)
+        assert case.base_model.process.kind == "integrating"
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "deadtime_mismatch"
+        assert result.cause.runner_up == "time_constant_mismatch"
+        assert result.cause.confidence > 0.9
+        assert result.cause.parameters["theta"] == case.true_model.process.theta
+
+    def test_both_changed_names_both(self) -> None:
+        case = hidden_effect_case(("deadtime_mismatch", "time_constant_mismatch"), 2)
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert {c.effect for c in result.causes} == {"deadtime_mismatch",
+                                                      "time_constant_mismatch"}
+        # the first cause alone is not confidently one or the other
+        assert result.causes[0].confidence < 0.5
+
+
 class TestBaseModelThatExplainsNothing:
     def test_no_confident_cause_and_the_data_that_would_decide(self, healthy_case) -> None:
         case = healthy_case
