@@ -119,7 +119,13 @@ DECIDING = {
 """What data show each effect apart from the others (said when a cause is uncertain)."""
 
 DYNAMICS = ("deadtime_mismatch", "time_constant_mismatch")
-"""Two effects that imitate each other in part, told apart by :func:`_dynamics_verdict`."""
+"""Two effects that imitate each other in part (:func:`_joint_dynamics`)."""
+
+POSITIONAL = ("gain_mismatch", "valve_characteristic", "position_dependent_stiction")
+"""Effects that change how far PV moves per OP move, any two of which imitate each other
+in part: a gain everywhere, a gain changing with valve position (the characteristic), a
+stick band changing with position (stiction in a band of travel), told apart by fitting
+two together (:func:`_joint_both_orders`)."""
 
 OUTPUT_EFFECTS = ("external_disturbance", "measurement_quantization")
 """Effects on the measured PV rather than in the loop, in the order they act."""
@@ -730,32 +736,22 @@ def _second_effect(
     return cross_validated[second.effect], orders[second.effect], confidence, runner_up
 
 
-def _dynamics_verdict(
+def _joint_dynamics(
     halves: tuple[ReplayData, ReplayData],
     base: LoopModel,
     fitted: dict[str, list[Candidate]],
-    residual: Callable[[_CrossValidated], FloatArray],
-    residuals: dict[str, FloatArray],
-    min_gain: float,
     period_s: float | None,
-) -> tuple[str, float, str]:
-    """Dead time or time constant, from a joint fit of the two: the effect the data need.
+) -> list[Candidate]:
+    """Dead time and time constant fitted together on each half: the dead time over the
+    whole samples between the base's and the single fit's (two either side), the time
+    constant fitted at each.
 
     A longer dead time and an added lag both delay the response to an OP
-    move, but differently: a dead time shifts the whole response (a phase
-    lag growing with frequency, the gain unchanged), a lag rounds its start
-    (phase lag and attenuation).  Either single fit imitates the other in
-    part, most of all on an integrating process, where a lag ``tau`` delays
-    the ramp's asymptote by ``tau``.  The joint model (dead time over the
-    whole samples between the base's and the single fit's, two either side,
-    with the time constant fitted at each) is scored held out like every
-    effect; the dead time is needed when the joint model beats the
-    time-constant fit alone, the time constant when it beats the dead-time
-    fit alone (by ``min_gain``, :func:`_better`), as in the nested-model
-    comparison of Ljung (1999, sec. 16.4).
-
-    Returns the effect, its confidence (needed, and the other one not) and the
-    other effect.
+    move, but differently: a dead time shifts the whole response (a phase lag
+    growing with frequency, the gain unchanged), a lag rounds its start (phase
+    lag and attenuation).  Either single fit imitates the other in part, most
+    of all on an integrating process, where a lag ``tau`` delays the ramp's
+    asymptote by ``tau``; the joint fit sees the response's shape.
     """
     joint: list[Candidate] = []
     for h, delay_fit in zip(halves, fitted["deadtime_mismatch"], strict=True):
@@ -770,12 +766,52 @@ def _dynamics_verdict(
                 best = fit
         assert best is not None
         joint.append(best)
-    both = residual(_CrossValidated(halves, tuple(c.prediction for c in joint)))
-    delay = _better(residuals["time_constant_mismatch"], both, min_gain)
-    lag = _better(residuals["deadtime_mismatch"], both, min_gain)
-    if delay >= lag:
-        return "deadtime_mismatch", delay * (1.0 - lag), "time_constant_mismatch"
-    return "time_constant_mismatch", lag * (1.0 - delay), "deadtime_mismatch"
+    return joint
+
+
+def _joint_both_orders(
+    first: str,
+    second: str,
+    halves: tuple[ReplayData, ReplayData],
+    fitted: dict[str, list[Candidate]],
+    period_s: float | None,
+) -> list[Candidate]:
+    """Two effects fitted together on each half: each on top of the other's fit, the
+    order with the smaller error on the fitting blocks kept (two starts of alternating
+    least squares)."""
+    joint: list[Candidate] = []
+    for i, h in enumerate(halves):
+        fits = [
+            fit_effect(outer, h, fitted[inner][i].model, fitted[inner][i].prediction,
+                       period_s=period_s)
+            for inner, outer in ((first, second), (second, first))
+        ]
+        joint.append(min(fits, key=lambda c: c.prediction.sse_fit))
+    return joint
+
+
+def _nested_verdict(
+    first: str,
+    second: str,
+    both: FloatArray,
+    residuals: dict[str, FloatArray],
+    min_gain: float,
+) -> tuple[str, float, str]:
+    """Which of two effects that imitate each other the data need, from the held-out
+    residuals ``both`` of the model with the two.
+
+    An effect is needed when the joint model beats the other effect alone by
+    ``min_gain`` (:func:`_better`): the nested-model comparison of Ljung (1999,
+    sec. 16.4), prefer the smaller model among those that validate equally well.
+    Returns the effect needed more, its confidence (it is needed and the other
+    is not) and the other effect.  When both are needed neither is confident,
+    and the second cause of the check adds the other.
+    """
+    need_first = _better(residuals[second], both, min_gain)
+    need_second = _better(residuals[first], both, min_gain)
+    if need_first >= need_second:
+        return first, need_first * (1.0 - need_second), second
+    return second, need_second * (1.0 - need_first), first
 
 
 def _undecided_sentence(cause: Cause) -> str:
@@ -1097,9 +1133,19 @@ def check_model(
     chosen, confidence, runner_up = _select(
         scored, residuals, residual(base_cv), min_gain, simpler_tolerance, evident
     )
-    if chosen is not None and {chosen.effect, runner_up} == set(DYNAMICS):
-        effect, confidence, runner_up = _dynamics_verdict(
-            halves, base, fitted, residual, residuals, min_gain, period
+    # Effects that imitate each other in part: the joint fit says which the data need.
+    if chosen is not None and runner_up is not None and (
+        {chosen.effect, runner_up} == set(DYNAMICS)
+        or {chosen.effect, runner_up} <= set(POSITIONAL)
+    ):
+        joint = (
+            _joint_dynamics(halves, base, fitted, period)
+            if chosen.effect in DYNAMICS
+            else _joint_both_orders(chosen.effect, runner_up, halves, fitted, period)
+        )
+        both = residual(_CrossValidated(halves, tuple(c.prediction for c in joint)))
+        effect, confidence, runner_up = _nested_verdict(
+            chosen.effect, runner_up, both, residuals, min_gain
         )
         chosen = next(c for c in scored if c.effect == effect)
     whole = halves[0].holding_out("none")

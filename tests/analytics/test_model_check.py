@@ -24,6 +24,7 @@ from analytics.model_check.cases import CATALOGUE, _levels, hidden_effect_case
 from analytics.model_check.cases_independent import _TrueLoop, independent_case
 from analytics.model_check.check import (
     ScoredCandidate,
+    _nested_verdict,
     _select,
     noise_std,
     relevant_lattice,
@@ -671,6 +672,40 @@ class TestDeadTimeAgainstTimeConstant:
                                                       "time_constant_mismatch"}
         # the first cause alone is not confidently one or the other
         assert result.causes[0].confidence < 0.5
+
+
+class TestEffectsThatImitateEachOther:
+    """The joint fit of two effects says which the data need (nested models)."""
+
+    rng = np.random.default_rng(6)
+    noise = rng.normal(0.0, 1.0, 4800)
+    slow = np.sin(np.arange(4800) / 40.0)
+
+    def test_the_effect_whose_joint_model_is_no_better_is_named(self) -> None:
+        residuals = {"valve_characteristic": self.noise + 0.5 * self.slow,
+                     "position_dependent_stiction": self.noise}
+        effect, confidence, other = _nested_verdict(
+            "valve_characteristic", "position_dependent_stiction", self.noise, residuals, 0.05
+        )
+        assert (effect, other) == ("position_dependent_stiction", "valve_characteristic")
+        assert confidence > 0.95
+
+    def test_when_both_are_needed_neither_is_confident(self) -> None:
+        residuals = {"deadtime_mismatch": self.noise + 0.5 * self.slow,
+                     "time_constant_mismatch": self.noise + 0.5 * np.roll(self.slow, 100)}
+        _, confidence, _ = _nested_verdict(
+            "deadtime_mismatch", "time_constant_mismatch", self.noise, residuals, 0.05
+        )
+        assert confidence < 0.05
+
+    @pytest.mark.slow
+    @pytest.mark.timeout(120)
+    def test_a_characteristic_against_stiction_in_a_band(self) -> None:
+        case = hidden_effect_case("valve_characteristic", 3)
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "valve_characteristic"
+        assert result.cause.runner_up == "position_dependent_stiction"
+        assert result.cause.confidence > 0.9
 
 
 class TestBaseModelThatExplainsNothing:
