@@ -22,9 +22,25 @@ and scored in the same way.  An effect explains the mismatch when it removes
 at least ``min_gain`` of the base model's held-out error; the cause is the
 simplest explaining effect whose held-out error is within
 ``simpler_tolerance`` of the best one, and ``none`` when no effect explains
-anything.  The cause is then refitted on all scored data.  The findings
-state, in sentences, how far the model is off, where (valve position,
-direction of travel, time) and why.
+anything.  Evidence beyond the scores (issue 21):
+
+* a PV on a lattice coarse enough that its values repeat is quantised
+  whatever a fit says (:func:`relevant_lattice`): the quantiser then needs
+  only to improve the held-out error at all;
+* effects that imitate each other in part (dead time and lag; gain,
+  characteristic and stiction in a band) are fitted together when they are
+  the two best, and the one the data need is named (:func:`_nested_verdict`);
+* the confidence is the probability, from the held-out errors, that the
+  cause explains the mismatch and beats the runner-up (:func:`_better`, a
+  Diebold-Mariano test [4]), at most the share of the held-out PV variance
+  the final model explains;
+* a second effect is fitted on top of the first and named by the same rule
+  against the first alone (:func:`_second_effect`).
+
+The causes are then refitted on all scored data.  The findings state, in
+sentences, how far the model is off, where (valve position, direction of
+travel, time) and why, and for an uncertain cause the runner-up and the data
+that would decide.
 
 References
 ----------
@@ -36,6 +52,10 @@ References
    among those that validate equally well.
 .. [3] Thornhill, Huang & Zhang (2003), J. Process Control 13:91-100: the
    oscillation period and amplitude compared here.
+.. [4] Diebold & Mariano (1995), "Comparing predictive accuracy", J. Business
+   & Economic Statistics 13:253-263: the test of equal accuracy of two
+   predictions of the same data, here with batch means of the loss
+   differential for its autocorrelation.
 """
 
 from __future__ import annotations
