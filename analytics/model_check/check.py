@@ -823,15 +823,17 @@ def _nested_verdict(
     An effect is needed when the joint model beats the other effect alone by
     ``min_gain`` (:func:`_better`): the nested-model comparison of Ljung (1999,
     sec. 16.4), prefer the smaller model among those that validate equally well.
-    Returns the effect needed more, its confidence (it is needed and the other
-    is not) and the other effect.  When both are needed neither is confident,
-    and the second cause of the check adds the other.
+    The confidence of an effect is the probability that it is needed and the
+    other is not.  ``first`` (the better one alone) is kept unless ``second``
+    is more likely than not the one needed; when both are needed neither is
+    confident, and the second cause of the check adds the other.  Returns the
+    effect, its confidence and the other effect.
     """
     need_first = _better(residuals[second], both, min_gain)
     need_second = _better(residuals[first], both, min_gain)
-    if need_first >= need_second:
-        return first, need_first * (1.0 - need_second), second
-    return second, need_second * (1.0 - need_first), first
+    if need_second * (1.0 - need_first) > 0.5:
+        return second, need_second * (1.0 - need_first), first
+    return first, need_first * (1.0 - need_second), second
 
 
 def _undecided_sentence(cause: Cause) -> str:
