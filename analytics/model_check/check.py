@@ -852,10 +852,12 @@ def _better(first: FloatArray, second: FloatArray, margin: float = 0.0) -> float
 
     The Diebold-Mariano test of equal predictive accuracy [4]: the loss
     differential ``d_k = (1 - margin) first_k^2 - second_k^2`` is averaged over
-    :data:`BATCHES` batches of consecutive samples (batch means, so that the
-    correlation of neighbouring residuals does not make the spread look
-    smaller than it is) and its mean over its standard error is referred to
-    Student's t with ``BATCHES - 1`` degrees of freedom.
+    batches of consecutive samples (batch means, so that the correlation of
+    neighbouring residuals does not make the spread look smaller than it is:
+    at most :data:`BATCHES`, each at least five correlation times long
+    (:func:`_correlation_time`) as far as four batches allow) and its mean over
+    its standard error is referred to Student's t with one degree of freedom
+    fewer than batches.
 
     Examples
     --------
@@ -867,12 +869,41 @@ def _better(first: FloatArray, second: FloatArray, margin: float = 0.0) -> float
     True
     """
     d = (1.0 - margin) * first**2 - second**2
-    means = np.array([chunk.mean() for chunk in np.array_split(d, BATCHES) if chunk.size])
+    batches = max(min(BATCHES, d.size // math.ceil(5.0 * _correlation_time(d))), 4)
+    means = np.array([chunk.mean() for chunk in np.array_split(d, batches) if chunk.size])
     mean = float(means.mean())
     spread = float(means.std(ddof=1)) / math.sqrt(means.size) if means.size > 1 else 0.0
     if spread == 0.0:
         return 0.5 if mean == 0.0 else float(mean > 0.0)
     return float(student_t.cdf(mean / spread, means.size - 1))
+
+
+def _correlation_time(d: FloatArray) -> float:
+    """Integrated correlation time of ``d`` in samples, ``1 + 2 sum rho_k``, summed over
+    the lags before the autocorrelation ``rho_k`` first falls to zero (at least 1).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> white = rng.normal(size=20000)
+    >>> round(_correlation_time(white))
+    1
+    >>> ar = np.zeros(20000)
+    >>> for k in range(1, ar.size):
+    ...     ar[k] = 0.8 * ar[k - 1] + white[k]
+    >>> 7 < _correlation_time(ar) < 11  # (1 + 0.8) / (1 - 0.8) = 9
+    True
+    """
+    x = d - d.mean()
+    n = x.size
+    spectrum = np.abs(np.fft.rfft(x, 2 * n)) ** 2
+    acf = np.fft.irfft(spectrum)[: n // 4]
+    if not acf[0] > 0:
+        return 1.0
+    rho = acf / acf[0]
+    stop = np.flatnonzero(rho <= 0.0)
+    last = int(stop[0]) if stop.size else rho.size
+    return max(1.0 + 2.0 * float(np.sum(rho[1:last])), 1.0)
 
 
 def _select(
