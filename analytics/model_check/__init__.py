@@ -11,7 +11,8 @@ and the compiled simulation), :mod:`~analytics.model_check.effects` (the
 catalogue and the fit of each effect), :mod:`~analytics.model_check.identify`
 (a base model from data), :mod:`~analytics.model_check.check` (the check and
 its result), :mod:`~analytics.model_check.cases` (random loops with a hidden
-effect, for tests and benchmarks).
+effect, for tests and benchmarks) and :mod:`~analytics.model_check.cases_independent`
+(a second generator written apart from the first, the held-out set of issue 21).
 """
 
 from analytics.model_check.check import (

@@ -73,26 +73,37 @@ class HiddenEffectCase:
         The hidden effect (a name of :data:`CATALOGUE`).
     parameters : dict
         Its size, in the terms of the extended model.
-    base_model, true_model : LoopModel
-        The model a check is given, and the one that made the data.
+    base_model : LoopModel
+        The model a check is given.
+    true_model : LoopModel or None
+        The one that made the data (None when it lies outside the
+        :class:`LoopModel` family, as in :mod:`~analytics.model_check.cases_independent`).
     ts : float
         Sampling interval, s.
     sp, op, mv, pv : ndarray
         Measured signals (MV: the true valve position).
     noise_std : float
         Standard deviation of the measurement noise.
+    extra : tuple of str
+        Effects hidden together with ``effect`` (two-effect cases).
     """
 
     effect: str
     parameters: dict[str, float]
     base_model: LoopModel
-    true_model: LoopModel
+    true_model: LoopModel | None
     ts: float
     sp: FloatArray
     op: FloatArray
     mv: FloatArray
     pv: FloatArray
     noise_std: float
+    extra: tuple[str, ...] = ()
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        """Every hidden effect (``effect`` first)."""
+        return (self.effect, *self.extra)
 
 
 def _levels(rng: np.random.Generator, count: int, spread: float, gap: float) -> FloatArray:
@@ -198,24 +209,35 @@ def _hide(
     raise ValueError(f"unknown effect {effect!r}; expected one of {CATALOGUE}")
 
 
-def hidden_effect_case(effect: str, seed: int, samples: int = 6000) -> HiddenEffectCase:
-    """A random loop hiding ``effect``, reproducible from ``seed``.
+def hidden_effect_case(
+    effect: str | tuple[str, ...], seed: int, samples: int = 6000
+) -> HiddenEffectCase:
+    """A random loop hiding ``effect`` (or a pair of effects, hidden together),
+    reproducible from ``seed``.
 
     Examples
     --------
     >>> case = hidden_effect_case("gain_mismatch", seed=1, samples=1000)
     >>> case.op.shape, case.base_model.process.K != case.true_model.process.K
     ((1000,), True)
+    >>> hidden_effect_case(("gain_mismatch", "measurement_quantization"), 1, 1000).effects
+    ('gain_mismatch', 'measurement_quantization')
     """
-    if effect not in CATALOGUE:
-        raise ValueError(f"unknown effect {effect!r}; expected one of {CATALOGUE}")
-    rng = np.random.default_rng([CATALOGUE.index(effect), seed])
-    integrating = effect not in ("valve_characteristic", "position_dependent_stiction") and (
-        rng.random() < 0.3
-    )
+    hidden = (effect,) if isinstance(effect, str) else tuple(effect)
+    unknown = [e for e in hidden if e not in CATALOGUE]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; expected some of {CATALOGUE}")
+    rng = np.random.default_rng([*(CATALOGUE.index(e) for e in hidden), seed])
+    integrating = not any(
+        e in ("valve_characteristic", "position_dependent_stiction") for e in hidden
+    ) and (rng.random() < 0.3)
     base, offsets = _base_loop(rng, integrating)
     noise_std = float(rng.uniform(0.02, 0.12))
-    true, parameters, noise_std = _hide(effect, rng, base, offsets, noise_std)
+    true: LoopModel = base
+    parameters: dict[str, float] = {}
+    for name in hidden:
+        true, found, noise_std = _hide(name, rng, true, offsets, noise_std)
+        parameters |= found
     gain = base.process.K
     levels = PV_BIAS + (rng.uniform(-4.0, 4.0, offsets.size) if integrating else gain * offsets)
     sp = np.full(samples, PV_BIAS)
@@ -228,5 +250,6 @@ def hidden_effect_case(effect: str, seed: int, samples: int = 6000) -> HiddenEff
     noise = rng.normal(0.0, noise_std, samples)
     sim = true.simulate(sp, noise=noise, pv_bias=PV_BIAS)
     return HiddenEffectCase(
-        effect, parameters, base, true, base.dt, sp, sim.op, sim.mv, sim.pv, noise_std
+        hidden[0], parameters, base, true, base.dt, sp, sim.op, sim.mv, sim.pv, noise_std,
+        extra=hidden[1:],
     )

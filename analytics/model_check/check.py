@@ -22,9 +22,25 @@ and scored in the same way.  An effect explains the mismatch when it removes
 at least ``min_gain`` of the base model's held-out error; the cause is the
 simplest explaining effect whose held-out error is within
 ``simpler_tolerance`` of the best one, and ``none`` when no effect explains
-anything.  The cause is then refitted on all scored data.  The findings
-state, in sentences, how far the model is off, where (valve position,
-direction of travel, time) and why.
+anything.  Evidence beyond the scores (issue 21):
+
+* a PV on a lattice coarse enough that its values repeat is quantised
+  whatever a fit says (:func:`relevant_lattice`): the quantiser then needs
+  only to improve the held-out error at all;
+* effects that imitate each other in part (dead time and lag; gain,
+  characteristic and stiction in a band) are fitted together when they are
+  the two best, and the one the data need is named (:func:`_nested_verdict`);
+* the confidence is the probability, from the held-out errors, that the
+  cause explains the mismatch and beats the runner-up (:func:`_better`, a
+  Diebold-Mariano test [4]), at most the share of the held-out PV variance
+  the final model explains;
+* a second effect is fitted on top of the first and named by the same rule
+  against the first alone (:func:`_second_effect`).
+
+The causes are then refitted on all scored data.  The findings state, in
+sentences, how far the model is off, where (valve position, direction of
+travel, time) and why, and for an uncertain cause the runner-up and the data
+that would decide.
 
 References
 ----------
@@ -36,16 +52,22 @@ References
    among those that validate equally well.
 .. [3] Thornhill, Huang & Zhang (2003), J. Process Control 13:91-100: the
    oscillation period and amplitude compared here.
+.. [4] Diebold & Mariano (1995), "Comparing predictive accuracy", J. Business
+   & Economic Statistics 13:253-263: the test of equal accuracy of two
+   predictions of the same data, here with batch means of the loss
+   differential for its autocorrelation.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.stats import t as student_t
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.model_check.effects import (
@@ -55,11 +77,11 @@ from analytics.model_check.effects import (
     ReplayData,
     describe_parameters,
     fit_effect,
+    pv_grid,
 )
 from analytics.model_check.identify import identify_controller, identify_model
-from analytics.model_check.model import LoopModel, friction_of
+from analytics.model_check.model import LoopModel, Quantiser, friction_of
 from analytics.oscillation import bandpass, detect_loop_oscillation
-from analytics.stiction.evidence import margin_confidence
 
 __all__ = [
     "MIN_SAMPLES",
@@ -71,6 +93,7 @@ __all__ = [
     "ScoredCandidate",
     "check_model",
     "noise_std",
+    "relevant_lattice",
     "valve_synchronisation",
 ]
 
@@ -89,6 +112,47 @@ REPLAY_LIMIT = 1e6
 
 TIME_SCALE_LIMIT = 1e6
 """Largest time constant or dead time of a model checked, in record lengths."""
+
+BATCHES = 24
+"""Batches of consecutive held-out samples in the comparison of two models' errors
+(:func:`_better`)."""
+
+EXPLAINED_FOR_CONFIDENCE = 0.5
+"""Share of the held-out PV variance below which the findings say that no cause can be
+named with confidence and what data would decide (the confidence of every verdict is at
+most the share the final model explains)."""
+
+CONFIDENT = 0.9
+"""Confidence below which the findings name the runner-up and the data that would decide."""
+
+DECIDING = {
+    "gain_mismatch": "OP steps of known size (the PV's whole change per % of OP)",
+    "deadtime_mismatch": "sharp OP steps held for several dead times (when PV starts to move)",
+    "time_constant_mismatch": "OP steps held until PV settles (the shape of its rise)",
+    "valve_characteristic": "equal OP steps at several valve positions (the gain at each)",
+    "measurement_quantization": "PV recorded at a finer resolution",
+    "external_disturbance": "a longer record, or the load measured",
+    "asymmetric_stiction": "slow OP ramps up and down over the same range (the band each way)",
+    "position_dependent_stiction": "small OP reversals at several valve positions (the band at "
+    "each)",
+}
+"""What data show each effect apart from the others (said when a cause is uncertain)."""
+
+DYNAMICS = ("deadtime_mismatch", "time_constant_mismatch")
+"""Two effects that imitate each other in part (:func:`_joint_dynamics`)."""
+
+POSITIONAL = ("gain_mismatch", "valve_characteristic", "position_dependent_stiction")
+"""Effects that change how far PV moves per OP move, any two of which imitate each other
+in part: a gain everywhere, a gain changing with valve position (the characteristic), a
+stick band changing with position (stiction in a band of travel), told apart by fitting
+two together (:func:`_joint_both_orders`)."""
+
+OUTPUT_EFFECTS = ("external_disturbance", "measurement_quantization")
+"""Effects on the measured PV rather than in the loop, in the order they act."""
+
+LATTICE_REPEATS = 0.25
+"""Share of consecutive PV samples that repeat exactly, on a PV on a lattice, from which
+the lattice is taken to matter (quantisation is then evident from the data)."""
 
 
 @dataclass(frozen=True)
@@ -179,21 +243,47 @@ class ScoredCandidate:
 
 @dataclass(frozen=True)
 class Cause:
-    """The effect named as the cause of the mismatch, its parameters fitted on all
-    scored data.
+    """An effect named as a cause of the mismatch, its parameters fitted on all scored data.
 
-    ``confidence`` grows with the held-out improvement beyond ``min_gain``
-    and with the margin over the runner-up effect (for ``none``: with the
-    margin of the best effect below ``min_gain``).
+    ``confidence`` is the probability, from the held-out errors, that the
+    effect removes at least ``min_gain`` of the error left before it was
+    added, times the probability that it predicts the held-out data better
+    than ``runner_up`` (:func:`_better`).  For ``none`` it is the probability
+    that the effect closest to explaining the data (the runner-up) does not
+    remove ``min_gain``.  Neither exceeds the share of the held-out PV
+    variance that the final model explains.
+
+    Attributes
+    ----------
+    effect : str
+        A name of :data:`EFFECTS`, or ``"none"``.
+    confidence : float
+    parameters : dict
+    runner_up : str or None
+        The effect that predicted the held-out data next best (for ``none``:
+        the one closest to explaining it); None if there is none.
+    nmse_before, nmse_after : float
+        Held-out NMSE of the model before and after this effect was added
+        (the second of two causes is added to the model with the first).
     """
 
     effect: str
     confidence: float
     parameters: dict[str, float]
+    runner_up: str | None = None
+    nmse_before: float = math.nan
+    nmse_after: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form."""
-        return {"effect": self.effect, "confidence": self.confidence, "parameters": self.parameters}
+        return {
+            "effect": self.effect,
+            "confidence": self.confidence,
+            "parameters": self.parameters,
+            "runner_up": self.runner_up,
+            "nmse_before": self.nmse_before,
+            "nmse_after": self.nmse_after,
+        }
 
 
 @dataclass(frozen=True)
@@ -264,6 +354,11 @@ class ModelCheck:
     findings : tuple of str
         What the simulation gets wrong, where and how much, and why.
     cause : Cause
+        The (first) cause.
+    causes : tuple of Cause
+        Every cause named, in the order they were added to the model: the
+        cause, and a second effect when one explains part of what the first
+        leaves (at most two).
     candidates : tuple of ScoredCandidate
         Every effect tried, in :data:`EFFECTS` order.
     gain : Gain
@@ -282,13 +377,14 @@ class ModelCheck:
     cycle_base: CycleComparison
     findings: tuple[str, ...]
     cause: Cause
+    causes: tuple[Cause, ...]
     candidates: tuple[ScoredCandidate, ...]
     gain: Gain
     overlay: Overlay = field(repr=False)
     notes: tuple[str, ...] = ()
 
     def to_dict(self, *, overlay: bool = False) -> dict[str, Any]:
-        """JSON form: ``baseline``, ``findings``, ``cause``, ``candidates``,
+        """JSON form: ``baseline``, ``findings``, ``cause``, ``causes``, ``candidates``,
         ``extended_model``, ``gain`` (and ``overlay`` when asked)."""
         out: dict[str, Any] = {
             "model_source": self.model_source,
@@ -302,6 +398,7 @@ class ModelCheck:
             },
             "findings": list(self.findings),
             "cause": self.cause.to_dict(),
+            "causes": [c.to_dict() for c in self.causes],
             "candidates": [c.to_dict() for c in self.candidates],
             "extended_model": self.extended_model.to_dict(),
             "gain": self.gain.to_dict(),
@@ -510,30 +607,345 @@ def _controller_nmse(
     return float(np.sum((op - op_model) ** 2) / total) if total > 0 else math.nan
 
 
+def relevant_lattice(pv: FloatArray) -> Quantiser | None:
+    """The lattice the PV lies on if it is coarse enough to matter: quantisation seen in
+    the data itself, whatever a fit says (None otherwise).
+
+    The values lie on a lattice (:func:`analytics.model_check.effects.pv_grid`)
+    and at least :data:`LATTICE_REPEATS` of consecutive samples repeat
+    exactly.  A continuous signal never repeats; a signal rounded to a step
+    ``q`` repeats about as often as its increments stay inside one cell, so
+    that a fine historian rounding (``q`` well below the noise) does not
+    count, while a step comparable with the noise, whose rounding error
+    (variance ``q^2 / 12``) is then a visible part of the mismatch, does.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> smooth = 50 + np.sin(np.arange(3000) / 40.0) + rng.normal(0, 0.05, 3000)
+    >>> relevant_lattice(smooth) is None, relevant_lattice(np.round(smooth, 3)) is None
+    (True, True)
+    >>> round(relevant_lattice(np.round(smooth / 0.2) * 0.2).resolution, 3)
+    0.2
+    """
+    if pv.size < 2 or np.mean(np.diff(pv) == 0.0) < LATTICE_REPEATS:
+        return None
+    return pv_grid(pv)
+
+
+def _scored(
+    effect: str, fits: list[Candidate], cv: _CrossValidated, reference_sse: float
+) -> ScoredCandidate:
+    """The score of an effect fitted on each half (``improvement`` against the held-out
+    error ``reference_sse`` of the models the fits started from)."""
+    return ScoredCandidate(
+        effect=effect,
+        parameters=fits[0].parameters,
+        nmse_fit=cv.nmse_fit,
+        nmse_test=cv.nmse_test,
+        improvement=1.0 - cv.sse_test / reference_sse if reference_sse > 0 else 0.0,
+        note=fits[0].note or fits[1].note,
+        model=fits[0].model,
+    )
+
+
+def _try_effects(
+    effects: tuple[str, ...],
+    halves: tuple[ReplayData, ReplayData],
+    models: tuple[LoopModel, ...],
+    predictions: tuple[Prediction, ...],
+    reference_sse: float,
+    period_s: float | None,
+) -> tuple[list[ScoredCandidate], dict[str, _CrossValidated], dict[str, list[Candidate]]]:
+    """Fit every effect on each half, starting from that half's model and prediction, and
+    score it on the blocks the half held out.
+
+    Returns the scored candidates, their cross-validated predictions and the
+    fits of each half.
+    """
+    scored: list[ScoredCandidate] = []
+    cross_validated: dict[str, _CrossValidated] = {}
+    fitted: dict[str, list[Candidate]] = {}
+    for effect in effects:
+        fits = fitted[effect] = [
+            fit_effect(effect, h, m, p, period_s=period_s)
+            for h, m, p in zip(halves, models, predictions, strict=True)
+        ]
+        cv = cross_validated[effect] = _CrossValidated(halves, tuple(c.prediction for c in fits))
+        scored.append(_scored(effect, fits, cv, reference_sse))
+    return scored, cross_validated, fitted
+
+
+def _nesting(first: str, second: str) -> tuple[str, str]:
+    """The order in which two effects are fitted together: the effects on the measured
+    PV (:data:`OUTPUT_EFFECTS`) last, as they act last (and a friction search on a model
+    that has them is slow)."""
+    def rank(effect: str) -> int:
+        return OUTPUT_EFFECTS.index(effect) + 1 if effect in OUTPUT_EFFECTS else 0
+
+    return (first, second) if rank(first) <= rank(second) else (second, first)
+
+
+def _fit_pair(
+    inner: Candidate,
+    outer: str,
+    data: ReplayData,
+    base: LoopModel,
+    period_s: float | None,
+) -> tuple[Candidate, Candidate]:
+    """``outer`` fitted on top of the fitted ``inner`` effect: the inner fit as finally
+    used and the combined candidate (effect and parameters of ``outer``, the model with
+    both).
+
+    A periodic load is fitted on top of the inner effect, then the inner effect is
+    refitted with that load present (one step of alternating least squares: a friction
+    or process fit made with the load unmodelled is biased by it), and the better fit
+    of the two is kept.  The inner effect's fits are compared on the fitting blocks
+    only.
+    """
+    pair = fit_effect(outer, data, inner.model, inner.prediction, period_s=period_s)
+    if outer != "external_disturbance" or pair.model.load is None or inner.effect == outer:
+        return inner, pair
+    loaded = replace(base, load=pair.model.load)
+    again = fit_effect(inner.effect, data, loaded, data.predict(loaded), period_s=period_s)
+    if again.note or again.prediction.sse_fit >= pair.prediction.sse_fit:
+        return inner, pair
+    return again, replace(again, effect=outer, parameters=pair.parameters)
+
+
+def _second_effect(
+    chosen: str,
+    effects: tuple[str, ...],
+    halves: tuple[ReplayData, ReplayData],
+    base: LoopModel,
+    fitted: dict[str, list[Candidate]],
+    first_cv: _CrossValidated,
+    residuals: dict[str, FloatArray],
+    residual: Callable[[_CrossValidated], FloatArray],
+    min_gain: float,
+    simpler_tolerance: float,
+    evident: frozenset[str],
+    period_s: float | None,
+) -> tuple[_CrossValidated, tuple[str, str], float, str | None] | None:
+    """A second effect besides ``chosen``: each other effect and ``chosen`` fitted together
+    (in the order of :func:`_nesting` by :func:`_fit_pair`, from the inner one's fits on
+    each half) and selected as :func:`_select` selects the first, against ``chosen`` alone.
+
+    Returns the pair's cross-validated prediction, its (inner, outer) order, the
+    confidence and the runner-up; None when no second effect explains enough.
+    """
+    scored: list[ScoredCandidate] = []
+    cross_validated: dict[str, _CrossValidated] = {}
+    orders: dict[str, tuple[str, str]] = {}
+    for other in effects:
+        if other == chosen or any(c.note for c in fitted[other]):
+            continue
+        inner, outer = orders[other] = _nesting(chosen, other)
+        fits = [
+            _fit_pair(start, outer, h, base, period_s)[1]
+            for h, start in zip(halves, fitted[inner], strict=True)
+        ]
+        cv = cross_validated[other] = _CrossValidated(halves, tuple(c.prediction for c in fits))
+        scored.append(_scored(other, fits, cv, first_cv.sse_test))
+    second, confidence, runner_up = _select(
+        scored, {e: residual(cv) for e, cv in cross_validated.items()}, residuals[chosen],
+        min_gain, simpler_tolerance, evident,
+    )
+    if second is None:
+        return None
+    return cross_validated[second.effect], orders[second.effect], confidence, runner_up
+
+
+def _joint_dynamics(
+    halves: tuple[ReplayData, ReplayData],
+    base: LoopModel,
+    fitted: dict[str, list[Candidate]],
+    period_s: float | None,
+) -> list[Candidate]:
+    """Dead time and time constant fitted together on each half: the dead time over the
+    whole samples between the base's and the single fit's (two either side), the time
+    constant fitted at each.
+
+    A longer dead time and an added lag both delay the response to an OP
+    move, but differently: a dead time shifts the whole response (a phase lag
+    growing with frequency, the gain unchanged), a lag rounds its start (phase
+    lag and attenuation).  Either single fit imitates the other in part, most
+    of all on an integrating process, where a lag ``tau`` delays the ramp's
+    asymptote by ``tau``; the joint fit sees the response's shape.
+    """
+    joint: list[Candidate] = []
+    for h, delay_fit in zip(halves, fitted["deadtime_mismatch"], strict=True):
+        d0 = base.process.delay_samples(h.ts)
+        d1 = delay_fit.model.process.delay_samples(h.ts)
+        best: Candidate | None = None
+        for d in range(max(0, min(d0, d1) - 2), max(d0, d1) + 3):
+            delayed = replace(base, process=replace(base.process, theta=d * h.ts))
+            fit = fit_effect("time_constant_mismatch", h, delayed, h.predict(delayed),
+                             period_s=period_s)
+            if best is None or fit.prediction.sse_fit < best.prediction.sse_fit:
+                best = fit
+        assert best is not None
+        joint.append(best)
+    return joint
+
+
+def _joint_both_orders(
+    first: str,
+    second: str,
+    halves: tuple[ReplayData, ReplayData],
+    fitted: dict[str, list[Candidate]],
+    period_s: float | None,
+) -> list[Candidate]:
+    """Two effects fitted together on each half: each on top of the other's fit, the
+    order with the smaller error on the fitting blocks kept (two starts of alternating
+    least squares)."""
+    joint: list[Candidate] = []
+    for i, h in enumerate(halves):
+        fits = [
+            fit_effect(outer, h, fitted[inner][i].model, fitted[inner][i].prediction,
+                       period_s=period_s)
+            for inner, outer in ((first, second), (second, first))
+        ]
+        joint.append(min(fits, key=lambda c: c.prediction.sse_fit))
+    return joint
+
+
+def _nested_verdict(
+    first: str,
+    second: str,
+    both: FloatArray,
+    residuals: dict[str, FloatArray],
+    min_gain: float,
+) -> tuple[str, float, str]:
+    """Which of two effects that imitate each other the data need, from the held-out
+    residuals ``both`` of the model with the two.
+
+    An effect is needed when the joint model beats the other effect alone by
+    ``min_gain`` (:func:`_better`): the nested-model comparison of Ljung (1999,
+    sec. 16.4), prefer the smaller model among those that validate equally well.
+    The confidence of an effect is the probability that it is needed and the
+    other is not.  ``first`` (the better one alone) is kept unless ``second``
+    is more likely than not the one needed; when both are needed neither is
+    confident, and the second cause of the check adds the other.  Returns the
+    effect, its confidence and the other effect.
+    """
+    need_first = _better(residuals[second], both, min_gain)
+    need_second = _better(residuals[first], both, min_gain)
+    if need_second * (1.0 - need_first) > 0.5:
+        return second, need_second * (1.0 - need_first), first
+    return first, need_first * (1.0 - need_second), second
+
+
+def _undecided_sentence(cause: Cause) -> str:
+    """The runner-up of an uncertain cause, and the data that would tell the two apart."""
+    assert cause.runner_up is not None
+    return (
+        f"{cause.runner_up} explains the held-out data almost as well as {cause.effect} "
+        f"(confidence {cause.confidence:.2f}); to decide, {DECIDING[cause.effect]} would show "
+        f"{cause.effect}, {DECIDING[cause.runner_up]} {cause.runner_up}."
+    )
+
+
+def _better(first: FloatArray, second: FloatArray, margin: float = 0.0) -> float:
+    """Probability that the held-out residuals ``second`` have a smaller mean square than
+    ``1 - margin`` times those of ``first`` (residuals of the same samples, in time order).
+
+    The Diebold-Mariano test of equal predictive accuracy [4]: the loss
+    differential ``d_k = (1 - margin) first_k^2 - second_k^2`` is averaged over
+    batches of consecutive samples (batch means, so that the correlation of
+    neighbouring residuals does not make the spread look smaller than it is:
+    at most :data:`BATCHES`, each at least five correlation times long
+    (:func:`_correlation_time`) as far as four batches allow) and its mean over
+    its standard error is referred to Student's t with one degree of freedom
+    fewer than batches.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> noise = rng.normal(0.0, 1.0, 2400)
+    >>> round(_better(noise + 1.0, noise), 3), round(_better(noise, noise + 1.0), 3)
+    (1.0, 0.0)
+    >>> 0.05 < _better(noise, rng.normal(0.0, 1.0, 2400)) < 0.95  # equally good
+    True
+    """
+    d = (1.0 - margin) * first**2 - second**2
+    batches = max(min(BATCHES, d.size // math.ceil(5.0 * _correlation_time(d))), 4)
+    means = np.array([chunk.mean() for chunk in np.array_split(d, batches) if chunk.size])
+    mean = float(means.mean())
+    spread = float(means.std(ddof=1)) / math.sqrt(means.size) if means.size > 1 else 0.0
+    if spread == 0.0:
+        return 0.5 if mean == 0.0 else float(mean > 0.0)
+    return float(student_t.cdf(mean / spread, means.size - 1))
+
+
+def _correlation_time(d: FloatArray) -> float:
+    """Integrated correlation time of ``d`` in samples, ``1 + 2 sum rho_k``, summed over
+    the lags before the autocorrelation ``rho_k`` first falls to zero (at least 1).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> white = rng.normal(size=20000)
+    >>> round(_correlation_time(white))
+    1
+    >>> ar = np.zeros(20000)
+    >>> for k in range(1, ar.size):
+    ...     ar[k] = 0.8 * ar[k - 1] + white[k]
+    >>> 7 < _correlation_time(ar) < 11  # (1 + 0.8) / (1 - 0.8) = 9
+    True
+    """
+    x = d - d.mean()
+    n = x.size
+    spectrum = np.abs(np.fft.rfft(x, 2 * n)) ** 2
+    acf = np.fft.irfft(spectrum)[: n // 4]
+    if not acf[0] > 0:
+        return 1.0
+    rho = acf / acf[0]
+    stop = np.flatnonzero(rho <= 0.0)
+    last = int(stop[0]) if stop.size else rho.size
+    return max(1.0 + 2.0 * float(np.sum(rho[1:last])), 1.0)
+
+
 def _select(
-    scored: list[ScoredCandidate], min_gain: float, simpler_tolerance: float
-) -> tuple[ScoredCandidate | None, float]:
-    """The cause (None: the base model is adequate) and its confidence.
+    scored: list[ScoredCandidate],
+    residuals: dict[str, FloatArray],
+    reference: FloatArray,
+    min_gain: float,
+    simpler_tolerance: float,
+    evident: frozenset[str] = frozenset(),
+) -> tuple[ScoredCandidate | None, float, str | None]:
+    """The cause (None: the reference model is adequate), its confidence and the runner-up.
 
     An effect explains the data when it removes at least ``min_gain`` of the
-    base model's held-out error.  Of those, the simplest whose held-out error
-    is within ``simpler_tolerance`` of the best is the cause.  Under a correct
-    base model an extension fitted to noise changes the held-out error by
-    ``O(1 / N)`` only, so a few per cent is a safe threshold.
+    reference model's held-out error (an effect ``evident`` in the data
+    itself, such as a PV on a lattice, when it removes any).  Of those, the
+    simplest whose held-out error is within ``simpler_tolerance`` of the best
+    is the cause.  Under a correct model an extension fitted to noise changes
+    the held-out error by ``O(1 / N)`` only, so a few per cent is a safe
+    threshold.  ``residuals`` are the held-out residuals of each effect,
+    ``reference`` those of the model the effects extend; the confidence is
+    that of :class:`Cause`, from :func:`_better`.
     """
     valid = [c for c in scored if not c.note]
-    explaining = [c for c in valid if c.improvement >= min_gain]
+    explaining = [
+        c for c in valid
+        if c.improvement >= min_gain or (c.effect in evident and c.improvement > 0.0)
+    ]
     if not explaining:
-        best_gain = max((c.improvement for c in valid), default=0.0)
-        return None, margin_confidence(min(best_gain, min_gain), min_gain, min_gain)
+        closest = max(valid, key=lambda c: c.improvement, default=None)
+        if closest is None:
+            return None, 1.0, None
+        return None, 1.0 - _better(reference, residuals[closest.effect], min_gain), closest.effect
     best_error = min(c.nmse_test for c in explaining)
     chosen = next(c for c in explaining if c.nmse_test <= best_error * (1.0 + simpler_tolerance))
-    runner_up = min((c.nmse_test for c in valid if c.effect != chosen.effect), default=math.inf)
-    margin = 1.0 - chosen.nmse_test / runner_up if runner_up > 0 else 0.0
-    confidence = margin_confidence(chosen.improvement, min_gain, 0.1) * margin_confidence(
-        max(margin, 0.0), 0.0, 0.05
+    runner_up = min(
+        (c for c in valid if c.effect != chosen.effect), key=lambda c: c.nmse_test, default=None
     )
-    return chosen, confidence
+    margin = 0.0 if chosen.effect in evident else min_gain
+    confidence = _better(reference, residuals[chosen.effect], margin)
+    if runner_up is not None:
+        confidence *= _better(residuals[runner_up.effect], residuals[chosen.effect])
+    return chosen, confidence, None if runner_up is None else runner_up.effect
 
 
 def _pct(x: float | None) -> str:
@@ -753,54 +1165,100 @@ def check_model(
     # then the other way round, so that every scored sample is held out once.
     halves = _replay_data(base, op_a, pv_a, ts, warm_up, folds, convention=source == "given")
     base_cv = _CrossValidated(halves, tuple(h.predict(base) for h in halves))
-    scored: list[ScoredCandidate] = []
-    cross_validated: dict[str, _CrossValidated] = {}
-    seeds: dict[str, list[tuple[float, ...]]] = {}
-    for effect in effects:
-        fits = [
-            fit_effect(effect, h, base, p, period_s=oscillation.period_s)
-            for h, p in zip(halves, base_cv.predictions, strict=True)
-        ]
-        seeds[effect] = [c.search_point for c in fits if c.search_point]
-        cv = cross_validated[effect] = _CrossValidated(halves, tuple(c.prediction for c in fits))
-        scored.append(
-            ScoredCandidate(
-                effect=effect,
-                parameters=fits[0].parameters,
-                nmse_fit=cv.nmse_fit,
-                nmse_test=cv.nmse_test,
-                improvement=1.0 - cv.sse_test / base_cv.sse_test if base_cv.sse_test > 0 else 0.0,
-                note=fits[0].note or fits[1].note,
-                model=fits[0].model,
-            )
-        )
-    chosen, confidence = _select(scored, min_gain, simpler_tolerance)
-    whole = halves[0].holding_out("none")
-    base_fit = whole.predict(base)
-    final: Candidate | None = None
-    if chosen is None:
-        extended, extended_cv, extended_fit = base, base_cv, base_fit
-    else:  # the named cause, refitted on all scored data from the two halves' results
-        final = fit_effect(
-            chosen.effect, whole, base, base_fit, period_s=oscillation.period_s,
-            seeds=seeds[chosen.effect],
-        )
-        extended, extended_fit = final.model, final.prediction
-        extended_cv = cross_validated[chosen.effect]
+    scored_samples = halves[0].fit | halves[0].test
+    period = oscillation.period_s
+
+    def residual(cv: _CrossValidated) -> FloatArray:
+        return np.asarray((pv_a - cv.held_out_pv())[scored_samples], dtype=np.float64)
 
     sigma = noise_std(pv_a)
     noise = np.random.default_rng(seed).normal(0.0, sigma, n)
     pv_var = float(np.var(pv_a[warm_up:]))
-    noise_nmse = sigma**2 / pv_var if pv_var > 0 else math.nan
+    lattice = relevant_lattice(pv_a[warm_up:])
+    # a PV on a lattice carries the rounding error, of variance q^2 / 12, on top of the noise
+    rounding = 0.0 if lattice is None else lattice.resolution**2 / 12.0
+    noise_nmse = (sigma**2 + rounding) / pv_var if pv_var > 0 else math.nan
+    evident = frozenset({"measurement_quantization"} if lattice is not None else set())
+    scored, cross_validated, fitted = _try_effects(
+        effects, halves, (base, base), base_cv.predictions, base_cv.sse_test, period
+    )
+    residuals = {effect: residual(cv) for effect, cv in cross_validated.items()}
+    chosen, confidence, runner_up = _select(
+        scored, residuals, residual(base_cv), min_gain, simpler_tolerance, evident
+    )
+    # Effects that imitate each other in part: the joint fit says which the data need.
+    if chosen is not None and runner_up is not None and (
+        {chosen.effect, runner_up} == set(DYNAMICS)
+        or {chosen.effect, runner_up} <= set(POSITIONAL)
+    ):
+        joint = (
+            _joint_dynamics(halves, base, fitted, period)
+            if chosen.effect in DYNAMICS
+            else _joint_both_orders(chosen.effect, runner_up, halves, fitted, period)
+        )
+        both = residual(_CrossValidated(halves, tuple(c.prediction for c in joint)))
+        effect, confidence, runner_up = _nested_verdict(
+            chosen.effect, runner_up, both, residuals, min_gain
+        )
+        chosen = next(c for c in scored if c.effect == effect)
+    whole = halves[0].holding_out("none")
+    base_fit = whole.predict(base)
+    named: list[tuple[Candidate, Cause]] = []
+    extended, extended_cv, extended_fit = base, base_cv, base_fit
+    if chosen is not None:  # the named cause, refitted on all scored data
+        first = fitted[chosen.effect]
+        final = fit_effect(
+            chosen.effect, whole, base, base_fit, period_s=period,
+            seeds=[c.search_point for c in first if c.search_point],
+        )
+        first_cv = cross_validated[chosen.effect]
+        named.append((final, Cause(final.effect, confidence, final.parameters, runner_up,
+                                   base_cv.nmse_test, first_cv.nmse_test)))
+        extended, extended_cv, extended_fit = final.model, first_cv, final.prediction
+        # A second effect: each other effect and the first together, scored the same way
+        # against the first alone; only an effect evident in the data when the first leaves
+        # no more than noise.
+        others = (
+            effects if first_cv.nmse_test > ADEQUATE_NOISE_RATIO * noise_nmse
+            else tuple(e for e in effects if e in evident)
+        )
+        if set(others) - {chosen.effect}:
+            second = _second_effect(
+                chosen.effect, others, halves, base, fitted, first_cv, residuals, residual,
+                min_gain, simpler_tolerance, evident, period,
+            )
+            if second is not None:
+                pair_cv, (inner, outer), confidence2, runner_up2 = second
+                inner_fit = final if inner == chosen.effect else fit_effect(
+                    inner, whole, base, base_fit, period_s=period,
+                    seeds=[c.search_point for c in fitted[inner] if c.search_point],
+                )
+                inner_fit, pair = _fit_pair(inner_fit, outer, whole, base, period)
+                first_cause = named[0][1]
+                if inner == chosen.effect:
+                    named[0] = (inner_fit, replace(first_cause, parameters=inner_fit.parameters))
+                    named.append((pair, Cause(outer, confidence2, pair.parameters, runner_up2,
+                                              first_cv.nmse_test, pair_cv.nmse_test)))
+                else:  # the first cause acts on the measured PV: fitted on top of the second
+                    named[0] = (pair, replace(first_cause, parameters=pair.parameters))
+                    named.append((inner_fit, Cause(inner, confidence2, inner_fit.parameters,
+                                                   runner_up2, first_cv.nmse_test,
+                                                   pair_cv.nmse_test)))
+                extended, extended_cv, extended_fit = pair.model, pair_cv, pair.prediction
+    # Confidence never exceeds the share of the held-out PV variance the (extended) model
+    # explains: an effect fitted on top of a model that predicts little is little evidence.
+    explained = max(1.0 - extended_cv.nmse_test, 0.0)
+    named = [(fit, replace(cause, confidence=min(cause.confidence, explained)))
+             for fit, cause in named]
+    confidence = min(confidence, explained)
 
     def bias(prediction: Prediction) -> float:
         return float(sp_a[0]) if process.kind == "integrating" else prediction.pv_bias
 
-    period = oscillation.period_s
     cycle_base = _cycle(base, sp_a, bias(base_fit), noise, period, pv_a, warm_up)
     cycle_ext = (
         _cycle(extended, sp_a, bias(extended_fit), noise, period, pv_a, warm_up)
-        if final is not None else cycle_base
+        if named else cycle_base
     )
     controller_nmse = _controller_nmse(base, op_a[warm_up:], pv_a[warm_up:], sp_a[warm_up:])
 
@@ -835,12 +1293,11 @@ def check_model(
             f"{controller_nmse:.2f}: the loop may be in cascade or manual, or tuned otherwise; "
             "the closed-loop comparison is then indicative only."
         )
-    if final is None:
-        best = max((c for c in scored if not c.note), key=lambda c: c.improvement, default=None)
-        tried = (
-            f" (closest: {best.effect}, {100 * best.improvement:+.1f} %)"
-            if best is not None else ""
-        )
+    if not named:
+        tried = ""
+        if runner_up is not None:
+            closest = next(c for c in scored if c.effect == runner_up)
+            tried = f" (closest: {runner_up}, {100 * closest.improvement:+.1f} %)"
         verdict = (
             "the base model is adequate for these data"
             if base_cv.nmse_test <= ADEQUATE_NOISE_RATIO * noise_nmse + ADEQUATE_NMSE
@@ -851,9 +1308,13 @@ def check_model(
             f"No effect in the catalogue removes {100 * min_gain:.0f} % or more of the held-out "
             f"error{tried}: {verdict}."
         )
-        cause = Cause("none", confidence, {})
+        causes = [Cause("none", confidence, {}, runner_up, base_cv.nmse_test, base_cv.nmse_test)]
     else:
-        findings.append(_cause_sentence(final, base))
+        causes = [cause for _, cause in named]
+        for fit, cause in named:
+            findings.append(_cause_sentence(fit, base))
+            if cause.runner_up is not None and cause.confidence < CONFIDENT:
+                findings.append(_undecided_sentence(cause))
         cycle = [
             f"closed-loop {name} error {_pct(before)} -> {_pct(after)}"
             for name, before, after in (
@@ -862,12 +1323,26 @@ def check_model(
             )
             if before is not None or after is not None
         ]
-        findings.append(
-            f"Extended with {final.effect} ({describe_parameters(final.parameters)}), the "
-            f"held-out NMSE falls from {base_cv.nmse_test:.3g} to {extended_cv.nmse_test:.3g}"
-            + "".join(f"; {text}" for text in cycle) + "."
+        extensions = " and ".join(
+            f"{cause.effect} ({describe_parameters(cause.parameters)})" for _, cause in named
         )
-        cause = Cause(final.effect, confidence, final.parameters)
+        each = (
+            " (" + "; ".join(f"{c.effect}: {c.nmse_before:.3g} -> {c.nmse_after:.3g}"
+                             for c in causes) + ")"
+            if len(causes) > 1 else ""
+        )
+        findings.append(
+            f"Extended with {extensions}, the held-out NMSE falls from {base_cv.nmse_test:.3g} to "
+            f"{extended_cv.nmse_test:.3g}{each}" + "".join(f"; {text}" for text in cycle) + "."
+        )
+    if explained < EXPLAINED_FOR_CONFIDENCE:
+        findings.append(
+            f"The {'extended' if named else 'base'} model explains only {100 * explained:.0f} % "
+            "of the held-out PV variance, so no cause is named with confidence: data with "
+            "steps of OP large against the noise (an open-loop step test, or set-point steps), "
+            "each held until PV settles, would identify the process first and then decide "
+            "the cause."
+        )
     return ModelCheck(
         model_source=source,
         base_model=base,
@@ -878,7 +1353,8 @@ def check_model(
         controller_nmse=controller_nmse,
         cycle_base=cycle_base,
         findings=tuple(findings),
-        cause=cause,
+        cause=causes[0],
+        causes=tuple(causes),
         candidates=tuple(scored),
         gain=Gain(base_cv.nmse_test, extended_cv.nmse_test, cycle_base, cycle_ext),
         overlay=Overlay(

@@ -306,18 +306,22 @@ class ReplayData:
         bands_a = np.broadcast_to(np.asarray(bands, dtype=np.float64), (tables.shape[0], 2))
         position, lead_in = self.valve_start
         errors = np.empty(tables.shape[0])
+        target = self._target
+        if model.load is not None:  # an additive load: the target less the (anchored) load
+            load = model.load.series(self.t)
+            target = target - (load - self._anchored(load))
         for start in range(0, tables.shape[0], FRICTION_CHUNK):
             chunk = slice(start, start + FRICTION_CHUNK)
             x = model.replay_frictions(
                 self.op, tables[chunk], bands_a[chunk], initial_position=position, lead_in=lead_in
             )
-            if model.load is not None or model.quantiser is not None:
+            if model.quantiser is not None:
                 errors[chunk] = [self._fit_sse(self._simulated_pv(model, row)[0]) for row in x]
                 continue
             if self.horizon is not None:
                 x -= self._anchored(x.T).T
             errors[chunk] = _fit_errors(
-                x, self._target, self._fit_samples, self._columns_fit, self._solve
+                x, target, self._fit_samples, self._columns_fit, self._solve
             )
         return errors
 

@@ -106,8 +106,11 @@ def identify_controller(
     return ControllerFit(PIController(kc, ti, limits), setpoint, r2, note)
 
 
-def _linear_process(op: FloatArray, pv: FloatArray, ts: float, op_bias: float) -> LoopModel:
-    """The healthy-valve FOPDT or integrating model whose OP replay fits PV best."""
+def _linear_process(
+    op: FloatArray, pv: FloatArray, ts: float, op_bias: float, controller: PIController
+) -> LoopModel:
+    """The healthy-valve FOPDT or integrating model (with ``controller``) whose OP replay
+    fits PV best."""
     n = op.size
     longest = max(3, min(n // 20, 60))
     best: tuple[float, LoopModel] | None = None
@@ -122,7 +125,7 @@ def _linear_process(op: FloatArray, pv: FloatArray, ts: float, op_bias: float) -
         for tau in taus if kind == "fopdt" else [0.0]:
             for delay in range(longest):
                 trial = LoopModel(
-                    ts, Process(kind, 1.0, float(tau), delay * ts), PIController(1.0),
+                    ts, Process(kind, 1.0, float(tau), delay * ts), controller,
                     Valve(HeValve(0.0, 0.0)), op_bias,
                 )
                 fit = data.predict(trial, fit_gain=True)
@@ -162,8 +165,7 @@ def identify_model(
             f"valve, output-error R2 {estimate.fit_r2:.2f})"
         )
     else:
-        model = _linear_process(op, pv, ts, op_bias)
-        model = LoopModel(ts, model.process, fit.controller, model.valve, op_bias)
+        model = _linear_process(op, pv, ts, op_bias, fit.controller)
         notes.append(
             f"no stiction model could be identified ({'; '.join(estimate.issues)}): "
             "healthy valve, process fitted to the OP replay"

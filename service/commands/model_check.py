@@ -75,8 +75,14 @@ def print_report(result: ModelCheck, source: str, out: TextIO) -> None:
             f"{detail}",
             file=out,
         )
-    cause = result.cause
-    print(f"cause: {cause.effect} (confidence {cause.confidence:.2f})", file=out)
+    for i, cause in enumerate(result.causes):
+        runner_up = f"; runner-up {cause.runner_up}" if cause.runner_up else ""
+        print(
+            f"{'cause' if i == 0 else 'second cause'}: {cause.effect} (confidence "
+            f"{cause.confidence:.2f}{runner_up}; held-out NMSE {cause.nmse_before:.4g} -> "
+            f"{cause.nmse_after:.4g})",
+            file=out,
+        )
     g = result.gain
     print(
         f"gain: held-out NMSE {g.nmse_before:.4g} -> {g.nmse_after:.4g}; period error "

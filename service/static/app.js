@@ -748,8 +748,10 @@ async function modelCheckResult(loopId, check) {
     h("div", { class: "grid-2" },
       section("Findings", "findings-title",
         h("ol", { id: "findings" }, check.findings.map((f) => h("li", {}, f))),
-        h("p", {}, h("strong", {}, "Cause: "), cause.effect.replace(/_/g, " "),
-          ` (confidence ${num(cause.confidence)}; ${parameterText(cause.parameters)})`),
+        ...(check.causes || [cause]).map((c, i) => h("p", {},
+          h("strong", {}, i === 0 ? "Cause: " : "Second cause: "), c.effect.replace(/_/g, " "),
+          ` (confidence ${num(c.confidence)}; ${parameterText(c.parameters)}`
+          + (c.runner_up ? `; runner-up ${c.runner_up.replace(/_/g, " ")})` : ")"))),
         ...(check.notes || []).map((note) => h("p", { class: "note" }, note))),
       section("Gain", "gain-title", gainTable(check))),
     h("div", { class: "grid-2" },

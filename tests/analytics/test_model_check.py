@@ -21,7 +21,15 @@ from analytics.errors import DataError, ModelSpecError
 from analytics.lti import TransferFunction
 from analytics.model_check import EFFECTS, LoopModel, check_model
 from analytics.model_check.cases import CATALOGUE, _levels, hidden_effect_case
-from analytics.model_check.check import noise_std, valve_synchronisation
+from analytics.model_check.cases_independent import _TrueLoop, independent_case
+from analytics.model_check.check import (
+    ScoredCandidate,
+    _nested_verdict,
+    _select,
+    noise_std,
+    relevant_lattice,
+    valve_synchronisation,
+)
 from analytics.model_check.effects import ReplayData, _compass, pv_grid
 from analytics.model_check.identify import identify_controller
 from analytics.model_check.model import Quantiser, StictionZone
@@ -442,6 +450,13 @@ class TestCheckResult:
         assert out["cause"]["effect"] == "asymmetric_stiction"
         assert 0.0 <= out["cause"]["confidence"] <= 1.0
         assert [c["effect"] for c in out["candidates"]] == list(EFFECTS)
+        # issue 21: the runner-up and every cause, each with its own gain
+        assert out["cause"]["runner_up"] in EFFECTS
+        assert out["causes"][0] == out["cause"]
+        for cause in out["causes"]:
+            assert {"effect", "confidence", "parameters", "runner_up", "nmse_before",
+                    "nmse_after"} <= set(cause)
+            assert cause["nmse_after"] < cause["nmse_before"]
         assert {"nmse_before", "nmse_after", "period_error_before", "period_error_after",
                 "amplitude_error_before", "amplitude_error_after"} <= set(out["gain"])
         assert LoopModel.from_dict(out["extended_model"]) == result.extended_model
@@ -510,6 +525,200 @@ class TestBadData:
     def test_bad_model_dict_is_a_model_error(self, quiet_case) -> None:
         with pytest.raises(ModelSpecError, match="process"):
             check_model(quiet_case.op, quiet_case.pv, 1.0, model={**BASE, "process": None})
+
+
+# ----------------------------------------------------------------------------
+# issue 21: the independent generator, confidence, evidence from the data, two causes
+
+
+class TestIndependentGenerator:
+    @pytest.mark.parametrize("valve", [HeValve(2.0, 1.0), ChoudhuryValve(3.0, 1.0),
+                                       KanoValve(3.0, 1.0), HeValve(0.0, 0.0)],
+                             ids=["he", "choudhury", "kano", "healthy"])
+    @pytest.mark.parametrize("process", [{"type": "fopdt", "K": 1.5, "tau": 12.0, "theta": 3.0},
+                                         {"type": "integrating", "K": 0.02, "theta": 4.0}],
+                             ids=["fopdt", "integrating"])
+    def test_its_simulator_without_effects_is_the_loop_model(self, valve, process) -> None:
+        """Two simulators written apart agree sample for sample on a loop without effects."""
+        spec = {**BASE, "process": process, "valve": valve.to_dict()}
+        model = LoopModel.from_dict(spec)
+        rng = np.random.default_rng(4)
+        sp = 50.0 + np.repeat(rng.uniform(-5.0, 5.0, 6), 250)
+        noise = rng.normal(0.0, 0.1, sp.size)
+        op, mv, pv = _TrueLoop(model, tuple(valve.params_array())).run(sp, noise, 50.0)
+        sim = model.simulate(sp, noise=noise, pv_bias=50.0)
+        np.testing.assert_allclose(pv, sim.pv, atol=1e-9)
+        np.testing.assert_allclose(mv, sim.mv, atol=1e-9)
+        np.testing.assert_allclose(op, sim.op, atol=1e-9)
+
+    def test_cases_are_reproducible_and_name_what_they_hide(self) -> None:
+        pair = ("asymmetric_stiction", "external_disturbance")
+        case = independent_case(pair, 3, samples=1500)
+        again = independent_case(pair, 3, samples=1500)
+        np.testing.assert_array_equal(case.pv, again.pv)
+        assert case.effects == pair and case.true_model is None
+        assert {"period"} <= set(case.parameters)
+        with pytest.raises(ValueError, match="unknown effect"):
+            independent_case("gremlins", 0)
+
+
+def scored(effect: str, improvement: float, nmse: float) -> ScoredCandidate:
+    return ScoredCandidate(effect, {}, nmse, nmse, improvement, "", model_with())
+
+
+class TestConfidence:
+    """The confidence compares held-out errors (Diebold-Mariano on batch means)."""
+
+    rng = np.random.default_rng(5)
+    noise = rng.normal(0.0, 1.0, 4800)
+    base = noise + 2.0 * np.sin(np.arange(4800) / 30.0)  # the base model misses a load
+
+    def test_two_effects_that_explain_the_data_equally_are_not_confident(self) -> None:
+        residuals = {"gain_mismatch": self.noise, "external_disturbance": self.noise.copy()}
+        chosen, confidence, runner_up = _select(
+            [scored("gain_mismatch", 0.7, 0.3), scored("external_disturbance", 0.7, 0.3)],
+            residuals, self.base, 0.05, 0.02,
+        )
+        assert chosen.effect == "gain_mismatch" and runner_up == "external_disturbance"
+        assert confidence <= 0.6
+
+    def test_an_effect_clearly_better_than_the_rest_is_confident(self) -> None:
+        residuals = {"gain_mismatch": self.base * 0.9, "external_disturbance": self.noise}
+        chosen, confidence, runner_up = _select(
+            [scored("gain_mismatch", 0.19, 0.8), scored("external_disturbance", 0.7, 0.3)],
+            residuals, self.base, 0.05, 0.02,
+        )
+        assert chosen.effect == "external_disturbance" and runner_up == "gain_mismatch"
+        assert confidence > 0.99
+
+    def test_none_names_the_closest_effect(self) -> None:
+        residuals = {"gain_mismatch": self.base * 0.995, "deadtime_mismatch": self.base}
+        chosen, confidence, runner_up = _select(
+            [scored("gain_mismatch", 0.01, 0.99), scored("deadtime_mismatch", 0.0, 1.0)],
+            residuals, self.base, 0.05, 0.02,
+        )
+        assert chosen is None and runner_up == "gain_mismatch" and confidence > 0.99
+
+
+@pytest.fixture(scope="module")
+def healthy_case():
+    return hidden_effect_case("none", 1, samples=3000)
+
+
+class TestQuantisationFromTheData:
+    """A PV on a lattice is quantised whatever a fit says (historian rounding after the
+    controller, so the loop itself is the base model's)."""
+
+    def test_a_coarse_lattice_is_named(self, healthy_case) -> None:
+        case = healthy_case
+        q = 3.0 * case.noise_std
+        pv = 0.07 + q * np.round((case.pv - 0.07) / q)
+        assert relevant_lattice(pv) is not None
+        result = check_model(case.op, pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "measurement_quantization", result.findings
+        assert result.cause.parameters["resolution"] == pytest.approx(q, rel=0.02)
+        assert result.gain.nmse_after < result.gain.nmse_before
+
+    def test_a_fine_rounding_is_not(self, healthy_case) -> None:
+        case = healthy_case
+        pv = np.round(case.pv, 3)  # a historian's three decimals, far below the noise
+        assert relevant_lattice(pv) is None
+        result = check_model(case.op, pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "none"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(
+    ("pair", "seed"),
+    [(("gain_mismatch", "measurement_quantization"), 1),
+     (("asymmetric_stiction", "external_disturbance"), 0)],
+)
+def test_two_hidden_effects_are_both_named_and_each_gains(pair, seed) -> None:
+    case = hidden_effect_case(pair, seed)
+    result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+    assert {c.effect for c in result.causes} == set(pair), result.findings
+    first, second = result.causes
+    assert first.nmse_before == result.gain.nmse_before
+    assert second.nmse_before == first.nmse_after > second.nmse_after == result.gain.nmse_after
+    extended = result.extended_model.to_dict()
+    keys = {"gain_mismatch": ("process",), "measurement_quantization": ("measurement",),
+            "asymmetric_stiction": ("valve", "opening"), "external_disturbance": ("load",)}
+    for effect in pair:  # the extended model holds both extensions
+        part = extended
+        for key in keys[effect]:
+            part = part.get(key) if isinstance(part, dict) else None
+        assert part, f"{effect} missing from {extended}"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+class TestDeadTimeAgainstTimeConstant:
+    """A joint fit of dead time and lag says which of the two the data need."""
+
+    def test_a_longer_dead_time_on_an_integrating_process(self) -> None:
+        case = hidden_effect_case("deadtime_mismatch", 0)
+        assert case.base_model.process.kind == "integrating"
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "deadtime_mismatch"
+        assert result.cause.runner_up == "time_constant_mismatch"
+        assert result.cause.confidence > 0.9
+        assert result.cause.parameters["theta"] == case.true_model.process.theta
+
+    def test_both_changed_names_both(self) -> None:
+        case = hidden_effect_case(("deadtime_mismatch", "time_constant_mismatch"), 2)
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert {c.effect for c in result.causes} == {"deadtime_mismatch",
+                                                      "time_constant_mismatch"}
+        # the first cause alone is not confidently one or the other
+        assert result.causes[0].confidence < 0.5
+
+
+class TestEffectsThatImitateEachOther:
+    """The joint fit of two effects says which the data need (nested models)."""
+
+    rng = np.random.default_rng(6)
+    noise = rng.normal(0.0, 1.0, 4800)
+    slow = np.sin(np.arange(4800) / 40.0)
+
+    def test_the_effect_whose_joint_model_is_no_better_is_named(self) -> None:
+        residuals = {"valve_characteristic": self.noise + 0.5 * self.slow,
+                     "position_dependent_stiction": self.noise}
+        effect, confidence, other = _nested_verdict(
+            "valve_characteristic", "position_dependent_stiction", self.noise, residuals, 0.05
+        )
+        assert (effect, other) == ("position_dependent_stiction", "valve_characteristic")
+        assert confidence > 0.95
+
+    def test_when_both_are_needed_neither_is_confident(self) -> None:
+        residuals = {"deadtime_mismatch": self.noise + 0.5 * self.slow,
+                     "time_constant_mismatch": self.noise + 0.5 * np.roll(self.slow, 100)}
+        _, confidence, _ = _nested_verdict(
+            "deadtime_mismatch", "time_constant_mismatch", self.noise, residuals, 0.05
+        )
+        assert confidence < 0.05
+
+    @pytest.mark.slow
+    @pytest.mark.timeout(120)
+    def test_a_characteristic_against_stiction_in_a_band(self) -> None:
+        case = hidden_effect_case("valve_characteristic", 3)
+        result = check_model(case.op, case.pv, case.ts, sp=case.sp, model=case.base_model)
+        assert result.cause.effect == "valve_characteristic"
+        assert result.cause.runner_up == "position_dependent_stiction"
+        assert result.cause.confidence > 0.9
+
+
+class TestBaseModelThatExplainsNothing:
+    def test_no_confident_cause_and_the_data_that_would_decide(self, healthy_case) -> None:
+        case = healthy_case
+        rng = np.random.default_rng(8)
+        unrelated = 50.0 + np.cumsum(rng.normal(0.0, 0.05, case.pv.size))  # not driven by OP
+        result = check_model(case.op, unrelated, case.ts, sp=case.sp, model=case.base_model)
+        assert result.nmse_base_test > 0.5
+        explained = 1.0 - result.gain.nmse_after
+        assert all(c.confidence <= max(explained, 0.0) + 1e-12 for c in result.causes)
+        assert result.cause.confidence < 0.5
+        assert any("would identify the process first" in f for f in result.findings)
 
 
 # ----------------------------------------------------------------------------

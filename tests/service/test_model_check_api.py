@@ -73,6 +73,7 @@ def test_given_model_is_checked_on_the_window(client, gain_case) -> None:
     assert out["cause"]["parameters"]["K"] == pytest.approx(
         gain_case.true_model.process.K, rel=0.03)
     assert out["gain"]["nmse_after"] < out["gain"]["nmse_before"] == out["baseline"]["nmse"]
+    assert out["causes"][0] == out["cause"] and out["cause"]["runner_up"] != "gain_mismatch"
     overlay = out["overlay"]
     assert overlay["t"][0] == out["window_start"] and overlay["t"][-1] == T0
     assert len(overlay["pv"]) == len(overlay["pv_base"]) == len(overlay["pv_extended"]) == SAMPLES

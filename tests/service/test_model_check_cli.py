@@ -60,13 +60,18 @@ def test_json_report_names_the_hidden_effect(tmp_path, capsys, gain_case) -> Non
     assert out["gain"]["nmse_after"] < out["gain"]["nmse_before"] == out["baseline"]["nmse"]
     assert out["extended_model"]["process"]["K"] == out["cause"]["parameters"]["K"]
     assert len(out["candidates"]) == 8 and "overlay" not in out
+    # issue 21: the runner-up and the list of causes, each with its gain
+    assert out["cause"]["runner_up"] in {c["effect"] for c in out["candidates"]} - {"gain_mismatch"}
+    assert out["causes"][0] == out["cause"]
+    assert out["cause"]["nmse_before"] == out["gain"]["nmse_before"]
+    assert out["causes"][-1]["nmse_after"] == out["gain"]["nmse_after"]
 
 
 def test_readable_report(tmp_path, capsys, gain_case) -> None:
     data, model = case_files(tmp_path, gain_case)
     assert run([str(data), "--model", str(model)]) == 0
     out = capsys.readouterr().out
-    assert "cause: gain_mismatch" in out
+    assert "cause: gain_mismatch" in out and "runner-up" in out
     assert "findings:" in out and "The process gain is" in out
     assert '"process"' in out  # the extended model, as JSON
 
