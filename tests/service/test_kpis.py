@@ -6,6 +6,8 @@ sticks more day by day, analysed by :func:`service.analysis.analyse_window`
 and stored run by run, for the history and the ranking.
 """
 
+import csv
+import io
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -17,7 +19,7 @@ from analytics.synthetic_cases import synthetic_library
 from service.analysis import analyse_window
 from service.config import PlantConfig, Settings
 from service.server import build_service
-from service.store.models import AnalysisRun
+from service.store.models import AnalysisRun, Ticket
 from tests.service.test_api import ADMIN, T0, key, simulated_batch
 
 DAY = 86400.0
@@ -193,3 +195,36 @@ def test_bad_actor_period_is_bounded(client):
         "detail": "period must be at most 92 days"}
     assert client.get("/api/v1/plant/bad-actors", headers=viewer,
                       params={"period": "7w"}).status_code == 422
+
+
+def test_bad_actor_report_csv(service, client, clock):
+    viewer = key(client, "viewer")
+    degrading_days(service, clock)
+    with service.state.store.session() as session:  # an open ticket on FIC-2's valve
+        session.add(Ticket(valve_asset="FV-2", loop_id="FIC-2", state="open", priority=2,
+                           title="FV-2 sticks", description="", location=None,
+                           malfunction_start=clock.now, evidence={}, created_at=clock.now,
+                           updated_at=clock.now))
+    response = client.get("/api/v1/reports/bad-actors", headers=viewer,
+                          params={"period": "7d", "format": "csv"})
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "text/csv; charset=utf-8"
+    assert 'filename="bad-actors-7d.csv"' in response.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(response.text)))
+    assert [r["loop"] for r in rows] == ["FIC-2", "FIC-1"]
+    ranking = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                         params={"period": "7d"}).json()["data"]
+    assert float(rows[0]["score"]) == pytest.approx(ranking[0]["score"], rel=1e-3)
+    assert rows[0]["why"] == ranking[0]["why"] and rows[0]["rank"] == "1"
+    assert rows[0]["open_tickets"].endswith(" FV-2") and rows[1]["open_tickets"] == ""
+    latest = client.get("/api/v1/loops/FIC-2/kpis", headers=viewer).json()["data"][-1]["kpis"]
+    assert float(rows[0]["oscillation_index"]) == pytest.approx(latest["oscillation_index"],
+                                                                rel=1e-3)
+    assert float(rows[0]["travel_per_day"]) == pytest.approx(latest["travel_per_day"],
+                                                             rel=1e-3)
+    assert rows[1]["harris_ratio"] != "" and rows[0]["harris_ratio"] == ""  # FIC-1 has theta
+    pdf = client.get("/api/v1/reports/bad-actors", headers=viewer, params={"format": "pdf"})
+    assert (pdf.status_code, pdf.json()) == (
+        501, {"detail": "The PDF report is not available yet; use format=csv"})
+    assert client.get("/api/v1/reports/bad-actors", headers=viewer,
+                      params={"format": "xls"}).status_code == 422
