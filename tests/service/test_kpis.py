@@ -228,3 +228,22 @@ def test_bad_actor_report_csv(service, client, clock):
         501, {"detail": "The PDF report is not available yet; use format=csv"})
     assert client.get("/api/v1/reports/bad-actors", headers=viewer,
                       params={"format": "xls"}).status_code == 422
+
+
+def test_runs_a_minute_apart_count_once_per_window(service, client):
+    """Sixty runs in the last hour are one observation; one more an hour earlier is another."""
+    viewer = key(client, "viewer")
+    bad = {"oscillation_index": 0.9}
+    with service.state.store.session() as session:
+        for i in range(60):
+            end = T0 - 60.0 * i
+            session.add(AnalysisRun(loop_id="FIC-2", started_at=end, window_start=end - 3600,
+                                    window_end=end, status="ok", health=100.0,
+                                    result={"kpis": bad}, round_end=end))
+        session.add(AnalysisRun(loop_id="FIC-2", started_at=T0 - 5400, status="ok",
+                                health=100.0, result={"kpis": {"oscillation_index": 0.0}},
+                                round_end=T0 - 5400))
+    first = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                       params={"period": "1d"}).json()["data"][0]
+    assert (first["id"], first["runs"], first["bad_runs"]) == ("FIC-2", 2, 1)
+    assert first["score"] == pytest.approx(100 * 0.9 * 1.0 * 0.5)

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel, ValidationError
-from sqlalchemy import func, select
+from sqlalchemy import BigInteger, cast, func, select
 
 from service.analysis import stiction_pattern_text
 from service.api.deps import Principal, SessionDep, StateDep, require
@@ -267,17 +267,32 @@ def period_seconds(period: str) -> float:
     return seconds
 
 
-def bad_actor_rows(session: SessionDep, since: float, until: float, period: str
-                   ) -> list[BadActorPublic]:
+def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
+                   bucket_s: float) -> list[BadActorPublic]:
     """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
     runs started in ``(since, until]``, worst first: by score, then by health (loops not
-    analysed last)."""
+    analysed last).
+
+    One run counts per ``bucket_s`` (the analysis window's length; buckets counted back
+    from ``until``), the latest of its bucket: runs a minute apart on hour-long windows
+    share most of their data, so they are one observation of the loop, not sixty, and a
+    week is 168 runs a loop, not 10,080.
+    """
     loops, _ = _loop_rows(session)
+    # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
+    # then integer division, which truncates on both.
+    bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
+        1, round(bucket_s * 1000.0))
+    chosen = (
+        select(func.max(AnalysisRun.id))
+        .where(AnalysisRun.status == "ok", AnalysisRun.started_at > since,
+               AnalysisRun.started_at <= until)
+        .group_by(AnalysisRun.loop_id, bucket)
+    )
     runs: dict[str, list[tuple[float | None, dict[str, Any] | None]]] = {}
     for loop_id, health, kpis in session.execute(
         select(AnalysisRun.loop_id, AnalysisRun.health, AnalysisRun.result["kpis"])
-        .where(AnalysisRun.status == "ok", AnalysisRun.started_at > since,
-               AnalysisRun.started_at <= until)
+        .where(AnalysisRun.id.in_(chosen))
     ):
         runs.setdefault(loop_id, []).append((health, kpis))
     ranked = []
@@ -301,10 +316,11 @@ def bad_actors(
 ) -> BadActorsPublic:
     """Loops ranked by their bad-actor score over ``period`` (``7d``, ``36h``; at most 92
     days): KPI severity x loop importance x time spent bad (:mod:`service.bad_actors`),
-    each with ``why``; then by latest health, worst first; loops not analysed last."""
+    each with ``why``; then by latest health, worst first; loops not analysed last.  One
+    run per analysis window length counts (:func:`bad_actor_rows`)."""
     until = state.clock()
     since = until - period_seconds(period)
-    ranked = bad_actor_rows(session, since, until, period)
+    ranked = bad_actor_rows(session, since, until, period, state.settings.window_s)
     return BadActorsPublic(data=ranked[:limit], count=len(ranked), period=period,
                            since=since, until=until)
 

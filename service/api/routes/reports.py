@@ -67,7 +67,7 @@ def bad_actor_report(
         raise HTTPException(501, "The PDF report is not available yet; use format=csv")
     until = state.clock()
     since = until - period_seconds(period)
-    ranked = bad_actor_rows(session, since, until, period)[:limit]
+    ranked = bad_actor_rows(session, since, until, period, state.settings.window_s)[:limit]
     kpis, tickets = _latest_kpis(session), _open_tickets(session)
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
