@@ -116,13 +116,14 @@ def test_kpi_history_refusals(client):
     backwards = client.get(url, headers=viewer, params={"since": T0, "until": T0 - 1})
     assert (backwards.status_code, backwards.json()) == (
         422, {"detail": "until must be after since"})
-    assert client.get(url, headers=viewer, params={"limit": 0}).status_code == 422
+    assert client.get(url, headers=viewer, params={"limit": 1}).status_code == 422
     assert client.get(url, headers=viewer, params={"limit": 10_001}).status_code == 422
     assert client.get(url, headers=viewer, params={"since": -1}).status_code == 422
     assert client.get(url, headers=historian).status_code == 403
     assert client.get(url).status_code == 401
     assert client.get(url, headers=viewer).json() == {
-        "loop_id": "FIC-1", "since": T0 - 30 * DAY, "until": T0, "data": [], "count": 0}
+        "loop_id": "FIC-1", "since": T0 - 30 * DAY, "until": T0, "data": [], "count": 0,
+        "total": 0}
 
 
 def degrading_days(service, clock) -> None:
@@ -247,3 +248,18 @@ def test_runs_a_minute_apart_count_once_per_window(service, client):
                        params={"period": "1d"}).json()["data"][0]
     assert (first["id"], first["runs"], first["bad_runs"]) == ("FIC-2", 2, 1)
     assert first["score"] == pytest.approx(100 * 0.9 * 1.0 * 0.5)
+
+
+def test_a_long_history_is_thinned_evenly_to_the_limit(service, client):
+    viewer = key(client, "viewer")
+    with service.state.store.session() as session:
+        for i in range(100):
+            end = T0 - 60.0 * i
+            session.add(AnalysisRun(loop_id="FIC-1", started_at=end, status="ok",
+                                    health=float(i), result={"kpis": {"i": i}}, round_end=end))
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                      params={"since": T0 - 6000, "limit": 10}).json()
+    assert (body["count"], body["total"]) == (10, 100)
+    started = [p["started_at"] for p in body["data"]]
+    assert started[0] == T0 - 99 * 60 and started[-1] == T0 and started == sorted(started)
+    assert [p["kpis"]["i"] for p in body["data"]] == [99, 88, 77, 66, 55, 44, 33, 22, 11, 0]

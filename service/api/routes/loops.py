@@ -94,6 +94,8 @@ class KpiHistoryPublic(BaseModel):
     until: float
     data: list[KpiPointPublic]
     count: int
+    total: int
+    """Runs in the range; more than ``count`` when they were thinned to ``limit``."""
 
 
 class RunPublic(BaseModel):
@@ -414,26 +416,36 @@ def loop_kpis(
     loop_id: str, session: SessionDep, state: StateDep, _: Reader,
     since: Annotated[float | None, Query(ge=0)] = None,
     until: Annotated[float | None, Query(ge=0)] = None,
-    limit: Annotated[int, Query(ge=1, le=10_000)] = 5000,
+    limit: Annotated[int, Query(ge=2, le=10_000)] = 2000,
 ) -> KpiHistoryPublic:
     """The KPIs of the loop's successful runs started between ``since`` and ``until``
-    (UNIX s; default: the last 30 days), oldest first, at most ``limit`` of them."""
+    (UNIX s; default: the last 30 days), oldest first.
+
+    With more than ``limit`` runs in the range (a run a minute is 43,200 in 30 days),
+    ``limit`` of them spread evenly over it are returned, the first and the last included;
+    ``total`` says how many there were.
+    """
     _loop_or_404(session, loop_id)
     until = state.clock() if until is None else until
     since = until - 30 * 86400.0 if since is None else since
     if not until > since:
         raise HTTPException(422, "until must be after since")
+    in_range = (AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok",
+                AnalysisRun.started_at >= since, AnalysisRun.started_at <= until)
+    ids = list(session.scalars(select(AnalysisRun.id).where(*in_range)
+                               .order_by(AnalysisRun.started_at, AnalysisRun.id)))
+    total = len(ids)
+    if total > limit:
+        ids = [ids[int(i)] for i in np.unique(np.linspace(0, total - 1, limit).round())]
     rows = session.execute(
         select(AnalysisRun.id, AnalysisRun.started_at, AnalysisRun.window_start,
                AnalysisRun.window_end, AnalysisRun.health, AnalysisRun.result["kpis"])
-        .where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok",
-               AnalysisRun.started_at >= since, AnalysisRun.started_at <= until)
-        .order_by(AnalysisRun.started_at, AnalysisRun.id).limit(limit)
-    ).all()
+        .where(AnalysisRun.id.in_(ids)).order_by(AnalysisRun.started_at, AnalysisRun.id)
+    ).all() if ids else []
     data = [KpiPointPublic(run_id=r[0], started_at=r[1], window_start=r[2], window_end=r[3],
                            health=r[4], kpis=r[5]) for r in rows]
     return KpiHistoryPublic(loop_id=loop_id, since=since, until=until, data=data,
-                            count=len(data))
+                            count=len(data), total=total)
 
 
 def _downsample(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
