@@ -116,7 +116,7 @@ def test_kpi_history_refusals(client):
     backwards = client.get(url, headers=viewer, params={"since": T0, "until": T0 - 1})
     assert (backwards.status_code, backwards.json()) == (
         422, {"detail": "until must be after since"})
-    assert client.get(url, headers=viewer, params={"limit": 1}).status_code == 422
+    assert client.get(url, headers=viewer, params={"limit": 0}).status_code == 422
     assert client.get(url, headers=viewer, params={"limit": 10_001}).status_code == 422
     assert client.get(url, headers=viewer, params={"since": -1}).status_code == 422
     assert client.get(url, headers=historian).status_code == 403
@@ -261,5 +261,9 @@ def test_a_long_history_is_thinned_evenly_to_the_limit(service, client):
                       params={"since": T0 - 6000, "limit": 10}).json()
     assert (body["count"], body["total"]) == (10, 100)
     started = [p["started_at"] for p in body["data"]]
-    assert started[0] == T0 - 99 * 60 and started[-1] == T0 and started == sorted(started)
-    assert [p["kpis"]["i"] for p in body["data"]] == [99, 88, 77, 66, 55, 44, 33, 22, 11, 0]
+    assert started[-1] == T0 and started == sorted(started)
+    assert [p["kpis"]["i"] for p in body["data"]] == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                      params={"since": T0 - 6000, "limit": 30}).json()  # every 4th run
+    assert (body["count"], body["total"]) == (25, 100)
+    assert body["data"][0]["kpis"]["i"] == 96
