@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from analytics.diagnosis import diagnose_loop
+from analytics.kpi import loop_kpis
 from analytics.plantwide import diagnose_unit
 
 if TYPE_CHECKING:
@@ -28,6 +29,7 @@ __all__ = [
     "UnitWindowsError",
     "analyse_unit",
     "analyse_window",
+    "dead_time_samples",
     "health_score",
     "stiction_pattern_text",
     "to_percent_of_span",
@@ -100,6 +102,24 @@ def health_score(diagnosis: dict[str, Any]) -> float | None:
     return max(0.0, score)
 
 
+def dead_time_samples(loop: dict[str, Any]) -> int | None:
+    """The loop's dead time in samples for the Harris index, None when not configured.
+
+    ``floor(theta / ts) + 1`` from the ``theta`` (s) of the loop's
+    ``process_model``: the whole samples of the dead time plus the one of the
+    zero-order hold (:func:`analytics.kpi.harris_index`).
+
+    >>> dead_time_samples({"ts": 2.0, "process_model": {"type": "fopdt", "theta": 5.0}})
+    3
+    >>> dead_time_samples({"ts": 1.0, "process_model": None}) is None
+    True
+    """
+    theta = (loop.get("process_model") or {}).get("theta")
+    if theta is None:
+        return None
+    return int(np.floor(float(theta) / float(loop["ts"]) + 1e-9)) + 1
+
+
 def analyse_window(
     loop: dict[str, Any],
     ts: float,
@@ -121,9 +141,12 @@ def analyse_window(
     -------
     dict
         :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` plus ``health``
-        (:func:`health_score`) and ``first_sample_at``, the time of the
+        (:func:`health_score`), ``first_sample_at``, the time of the
         window's first sample (UNIX s): the stiction episodes' times
-        (``start_s``, ...) count from it.
+        (``start_s``, ...) count from it, and ``kpis``
+        (:meth:`analytics.kpi.LoopKpis.to_dict` of the same window in % of
+        span; the Harris index only with a configured dead time,
+        :func:`dead_time_samples`).
     """
     ranges: dict[str, tuple[float, float]] = {
         k: (float(v[0]), float(v[1])) for k, v in (loop.get("ranges") or {}).items()
@@ -138,6 +161,17 @@ def analyse_window(
     ).to_dict()
     diagnosis["health"] = health_score(diagnosis)
     diagnosis["first_sample_at"] = float(t[0]) if t.size else None
+    limits = loop.get("pv_limits")
+    pv_limits = None
+    if limits is not None:
+        low, high = ranges.get("pv", (0.0, 100.0))
+        pv_limits = (100.0 * (float(limits[0]) - low) / (high - low),
+                     100.0 * (float(limits[1]) - low) / (high - low))
+    diagnosis["kpis"] = loop_kpis(
+        ts, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
+        dead_time=dead_time_samples({**loop, "ts": ts}), pv_limits=pv_limits,
+        oscillation=diagnosis["oscillation"] if diagnosis["quality"]["usable"] else None,
+    ).to_dict()
     return diagnosis
 
 

@@ -120,6 +120,9 @@ class LoopConfig(_Strict):
     controller: ControllerConfig | None = None
     process_type: Literal["self-regulating", "integrating"] | None = None
     process_model: dict[str, Any] | None = None
+    pv_limits: tuple[float, float] | None = Field(
+        default=None, description="PV's operating limits (PV units): the KPIs count the "
+        "time within them")
     valve_asset: str | None = None
     location: str | None = None
     importance: Importance = "medium"
@@ -133,6 +136,15 @@ class LoopConfig(_Strict):
             if not high > low:
                 raise ValueError(f"range of {signal} must have high > low, got [{low}, {high}]")
         return ranges
+
+    @field_validator("pv_limits")
+    @classmethod
+    def _limits_increasing(
+        cls, limits: tuple[float, float] | None
+    ) -> tuple[float, float] | None:
+        if limits is not None and not limits[1] > limits[0]:
+            raise ValueError(f"pv_limits must have high > low, got [{limits[0]}, {limits[1]}]")
+        return limits
 
 
 class UnitProcessConfig(_Strict):

@@ -34,6 +34,7 @@ from service.api.routes import (
     loops,
     model_check,
     plots,
+    reports,
     system,
     tickets,
     unit_prediction,
@@ -60,7 +61,7 @@ def create_app(state: AppState) -> FastAPI:
     )
     app.state.loopwatch = state
     for module in (system, loops, unit_prediction, plots, model_check, alarms, tickets,
-                   ingest, keys, dashboard):
+                   reports, ingest, keys, dashboard):
         app.include_router(module.router)
 
     @app.get("/openapi.json", include_in_schema=False)

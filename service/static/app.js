@@ -320,6 +320,14 @@ function rankByHealth(loops) {
     || (a.health ?? 0) - (b.health ?? 0) || a.id.localeCompare(b.id));
 }
 
+/** The loop's KPI-based bad-actor score over the week (KPI severity x importance x share
+ * of bad runs, GET /plant/bad-actors), and why in words beside it. */
+function scoreCell(badActor) {
+  if (!badActor || badActor.runs === 0) return h("td", { "data-score": "" }, "—");
+  return h("td", { "data-score": badActor.score, title: badActor.why },
+    num(badActor.score, 0), h("div", { class: "sub" }, badActor.why));
+}
+
 function oscillationText(loop) {
   if (loop.oscillating === null || loop.oscillating === undefined) return "—";
   return loop.oscillating ? `yes, ${num(loop.period_s, 0)} s` : "no";
@@ -364,20 +372,25 @@ async function renderOverview(params) {
     if (params.get("unit")) query.set("unit", params.get("unit"));
     if (params.get("state")) query.set("state", params.get("state"));
     const alarmQuery = params.get("unit") ? `?unit=${encodeURIComponent(params.get("unit"))}` : "";
-    const [loops, alarms, tickets] = await Promise.all([
-      api(`/loops?${query}`), api(`/alarms${alarmQuery}`), openTickets()]);
+    const [loops, alarms, tickets, badActors] = await Promise.all([
+      api(`/loops?${query}`), api(`/alarms${alarmQuery}`), openTickets(),
+      api("/plant/bad-actors?limit=1000&period=7d")]);
     const unitLoops = new Set(loops.data.map((l) => l.id));
+    // The KPI-based bad-actor score over the week (GET /plant/bad-actors), with its why.
+    const scores = new Map(badActors.data.map((b) => [b.id, b]));
     const rows = rankByHealth(loops.data).map((l, i) => h("tr", { "data-loop-id": l.id },
       h("td", {}, i + 1),
       h("th", { scope: "row" }, loopLink(l.id), h("div", { class: "sub" }, l.name)),
       h("td", {}, l.unit ? h("a", { href: `#/unit/${encodeURIComponent(l.unit)}` }, l.unit) : "—"),
       healthCell(l.health),
+      scoreCell(scores.get(l.id)),
       h("td", {}, oscillationText(l)),
       h("td", {}, verdictPill(l.verdict, l.confidence)),
       h("td", {}, l.S === null ? "—" : `${num(l.S)} / ${num(l.J)}`),
       h("td", {}, l.active_alarms)));
     loopsBox.replaceChildren(table("Loops ranked by health",
-      ["Rank", "Loop", "Unit", "Health", "Oscillation", "Valve verdict", "S / J (%)", "Alarms"],
+      ["Rank", "Loop", "Unit", "Health", "Bad-actor score (7 d)", "Oscillation", "Valve verdict",
+        "S / J (%)", "Alarms"],
       rows, "No loops match the filters."));
     alarmsBox.replaceChildren(alarmsTable(alarms.data, refresh));
     ticketsBox.replaceChildren(ticketsTable(params.get("unit")

@@ -186,6 +186,14 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     ranked.first.wait_for()
     assert ranked.evaluate_all("rows => rows.map(r => r.dataset.loopId)") == ["FIC-1", "FIC-2"]
     assert "stiction" in ranked.first.inner_text()
+    # The KPI-based bad-actor score of the week, as the API ranks it, and why.
+    week = {b["id"]: b for b in running.call("GET", "/api/v1/plant/bad-actors?period=7d",
+                                             "viewer")["data"]}
+    assert week["FIC-1"]["score"] > 0 and week["FIC-1"]["runs"] >= 1
+    score = ranked.first.locator("td[data-score]")
+    assert float(score.get_attribute("data-score") or "nan") == week["FIC-1"]["score"]
+    assert score.inner_text().startswith(f"{week['FIC-1']['score']:.0f}\n")
+    assert week["FIC-1"]["why"] in score.inner_text()
     alarm_row = page.locator("#alarms tr[data-state]")
     assert alarm_row.evaluate_all("rows => rows.map(r => r.dataset.state)") == [
         "unacknowledged"]

@@ -44,6 +44,8 @@ ACCESS: dict[tuple[str, str], str] = {
     ("GET", "/api/v1/loops/{loop_id}/analyses"): "read",
     ("GET", "/api/v1/loops/{loop_id}/health"): "read",
     ("GET", "/api/v1/loops/{loop_id}/data"): "read",
+    ("GET", "/api/v1/loops/{loop_id}/kpis"): "read",
+    ("GET", "/api/v1/reports/bad-actors"): "read",
     ("GET", "/api/v1/loops/{loop_id}/plots/{kind}"): "read",
     ("GET", "/api/v1/loops/{loop_id}/advice"): "read",
     ("POST", "/api/v1/loops/{loop_id}/model-check"): "read",

@@ -8,11 +8,12 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel, ValidationError
-from sqlalchemy import func, select
+from sqlalchemy import BigInteger, cast, func, select
 
 from service.analysis import stiction_pattern_text
 from service.api.deps import Principal, SessionDep, StateDep, require
 from service.api.routes import advice, unit_diagnosis
+from service.bad_actors import score_loop
 from service.config import LoopConfig
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
 from service.tickets import run_episodes
@@ -48,6 +49,53 @@ class LoopsPublic(BaseModel):
 
     data: list[LoopPublic]
     count: int
+
+
+class BadActorPublic(LoopPublic):
+    """A loop in the bad-actor ranking: its latest state and its KPI-based score over the
+    period (:mod:`service.bad_actors`)."""
+
+    score: float
+    severity: float
+    bad_share: float
+    runs: int
+    bad_runs: int
+    worst: str | None
+    why: str
+
+
+class BadActorsPublic(BaseModel):
+    """The worst loops first; ``period`` the stretch the score covers."""
+
+    data: list[BadActorPublic]
+    count: int
+    period: str
+    since: float
+    until: float
+
+
+class KpiPointPublic(BaseModel):
+    """The KPIs of one analysis run (:meth:`analytics.kpi.LoopKpis.to_dict`; None for a
+    run stored before the KPIs were computed)."""
+
+    run_id: int
+    started_at: float
+    window_start: float | None
+    window_end: float | None
+    health: float | None
+    kpis: dict[str, Any] | None
+
+
+class KpiHistoryPublic(BaseModel):
+    """A loop's KPI history, oldest first."""
+
+    loop_id: str
+    since: float
+    until: float
+    data: list[KpiPointPublic]
+    count: int
+    total: int
+    """Runs in the range; more than ``count`` when they were thinned to ``limit``."""
 
 
 class RunPublic(BaseModel):
@@ -205,13 +253,78 @@ def list_loops(
     return LoopsPublic(data=data, count=count)
 
 
-@router.get("/plant/bad-actors", response_model=LoopsPublic)
+PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
+MAX_PERIOD_S = 92 * 86400.0
+
+
+def period_seconds(period: str) -> float:
+    """``"7d"`` or ``"36h"`` in seconds; at most :data:`MAX_PERIOD_S` (422 beyond).
+
+    >>> period_seconds("7d"), period_seconds("36h")
+    (604800.0, 129600.0)
+    """
+    seconds = int(period[:-1]) * (86400.0 if period[-1] == "d" else 3600.0)
+    if seconds > MAX_PERIOD_S:
+        raise HTTPException(422, "period must be at most 92 days")
+    return seconds
+
+
+def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
+                   bucket_s: float) -> list[BadActorPublic]:
+    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
+    runs started in ``(since, until]``, worst first: by score, then by health (loops not
+    analysed last).
+
+    One run counts per ``bucket_s`` (the analysis window's length; buckets counted back
+    from ``until``), the latest of its bucket: runs a minute apart on hour-long windows
+    share most of their data, so they are one observation of the loop, not sixty, and a
+    week is 168 runs a loop, not 10,080.
+    """
+    loops, _ = _loop_rows(session)
+    # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
+    # then integer division, which truncates on both.
+    bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
+        1, round(bucket_s * 1000.0))
+    chosen = (
+        select(func.max(AnalysisRun.id))
+        .where(AnalysisRun.status == "ok", AnalysisRun.started_at > since,
+               AnalysisRun.started_at <= until)
+        .group_by(AnalysisRun.loop_id, bucket)
+    )
+    runs: dict[str, list[tuple[float | None, dict[str, Any] | None]]] = {}
+    for loop_id, health, kpis in session.execute(
+        select(AnalysisRun.loop_id, AnalysisRun.health, AnalysisRun.result["kpis"])
+        .where(AnalysisRun.id.in_(chosen))
+    ):
+        runs.setdefault(loop_id, []).append((health, kpis))
+    ranked = []
+    for loop in loops:
+        scored = score_loop(runs.get(loop.id, ()), loop.importance, period)
+        ranked.append(BadActorPublic(
+            **loop.model_dump(), score=scored.score, severity=scored.severity,
+            bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
+            worst=scored.worst, why=scored.why,
+        ))
+    ranked.sort(key=lambda r: (-r.score, r.health is None,
+                               r.health if r.health is not None else 0.0, r.id))
+    return ranked
+
+
+@router.get("/plant/bad-actors", response_model=BadActorsPublic)
 def bad_actors(
-    session: SessionDep, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 20
-) -> LoopsPublic:
-    """Loops ranked by health, worst first; loops not yet analysed come last."""
-    data, count = _loop_rows(session, worst_first=True, limit=limit)
-    return LoopsPublic(data=data, count=count)
+    session: SessionDep, state: StateDep, _: Reader,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 20,
+    period: Annotated[str, Query(pattern=PERIOD_PATTERN)] = "7d",
+) -> BadActorsPublic:
+    """Loops ranked by their bad-actor score over ``period`` (``7d``, ``36h``; at most 92
+    days): KPI severity x loop importance x time spent bad (:mod:`service.bad_actors`),
+    each with ``why``; then by latest health, worst first; loops not analysed last.  One
+    run per analysis window length counts (:func:`bad_actor_rows`)."""
+    until = state.clock()
+    since = until - period_seconds(period)
+    ranked = bad_actor_rows(session, since, until, period, state.settings.window_s)
+    return BadActorsPublic(data=ranked[:limit], count=len(ranked), period=period,
+                           since=since, until=until)
 
 
 def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
@@ -296,6 +409,47 @@ def loop_health(
         stiction_pattern=stiction_pattern_text(stiction.get("pattern"), stiction.get("op_travel")),
         episodes=[] if latest is None else run_episodes(latest),
     )
+
+
+@router.get("/loops/{loop_id}/kpis", response_model=KpiHistoryPublic)
+def loop_kpis(
+    loop_id: str, session: SessionDep, state: StateDep, _: Reader,
+    since: Annotated[float | None, Query(ge=0)] = None,
+    until: Annotated[float | None, Query(ge=0)] = None,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+) -> KpiHistoryPublic:
+    """The KPIs of the loop's successful runs started between ``since`` and ``until``
+    (UNIX s; default: the last 30 days), oldest first.
+
+    With more than ``limit`` runs in the range (a run a minute is 43,200 in 30 days), every
+    ``k``-th run counting back from the newest is returned, ``k = ceil(total / limit)``,
+    so the history spans the range; ``total`` says how many runs there were.  The thinning
+    happens in the database, which reads the KPIs of the returned runs only.
+    """
+    _loop_or_404(session, loop_id)
+    until = state.clock() if until is None else until
+    since = until - 30 * 86400.0 if since is None else since
+    if not until > since:
+        raise HTTPException(422, "until must be after since")
+    in_range = (AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok",
+                AnalysisRun.started_at >= since, AnalysisRun.started_at <= until)
+    total = session.scalar(select(func.count()).where(*in_range)) or 0
+    step = max(1, -(-total // limit))
+    numbered = select(
+        AnalysisRun.id,
+        func.row_number().over(order_by=(AnalysisRun.started_at.desc(),
+                                          AnalysisRun.id.desc())).label("rn"),
+    ).where(*in_range).subquery()
+    chosen = select(numbered.c.id).where((numbered.c.rn - 1) % step == 0)
+    rows = session.execute(
+        select(AnalysisRun.id, AnalysisRun.started_at, AnalysisRun.window_start,
+               AnalysisRun.window_end, AnalysisRun.health, AnalysisRun.result["kpis"])
+        .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
+    ).all() if total else []
+    data = [KpiPointPublic(run_id=r[0], started_at=r[1], window_start=r[2], window_end=r[3],
+                           health=r[4], kpis=r[5]) for r in rows]
+    return KpiHistoryPublic(loop_id=loop_id, since=since, until=until, data=data,
+                            count=len(data), total=total)
 
 
 def _downsample(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,529 @@
+"""Loop performance KPIs: the standard figures of control-loop performance tools.
+
+One function per figure, each pure (arrays in, numbers out), each for
+signals already in % of span:
+
+* :func:`error_statistics` -- mean, standard deviation and IAE of the
+  control error ``SP - PV``, and the share of time PV spent within its limits;
+* :func:`harris_index` -- the minimum-variance (Harris) index with the
+  Desborough-Harris normalisation, from the dead time in samples;
+* :func:`valve_travel_per_day` and :func:`reversals_per_day` -- OP travel
+  beyond noise and its direction changes (the valve's wear);
+* :func:`saturation` -- the share of time OP sat at its limits;
+* :func:`setpoint_responses` -- overshoot, settling time and IAE of each
+  set-point step in the window;
+* :func:`service_factor` -- the share of time in normal mode (auto or
+  cascade) from a mode signal;
+* :func:`oscillation_index` -- from the oscillation detection's result.
+
+:func:`loop_kpis` computes them all for one window into a :class:`LoopKpis`.
+
+References
+----------
+.. [1] T. J. Harris, "Assessment of control loop performance", Can. J. Chem.
+   Eng. 67 (1989) 856-861.
+.. [2] L. Desborough and T. Harris, "Performance assessment measures for
+   univariate feedback control", Can. J. Chem. Eng. 70 (1992) 1186-1197.
+.. [3] M. Jelali, *Control Performance Management in Industrial Automation*,
+   Springer 2013, ch. 2 (error statistics, IAE), ch. 3 (minimum-variance
+   benchmark), ch. 7 (valve travel and reversals, saturation, service factor).
+.. [4] K. J. Astrom and T. Hagglund, *Advanced PID Control*, ISA 2006, sec.
+   4.2 (set-point response: overshoot, settling time with a 2 % band, IAE).
+.. [5] N. F. Thornhill, B. Huang and H. Zhang, "Detection of multiple
+   oscillations in control loops", J. Process Control 13 (2003) 91-100.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import solve_toeplitz
+
+from analytics.stiction.stick_jump import (
+    _moving_average,
+    op_travel,
+    robust_noise,
+    travel_increments,
+)
+
+__all__ = [
+    "ErrorStatistics",
+    "HarrisIndex",
+    "LoopKpis",
+    "ServiceFactor",
+    "SetpointResponse",
+    "error_statistics",
+    "harris_index",
+    "loop_kpis",
+    "oscillation_index",
+    "reversals_per_day",
+    "saturation",
+    "service_factor",
+    "setpoint_responses",
+    "valve_travel_per_day",
+]
+
+FloatArray = NDArray[np.float64]
+Mode = Literal["auto", "cascade", "manual"]
+DAY_S = 86400.0
+
+
+@dataclass(frozen=True)
+class ErrorStatistics:
+    """Statistics of the control error ``e = SP - PV`` (% of span).
+
+    Attributes
+    ----------
+    mean, std : float
+        Mean and (population) standard deviation of ``e``.
+    iae : float
+        Integral of the absolute error, ``sum |e_k| ts`` (% s).
+    within_limits : float or None
+        Share (0..1) of samples whose PV lies within ``limits``; None without limits.
+    """
+
+    mean: float
+    std: float
+    iae: float
+    within_limits: float | None
+
+
+def error_statistics(sp: FloatArray, pv: FloatArray, ts: float,
+                     limits: tuple[float, float] | None = None) -> ErrorStatistics:
+    """Mean, standard deviation and IAE of ``SP - PV``, and time within PV limits.
+
+    Samples where SP or PV is missing (NaN) are left out (Jelali 2013, sec. 2.1).
+
+    Examples
+    --------
+    >>> s = error_statistics(np.array([50.0, 50, 50, 50]), np.array([49.0, 51, 49, 51]), 2.0,
+    ...                      limits=(49.5, 60.0))
+    >>> (s.mean, s.std, s.iae, s.within_limits)
+    (0.0, 1.0, 8.0, 0.5)
+    """
+    e = np.asarray(sp, dtype=np.float64) - np.asarray(pv, dtype=np.float64)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return ErrorStatistics(float("nan"), float("nan"), float("nan"), None)
+    within = None
+    if limits is not None:
+        p = np.asarray(pv, dtype=np.float64)
+        p = p[np.isfinite(p)]
+        within = float(np.mean((p >= limits[0]) & (p <= limits[1]))) if p.size else None
+    return ErrorStatistics(float(e.mean()), float(e.std()), float(np.abs(e).sum() * ts), within)
+
+
+@dataclass(frozen=True)
+class HarrisIndex:
+    """The minimum-variance benchmark of one window.
+
+    Attributes
+    ----------
+    mv_variance : float
+        Estimated minimum achievable variance ``sigma_mv^2`` (``%^2``): the
+        variance of the ``d``-step-ahead prediction error of the output.
+    mse : float
+        Mean square of the control error (variance plus squared mean).
+    ratio : float
+        ``sigma_mv^2 / mse``, the Harris index: 1 at minimum-variance control,
+        towards 0 the further from it.
+    normalised : float
+        Desborough-Harris normalised index ``eta = 1 - ratio``: 0 at
+        minimum variance, towards 1 for a poorly performing loop.
+    dead_time : int
+        The dead time ``d`` in samples used.
+    """
+
+    mv_variance: float
+    mse: float
+    ratio: float
+    normalised: float
+    dead_time: int
+
+
+def harris_index(error: FloatArray, dead_time: int, order: int | None = None
+                 ) -> HarrisIndex | None:
+    """Minimum-variance (Harris) index with the Desborough-Harris normalisation.
+
+    Under feedback the first ``d`` terms of the output's impulse response to
+    the disturbance's white-noise source cannot be changed by any controller
+    (``d`` the dead time in samples, counting the zero-order hold: a
+    continuous dead time ``theta`` gives ``d = floor(theta / ts) + 1``).  So
+    the minimum variance is the variance of the ``d``-step-ahead prediction
+    error, which Desborough and Harris (1992, eq. 12-14) estimate by the
+    least-squares regression of ``y_t`` on ``y_{t-d}, ..., y_{t-d-m+1}``
+    (``y`` the mean-removed error).  Here the regression's normal equations
+    are solved in their autocovariance (Yule-Walker, Toeplitz) form, with
+    autocovariances over the pairs of present samples, so gaps cost nothing
+    and the order can be high; the residual variance is corrected for the
+    ``m`` fitted coefficients (``N / (N - m)``).  Their normalised index is
+    ``eta = 1 - sigma_mv^2 / mse`` with the mean square error ``mse``
+    (variance plus squared offset, which a minimum-variance controller would
+    remove).
+
+    ``order`` defaults to ``1.7 sqrt(N)`` (102 for an hour at 1 s), not the
+    paper's 20-30: under integral action the closed loop's output has a zero
+    near 1, its autoregressive form decays slowly, and a short model
+    overestimates the ratio by 5-8 % (``tests/analytics/test_kpi.py``
+    measures it); a much longer one underestimates it from the autocovariance
+    estimates' own error.
+
+    Returns None with fewer than ``10 m`` samples, or a constant error.
+
+    References
+    ----------
+    Harris (1989); Desborough and Harris (1992), eq. 12-14 and 18.
+    """
+    if dead_time < 1:
+        raise ValueError(f"dead_time must be at least one sample, got {dead_time}")
+    e = np.asarray(error, dtype=np.float64)
+    present = np.isfinite(e)
+    count = int(present.sum())
+    m = int(np.ceil(1.7 * np.sqrt(count))) if order is None else order
+    if count < 10 * m or count < 2:
+        return None
+    mean = float(e[present].mean())
+    y = np.where(present, e - mean, 0.0)
+    lags = dead_time + m
+    nfft = 1 << int(2 * e.size - 1).bit_length()
+    spectrum = np.fft.rfft(y, nfft)
+    mask = np.fft.rfft(present.astype(np.float64), nfft)
+    products = np.fft.irfft(spectrum * np.conj(spectrum), nfft)[:lags]
+    pairs = np.rint(np.fft.irfft(mask * np.conj(mask), nfft)[:lags])
+    if np.any(pairs < 1):
+        return None
+    r = products / pairs  # autocovariance over the pairs of present samples
+    if not r[0] > 0:
+        return None
+    alpha = solve_toeplitz(r[:m], r[dead_time:lags])
+    # The residual variance of m fitted coefficients, corrected for the degrees of freedom.
+    mv = max(float(r[0] - alpha @ r[dead_time:lags]), 0.0) * count / (count - m)
+    mse = float(r[0] + mean**2)
+    ratio = mv / mse
+    return HarrisIndex(mv, mse, ratio, 1.0 - ratio, dead_time)
+
+
+def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
+    """OP moves beyond noise as :func:`analytics.stiction.stick_jump.op_travel` counts them."""
+    return travel_increments(_moving_average(op, smoothing), noise_sigmas * robust_noise(op))
+
+
+def _finite(x: FloatArray) -> FloatArray:
+    x = np.asarray(x, dtype=np.float64)
+    return x[np.isfinite(x)]
+
+
+def valve_travel_per_day(op: FloatArray, ts: float) -> float:
+    """OP travel beyond noise, in % of span per day.
+
+    :func:`analytics.stiction.stick_jump.op_travel` (OP smoothed over three
+    samples, a backlash of three noise standard deviations, so noise adds no
+    travel) scaled from the window's length to a day (Jelali 2013, sec. 7.3:
+    the valve travel index of valve monitoring).  Missing samples are skipped.
+
+    Examples
+    --------
+    Three steps of 10 % in 400 samples at 216 s (one day); the backlash
+    ``b = 3 robust_noise(op) = 1.84`` takes ``b`` off the first move and ``2 b``
+    off each move after a reversal, ``30 - 5 b``:
+
+    >>> op = np.repeat([0.0, 10.0, 0.0, 10.0], 100)
+    >>> round(valve_travel_per_day(op, 216.0), 5)
+    20.80291
+    """
+    x = _finite(op)
+    if x.size < 2:
+        return 0.0
+    return op_travel(x) * DAY_S / (x.size * ts)
+
+
+def reversals_per_day(op: FloatArray, ts: float) -> float:
+    """Direction changes of OP's moves beyond noise, per day.
+
+    The moves are those :func:`valve_travel_per_day` sums
+    (:func:`analytics.stiction.stick_jump.travel_increments`); a move upwards
+    means OP rose at that sample (the backlash follows OP only while OP leaves
+    its band), so the direction of each move is the sign of OP's difference.
+    A reversal is a move opposite to the previous one (Jelali 2013, sec. 7.3).
+
+    Examples
+    --------
+    >>> op = np.repeat([0.0, 10.0, 0.0, 10.0], 100)
+    >>> reversals_per_day(op, 216.0)
+    2.0
+    """
+    x = _finite(op)
+    if x.size < 2:
+        return 0.0
+    smoothed = _moving_average(x, 3)
+    moves = _moves(x)
+    idx = np.flatnonzero(moves > 0)
+    idx = idx[idx > 0]
+    direction = np.sign(smoothed[idx] - smoothed[idx - 1])
+    direction = direction[direction != 0]
+    reversals = int(np.count_nonzero(direction[1:] != direction[:-1]))
+    return reversals * DAY_S / (x.size * ts)
+
+
+def saturation(op: FloatArray, low: float = 0.0, high: float = 100.0,
+               margin: float = 0.5) -> float:
+    """Share (0..1) of samples with OP at a limit: within ``margin`` of ``low`` or ``high``.
+
+    Time at the output limits (Jelali 2013, sec. 7.4): a saturated loop has
+    no control authority left.
+
+    >>> saturation(np.array([0.0, 0.2, 50, 99.8, 100, 60]))
+    0.6666666666666666
+    """
+    x = _finite(op)
+    if x.size == 0:
+        return 0.0
+    return float(np.mean((x <= low + margin) | (x >= high - margin)))
+
+
+@dataclass(frozen=True)
+class SetpointResponse:
+    """The response to one set-point step.
+
+    Attributes
+    ----------
+    at_s : float
+        When the step came, s from the window's first sample.
+    step : float
+        Size of the step (% of span, signed).
+    overshoot : float
+        Largest excursion of PV beyond the new set point in the step's
+        direction, in % of the step (0 without overshoot).
+    settling_time_s : float or None
+        Time from the step until PV enters the settling band around the new
+        set point for good; None when it had not settled before the next
+        step or the window's end.
+    iae : float
+        ``sum |SP - PV| ts`` from the step to the next one or the window's end (% s).
+    duration_s : float
+        How long the response was observed.
+    """
+
+    at_s: float
+    step: float
+    overshoot: float
+    settling_time_s: float | None
+    iae: float
+    duration_s: float
+
+
+def setpoint_responses(sp: FloatArray, pv: FloatArray, ts: float, *, min_step: float = 1.0,
+                       band: float = 0.02, noise_sigmas: float = 3.0
+                       ) -> tuple[SetpointResponse, ...]:
+    """Overshoot, settling time and IAE of each set-point step in the window.
+
+    A step is a change of SP of at least ``min_step`` (% of span) from one
+    sample to the next; its response runs until the next step or the window's
+    end.  The settling band is ``band`` of the step (2 %, Astrom and
+    Hagglund 2006, sec. 4.2) but no narrower than ``noise_sigmas`` noise
+    standard deviations of PV (:func:`analytics.stiction.stick_jump.robust_noise`),
+    so measurement noise alone does not keep a loop from settling.
+
+    References
+    ----------
+    Astrom and Hagglund (2006), sec. 4.2 (overshoot, settling time, IAE).
+    """
+    s = np.asarray(sp, dtype=np.float64)
+    p = np.asarray(pv, dtype=np.float64)
+    ds = np.diff(s)
+    steps = np.flatnonzero(np.abs(np.nan_to_num(ds)) >= min_step) + 1
+    if steps.size == 0:
+        return ()
+    finite_pv = _finite(p)
+    noise = robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+    ends = np.append(steps[1:], s.size)
+    out = []
+    for k, end in zip(steps, ends, strict=True):
+        step = float(s[k] - s[k - 1])
+        target = s[k:end]
+        e = target - p[k:end]
+        ok = np.isfinite(e)
+        if not ok.any():
+            continue
+        signed = -np.sign(step) * e  # > 0 where PV is beyond the set point in the step's way
+        overshoot = max(0.0, float(np.nanmax(np.where(ok, signed, np.nan)))) / abs(step) * 100
+        width = max(band * abs(step), noise_sigmas * noise)
+        outside = np.flatnonzero(~ok | (np.abs(np.nan_to_num(e)) > width))
+        if outside.size and outside[-1] == e.size - 1:
+            settling = None
+        else:
+            settling = float((outside[-1] + 1) * ts) if outside.size else 0.0
+        out.append(SetpointResponse(
+            at_s=float(k * ts), step=step, overshoot=overshoot, settling_time_s=settling,
+            iae=float(np.abs(e[ok]).sum() * ts), duration_s=float((end - k) * ts),
+        ))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ServiceFactor:
+    """Time in each controller mode, as shares (0..1) of the samples.
+
+    Attributes
+    ----------
+    auto, cascade, manual, unknown : float
+        Shares of the samples in each mode; ``unknown`` for raw values the
+        mapping does not name (and missing ones).
+    normal : float
+        ``auto + cascade``: the service factor.
+    manual_s : float
+        Time in manual (s).
+    """
+
+    auto: float
+    cascade: float
+    manual: float
+    unknown: float
+    normal: float
+    manual_s: float
+
+
+def service_factor(mode: ArrayLike, mapping: Mapping[Any, Mode], ts: float) -> ServiceFactor:
+    """The share of time in normal mode (auto or cascade) and the time in manual.
+
+    ``mode`` holds the raw mode values (as the DCS reports them: numbers or
+    strings); ``mapping`` says which raw value means ``auto``, ``cascade`` or
+    ``manual``.  The service factor of Jelali (2013, sec. 7.2): a loop that
+    spends its time in manual is no loop.
+
+    Examples
+    --------
+    >>> f = service_factor([1, 1, 2, 0, 0, 0, 1, 9], {0: "manual", 1: "auto", 2: "cascade"}, 10.0)
+    >>> (f.normal, f.manual, f.unknown, f.manual_s)
+    (0.5, 0.375, 0.125, 30.0)
+    """
+    raw = np.asarray(mode)
+    n = raw.size
+    if n == 0:
+        return ServiceFactor(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    counts = {"auto": 0, "cascade": 0, "manual": 0}
+    values, frequency = np.unique(raw, return_counts=True)
+    for value, count in zip(values.tolist(), frequency.tolist(), strict=True):
+        name = mapping.get(value)
+        if name is not None:
+            counts[name] += int(count)
+    auto, cascade, manual = (counts[k] / n for k in ("auto", "cascade", "manual"))
+    return ServiceFactor(auto, cascade, manual, 1.0 - auto - cascade - manual, auto + cascade,
+                         counts["manual"] * ts)
+
+
+def oscillation_index(detected: bool, regularity: float | None) -> float:
+    """Oscillation index 0 (none) .. 1 (a strongly regular oscillation).
+
+    ``min(r, 10) / 10`` for a detected oscillation of regularity ``r``
+    (Thornhill et al. 2003: ``r > 1`` is a regular oscillation, the larger the
+    more certainly a persistent cycle), 0 when none was detected -- the same
+    scale the loop health score uses (:func:`service.analysis.health_score`).
+
+    >>> oscillation_index(True, 4.0), oscillation_index(False, 4.0), oscillation_index(True, 25)
+    (0.4, 0.0, 1.0)
+    """
+    if not detected or regularity is None:
+        return 0.0
+    return min(float(regularity), 10.0) / 10.0
+
+
+@dataclass(frozen=True)
+class LoopKpis:
+    """The performance KPIs of one loop window (signals in % of span).
+
+    Attributes
+    ----------
+    samples, ts : int, float
+        Window length and sampling interval (s).
+    error : ErrorStatistics or None
+        None without SP and PV.
+    harris : HarrisIndex or None
+        None when the dead time is unknown or there are too few samples.
+    dead_time_source : {"configured", "unknown"}
+        Where the dead time came from.
+    travel_per_day, reversals_per_day, saturation : float or None
+        OP figures; None without OP.
+    setpoint_responses : tuple of SetpointResponse
+    service_factor : ServiceFactor or None
+        None without a mode signal.
+    oscillation_index : float or None
+        None when the oscillation detection did not run.
+    notes : tuple of str
+        What was skipped and why.
+    """
+
+    samples: int
+    ts: float
+    error: ErrorStatistics | None
+    harris: HarrisIndex | None
+    dead_time_source: str
+    travel_per_day: float | None
+    reversals_per_day: float | None
+    saturation: float | None
+    setpoint_responses: tuple[SetpointResponse, ...] = ()
+    service_factor: ServiceFactor | None = None
+    oscillation_index: float | None = None
+    notes: tuple[str, ...] = field(default=())
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready form (NaN becomes None)."""
+        def clean(value: Any) -> Any:
+            if isinstance(value, float) and not np.isfinite(value):
+                return None
+            if isinstance(value, dict):
+                return {k: clean(v) for k, v in value.items()}
+            if isinstance(value, list | tuple):
+                return [clean(v) for v in value]
+            return value
+
+        result: dict[str, Any] = clean(asdict(self))
+        return result
+
+
+def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None = None,
+              sp: FloatArray | None = None, dead_time: int | None = None,
+              pv_limits: tuple[float, float] | None = None,
+              mode: Sequence[Any] | FloatArray | None = None,
+              mode_mapping: Mapping[Any, Mode] | None = None,
+              oscillation: Mapping[str, Any] | None = None) -> LoopKpis:
+    """All KPIs of one window; signals in % of span, ``dead_time`` in samples (or None).
+
+    ``oscillation`` is the oscillation part of a diagnosis
+    (:meth:`analytics.diagnosis.LoopDiagnosis.to_dict`: ``detected``, ``regularity``).
+    """
+    notes: list[str] = []
+    n = max((x.size for x in (op, pv, sp) if x is not None), default=0)
+    error = harris = None
+    responses: tuple[SetpointResponse, ...] = ()
+    if sp is not None and pv is not None:
+        error = error_statistics(sp, pv, ts, pv_limits)
+        responses = setpoint_responses(sp, pv, ts)
+        if dead_time is None:
+            notes.append("dead time unknown: no minimum-variance (Harris) index")
+        else:
+            harris = harris_index(sp - pv, dead_time)
+            if harris is None:
+                notes.append("too few complete samples for the minimum-variance index")
+    else:
+        notes.append("no SP or no PV: no error statistics")
+    travel = reversals = sat = None
+    if op is not None and np.isfinite(op).any():
+        travel, reversals, sat = valve_travel_per_day(op, ts), reversals_per_day(op, ts), \
+            saturation(op)
+    factor = None
+    if mode is not None and mode_mapping is not None:
+        factor = service_factor(mode, mode_mapping, ts)
+    osc = None if oscillation is None else oscillation_index(
+        bool(oscillation.get("detected")), oscillation.get("regularity"))
+    return LoopKpis(
+        samples=n, ts=ts, error=error, harris=harris,
+        dead_time_source="unknown" if dead_time is None else "configured",
+        travel_per_day=travel, reversals_per_day=reversals, saturation=sat,
+        setpoint_responses=responses, service_factor=factor, oscillation_index=osc,
+        notes=tuple(notes),
+    )

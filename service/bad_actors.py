@@ -1,0 +1,147 @@
+"""The KPI-based bad-actor score: KPI severity x loop importance x time spent bad.
+
+Each stored analysis run carries the KPIs of its window (``result["kpis"]``,
+:func:`service.analysis.analyse_window`).  Over a period the score of a loop is
+
+``score = 100 x severity x weight(importance) x bad_share``
+
+* a run's **severity** (0..1) is its worst KPI component
+  (:data:`COMPONENTS`): the oscillation index, the Desborough-Harris
+  normalised index beyond 0.5 (``(eta - 0.5) / 0.5``: more than twice the
+  minimum variance), the share of time OP saturated, the share of time PV
+  spent outside its configured limits, the share of time not in normal mode,
+  and the diagnosis's ``1 - health / 100`` (stiction, data quality);
+* a run is **bad** when its severity is at least :data:`BAD_SEVERITY`;
+  ``bad_share`` is the share of the period's analysed runs that were bad
+  (time spent bad, not only the latest run);
+* ``severity`` of the loop is the mean severity of its bad runs;
+* the importance **weight** is :data:`IMPORTANCE_WEIGHT` (low 0.5, medium 1,
+  high 1.5, critical 2).
+
+A loop bad in every run of the week with a strong regular oscillation
+(severity 0.8) and importance high scores 120; a loop never bad scores 0.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "BAD_SEVERITY",
+    "COMPONENTS",
+    "IMPORTANCE_WEIGHT",
+    "LoopScore",
+    "run_components",
+    "score_loop",
+]
+
+BAD_SEVERITY = 0.3
+"""A run whose worst KPI component reaches this is a bad run."""
+
+IMPORTANCE_WEIGHT: dict[str, float] = {"low": 0.5, "medium": 1.0, "high": 1.5, "critical": 2.0}
+
+COMPONENTS: dict[str, str] = {
+    "oscillation": "oscillation index",
+    "variance": "variance above minimum (Harris)",
+    "saturation": "OP at its limits",
+    "limits": "PV outside its limits",
+    "manual": "not in normal mode",
+    "diagnosis": "diagnosis (health)",
+}
+"""The severity components of a run and how the ``why`` names them."""
+
+
+def run_components(health: float | None, kpis: dict[str, Any] | None) -> dict[str, float]:
+    """The severity components (0..1) of one run: those its KPIs and health measure.
+
+    >>> run_components(40.0, {"oscillation_index": 0.5, "saturation": 0.1, "harris": {
+    ...     "normalised": 0.75}, "error": {"within_limits": None}, "service_factor": None})
+    {'oscillation': 0.5, 'variance': 0.5, 'saturation': 0.1, 'diagnosis': 0.6}
+    """
+    out: dict[str, float] = {}
+    k = kpis or {}
+    if k.get("oscillation_index") is not None:
+        out["oscillation"] = float(k["oscillation_index"])
+    harris = k.get("harris") or {}
+    if harris.get("normalised") is not None:
+        out["variance"] = min(1.0, max(0.0, (float(harris["normalised"]) - 0.5) / 0.5))
+    if k.get("saturation") is not None:
+        out["saturation"] = float(k["saturation"])
+    within = (k.get("error") or {}).get("within_limits")
+    if within is not None:
+        out["limits"] = 1.0 - float(within)
+    factor = k.get("service_factor") or {}
+    if factor.get("normal") is not None:
+        out["manual"] = 1.0 - float(factor["normal"])
+    if health is not None:
+        out["diagnosis"] = 1.0 - float(health) / 100.0
+    return out
+
+
+@dataclass(frozen=True)
+class LoopScore:
+    """A loop's bad-actor score over a period and why.
+
+    Attributes
+    ----------
+    score : float
+        ``100 x severity x weight x bad_share``.
+    severity : float
+        Mean severity of the bad runs (0 without any).
+    bad_share : float
+        Share of the period's analysed runs that were bad.
+    runs, bad_runs : int
+        Analysed runs in the period, and how many were bad.
+    worst : str or None
+        The component that was worst on average over the bad runs.
+    why : str
+        The score in words.
+    """
+
+    score: float
+    severity: float
+    bad_share: float
+    runs: int
+    bad_runs: int
+    worst: str | None
+    why: str
+
+
+def score_loop(runs: Iterable[tuple[float | None, dict[str, Any] | None]], importance: str,
+               period: str) -> LoopScore:
+    """The bad-actor score of one loop from its runs ``(health, kpis)`` over ``period``.
+
+    >>> s = score_loop([(100.0, {"oscillation_index": 0.8})] * 3
+    ...                + [(100.0, {"oscillation_index": 0.0})], "high", "7d")
+    >>> s.score, s.bad_runs, s.worst
+    (90.0, 3, 'oscillation')
+    >>> s.why
+    'bad in 3 of 4 runs (75 %) over 7d; worst: oscillation index 0.80; importance high (x1.5)'
+    """
+    weight = IMPORTANCE_WEIGHT.get(importance, 1.0)
+    severities: list[float] = []
+    totals: dict[str, float] = {}
+    n = 0
+    for health, kpis in runs:
+        n += 1
+        components = run_components(health, kpis)
+        severity = max(components.values(), default=0.0)
+        if severity >= BAD_SEVERITY:
+            severities.append(severity)
+            for name, value in components.items():
+                totals[name] = totals.get(name, 0.0) + value
+    if n == 0:
+        return LoopScore(0.0, 0.0, 0.0, 0, 0, None, f"no analysed run over {period}")
+    bad = len(severities)
+    if bad == 0:
+        return LoopScore(0.0, 0.0, 0.0, n, 0, None, f"bad in none of {n} runs over {period}")
+    severity = sum(severities) / bad
+    share = bad / n
+    worst = max(totals, key=lambda name: totals[name])
+    why = (f"bad in {bad} of {n} runs ({100 * share:.0f} %) over {period}; worst: "
+           f"{COMPONENTS[worst]} {totals[worst] / bad:.2f}; "
+           f"importance {importance} (x{weight:g})")
+    return LoopScore(round(100.0 * severity * weight * share, 6), severity, share, n, bad,
+                     worst, why)

@@ -1,0 +1,269 @@
+"""KPIs in the service: stored with every analysis run, their history, the bad-actor score.
+
+A real store (SQLite and PostgreSQL, ``tests/service/conftest.py``), real
+ingest and the real scheduler for the stored KPIs; a loop whose valve
+sticks more day by day, analysed by :func:`service.analysis.analyse_window`
+and stored run by run, for the history and the ranking.
+"""
+
+import csv
+import io
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from analytics.kpi import oscillation_index
+from analytics.synthetic_cases import synthetic_library
+from service.analysis import analyse_window
+from service.config import PlantConfig, Settings
+from service.server import build_service
+from service.store.models import AnalysisRun, Ticket
+from tests.service.test_api import ADMIN, T0, key, simulated_batch
+
+DAY = 86400.0
+
+
+def plant() -> PlantConfig:
+    """The two loops of ``test_api``; FIC-1 with a process model (dead time 3 s) and PV
+    limits, FIC-2 with neither."""
+    loop = {"ts": 1.0, "ranges": {"op": [0, 100], "pv": [0, 100]},
+            "process_type": "self-regulating", "controller": {"Kc": 0.5, "Ti": 8}}
+    return PlantConfig.model_validate({
+        "units": [{"id": "u1", "name": "Unit 1"}],
+        "loops": [
+            {**loop, "id": "FIC-1", "unit": "u1", "valve_asset": "FV-1", "importance": "high",
+             "process_model": {"type": "fopdt", "K": 1.0, "tau": 10.0, "theta": 3.0},
+             "pv_limits": [20, 80],
+             "tags": {"op": "FIC-1.OP", "pv": "FIC-1.PV", "sp": "FIC-1.SP"}},
+            {**loop, "id": "FIC-2", "unit": "u1", "valve_asset": "FV-2",
+             "tags": {"op": "FIC-2.OP", "pv": "FIC-2.PV", "sp": "FIC-2.SP"}},
+        ],
+    })
+
+
+class Clock:
+    def __init__(self, now: float) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock():
+    return Clock(T0)
+
+
+@pytest.fixture
+def service(store, clock):
+    settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
+                        buffer_horizon_s=7200, ticket_confirmations=2)
+    svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=clock)
+    yield svc
+    svc.executor.shutdown()
+    svc.state.store.close()
+
+
+@pytest.fixture
+def client(service):
+    return TestClient(service.app)
+
+
+def test_every_run_stores_its_kpis_and_the_history_returns_them(service, client):
+    historian, viewer = key(client, "historian"), key(client, "viewer")
+    assert client.post("/api/v1/ingest", json=simulated_batch(7200),
+                       headers=historian).status_code == 200
+    service.scheduler.run_once(T0 - 3600)
+    service.scheduler.run_once(T0)
+
+    with service.state.store.session() as session:
+        stored = {r.loop_id: r.result for r in session.query(AnalysisRun)
+                  .filter(AnalysisRun.started_at == T0)}
+    sticky, healthy = stored["FIC-1"]["kpis"], stored["FIC-2"]["kpis"]
+    # The oscillation index is the one of the run's own oscillation result.
+    osc = stored["FIC-1"]["oscillation"]
+    assert osc["detected"] is True
+    assert sticky["oscillation_index"] == oscillation_index(True, osc["regularity"]) > 0
+    # Dead time 3 s at 1 s: d = 3 + 1 samples with the hold; FIC-2 has none configured.
+    assert sticky["dead_time_source"] == "configured" and sticky["harris"]["dead_time"] == 4
+    assert 0 < sticky["harris"]["ratio"] <= 1.0
+    assert healthy["harris"] is None and healthy["dead_time_source"] == "unknown"
+    assert any("dead time unknown" in note for note in healthy["notes"])
+    assert sticky["error"]["within_limits"] is not None
+    assert healthy["error"]["within_limits"] is None
+    assert sticky["samples"] == 3600 and sticky["travel_per_day"] > healthy["travel_per_day"]
+
+    history = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                         params={"since": T0 - 2 * 3600, "until": T0})
+    assert history.status_code == 200, history.text
+    body = history.json()
+    assert body["count"] == 2 and body["loop_id"] == "FIC-1"
+    assert [p["started_at"] for p in body["data"]] == [T0 - 3600, T0]  # oldest first
+    assert body["data"][-1]["kpis"] == sticky
+    only_last = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                           params={"since": T0 - 60, "until": T0}).json()
+    assert only_last["count"] == 1
+    assert client.get("/api/v1/loops/FIC-1/kpis", headers=viewer).json()["count"] == 2
+
+
+def test_kpi_history_refusals(client):
+    viewer, historian = key(client, "viewer"), key(client, "historian")
+    url = "/api/v1/loops/FIC-1/kpis"
+    missing = client.get("/api/v1/loops/FIC-9/kpis", headers=viewer)
+    assert (missing.status_code, missing.json()) == (404, {"detail": "Loop not found"})
+    backwards = client.get(url, headers=viewer, params={"since": T0, "until": T0 - 1})
+    assert (backwards.status_code, backwards.json()) == (
+        422, {"detail": "until must be after since"})
+    assert client.get(url, headers=viewer, params={"limit": 0}).status_code == 422
+    assert client.get(url, headers=viewer, params={"limit": 10_001}).status_code == 422
+    assert client.get(url, headers=viewer, params={"since": -1}).status_code == 422
+    assert client.get(url, headers=historian).status_code == 403
+    assert client.get(url).status_code == 401
+    assert client.get(url, headers=viewer).json() == {
+        "loop_id": "FIC-1", "since": T0 - 30 * DAY, "until": T0, "data": [], "count": 0,
+        "total": 0}
+
+
+def degrading_days(service, clock) -> None:
+    """Seven days, one analysed hour a day: FIC-2's valve sticks more from day 4
+    (Kano S = 2, 4, 8 on days 4-6 and 8 again on day 7); FIC-1 stays healthy."""
+    cases = {c.name: c for c in synthetic_library(3600)}
+    days = {"FIC-1": ["flow-noise-ts1"] * 7,
+            "FIC-2": ["flow-noise-ts1"] * 3 + ["flow-kano-S2-J1-ts1", "flow-kano-S4-J2-ts1",
+                                               "flow-kano-S8-J4-ts1", "flow-kano-S8-J4-ts1"]}
+    loops = {loop.id: loop.model_dump(mode="json") for loop in service.state.registry.plant.loops}
+    start = T0 - 7 * DAY
+    for day in range(7):
+        end = start + (day + 1) * DAY
+        with service.state.store.session() as session:
+            for loop_id, names in days.items():
+                sim = cases[names[day]].simulate()
+                t = end - 3600 + 1 + np.arange(3600.0)
+                result = analyse_window(loops[loop_id], 1.0, t, {
+                    "op": sim.op[0], "pv": sim.pv[0], "sp": sim.sp[0], "mv": None})
+                session.add(AnalysisRun(
+                    loop_id=loop_id, started_at=end, finished_at=end, window_start=end - 3600,
+                    window_end=end, status="ok", usable=result["quality"]["usable"],
+                    oscillating=result["oscillation"]["detected"], health=result["health"],
+                    verdict=result["stiction"]["verdict"], result=result, round_end=end))
+    clock.now = start + 7 * DAY
+
+
+def test_a_degrading_loop_shows_its_trend_and_climbs_the_ranking(service, client, clock):
+    viewer = key(client, "viewer")
+    degrading_days(service, clock)
+    history = client.get("/api/v1/loops/FIC-2/kpis", headers=viewer,
+                         params={"since": clock.now - 7 * DAY}).json()["data"]
+    assert len(history) == 7
+    index = [p["kpis"]["oscillation_index"] for p in history]
+    assert index[:3] == [0.0, 0.0, 0.0] and min(index[-3:]) > 0.3  # the valve's cycle shows
+    travel = [p["kpis"]["travel_per_day"] for p in history]
+    assert min(travel[-3:]) > max(travel[:3])  # and the valve travels more
+
+    # Over the first three days both loops are healthy: FIC-1 ranks first by importance
+    # and health; over the week FIC-2 is the bad actor, and says why.
+    clock.now -= 4 * DAY
+    early = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                       params={"period": "3d"}).json()
+    assert [r["score"] for r in early["data"]] == [0.0, 0.0]
+    week_end = clock.now + 4 * DAY
+    clock.now = week_end
+    week = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                      params={"period": "7d"}).json()
+    assert week["period"] == "7d" and week["since"] == week_end - 7 * DAY
+    first = week["data"][0]
+    assert first["id"] == "FIC-2" and first["score"] > 0
+    assert first["runs"] == 7 and 3 <= first["bad_runs"] <= 4
+    assert first["bad_share"] == first["bad_runs"] / 7
+    assert first["score"] == pytest.approx(100 * first["severity"] * 1.0 * first["bad_share"])
+    assert first["why"].startswith(f"bad in {first['bad_runs']} of 7 runs")
+    assert "importance medium (x1)" in first["why"]
+    # The existing keys stay.
+    assert {"id", "health", "oscillating", "verdict", "active_alarms"} <= first.keys()
+    assert week["data"][1]["id"] == "FIC-1" and week["data"][1]["score"] == 0.0
+    # Over the last day only, FIC-2 is bad in its only run.
+    day = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                     params={"period": "1d"}).json()["data"][0]
+    assert (day["id"], day["runs"], day["bad_share"]) == ("FIC-2", 1, 1.0)
+
+
+def test_bad_actor_period_is_bounded(client):
+    viewer = key(client, "viewer")
+    assert client.get("/api/v1/plant/bad-actors", headers=viewer,
+                      params={"period": "93d"}).json() == {
+        "detail": "period must be at most 92 days"}
+    assert client.get("/api/v1/plant/bad-actors", headers=viewer,
+                      params={"period": "7w"}).status_code == 422
+
+
+def test_bad_actor_report_csv(service, client, clock):
+    viewer = key(client, "viewer")
+    degrading_days(service, clock)
+    with service.state.store.session() as session:  # an open ticket on FIC-2's valve
+        session.add(Ticket(valve_asset="FV-2", loop_id="FIC-2", state="open", priority=2,
+                           title="FV-2 sticks", description="", location=None,
+                           malfunction_start=clock.now, evidence={}, created_at=clock.now,
+                           updated_at=clock.now))
+    response = client.get("/api/v1/reports/bad-actors", headers=viewer,
+                          params={"period": "7d", "format": "csv"})
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "text/csv; charset=utf-8"
+    assert 'filename="bad-actors-7d.csv"' in response.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(response.text)))
+    assert [r["loop"] for r in rows] == ["FIC-2", "FIC-1"]
+    ranking = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                         params={"period": "7d"}).json()["data"]
+    assert float(rows[0]["score"]) == pytest.approx(ranking[0]["score"], rel=1e-3)
+    assert rows[0]["why"] == ranking[0]["why"] and rows[0]["rank"] == "1"
+    assert rows[0]["open_tickets"].endswith(" FV-2") and rows[1]["open_tickets"] == ""
+    latest = client.get("/api/v1/loops/FIC-2/kpis", headers=viewer).json()["data"][-1]["kpis"]
+    assert float(rows[0]["oscillation_index"]) == pytest.approx(latest["oscillation_index"],
+                                                                rel=1e-3)
+    assert float(rows[0]["travel_per_day"]) == pytest.approx(latest["travel_per_day"],
+                                                             rel=1e-3)
+    assert rows[1]["harris_ratio"] != "" and rows[0]["harris_ratio"] == ""  # FIC-1 has theta
+    pdf = client.get("/api/v1/reports/bad-actors", headers=viewer, params={"format": "pdf"})
+    assert (pdf.status_code, pdf.json()) == (
+        501, {"detail": "The PDF report is not available yet; use format=csv"})
+    assert client.get("/api/v1/reports/bad-actors", headers=viewer,
+                      params={"format": "xls"}).status_code == 422
+
+
+def test_runs_a_minute_apart_count_once_per_window(service, client):
+    """Sixty runs in the last hour are one observation; one more an hour earlier is another."""
+    viewer = key(client, "viewer")
+    bad = {"oscillation_index": 0.9}
+    with service.state.store.session() as session:
+        for i in range(60):
+            end = T0 - 60.0 * i
+            session.add(AnalysisRun(loop_id="FIC-2", started_at=end, window_start=end - 3600,
+                                    window_end=end, status="ok", health=100.0,
+                                    result={"kpis": bad}, round_end=end))
+        session.add(AnalysisRun(loop_id="FIC-2", started_at=T0 - 5400, status="ok",
+                                health=100.0, result={"kpis": {"oscillation_index": 0.0}},
+                                round_end=T0 - 5400))
+    first = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                       params={"period": "1d"}).json()["data"][0]
+    assert (first["id"], first["runs"], first["bad_runs"]) == ("FIC-2", 2, 1)
+    assert first["score"] == pytest.approx(100 * 0.9 * 1.0 * 0.5)
+
+
+def test_a_long_history_is_thinned_evenly_to_the_limit(service, client):
+    viewer = key(client, "viewer")
+    with service.state.store.session() as session:
+        for i in range(100):
+            end = T0 - 60.0 * i
+            session.add(AnalysisRun(loop_id="FIC-1", started_at=end, status="ok",
+                                    health=float(i), result={"kpis": {"i": i}}, round_end=end))
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                      params={"since": T0 - 6000, "limit": 10}).json()
+    assert (body["count"], body["total"]) == (10, 100)
+    started = [p["started_at"] for p in body["data"]]
+    assert started[-1] == T0 and started == sorted(started)
+    assert [p["kpis"]["i"] for p in body["data"]] == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                      params={"since": T0 - 6000, "limit": 30}).json()  # every 4th run
+    assert (body["count"], body["total"]) == (25, 100)
+    assert body["data"][0]["kpis"]["i"] == 96
