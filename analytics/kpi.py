@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import solve_toeplitz
 
 from analytics.stiction.stick_jump import (
-    _moving_average,
+    moving_average,
     op_travel,
     robust_noise,
     travel_increments,
@@ -209,7 +209,7 @@ def harris_index(error: FloatArray, dead_time: int, order: int | None = None
 
 def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
     """OP moves beyond noise as :func:`analytics.stiction.stick_jump.op_travel` counts them."""
-    return travel_increments(_moving_average(op, smoothing), noise_sigmas * robust_noise(op))
+    return travel_increments(moving_average(op, smoothing), noise_sigmas * robust_noise(op))
 
 
 def _finite(x: FloatArray) -> FloatArray:
@@ -259,7 +259,7 @@ def reversals_per_day(op: FloatArray, ts: float) -> float:
     x = _finite(op)
     if x.size < 2:
         return 0.0
-    smoothed = _moving_average(x, 3)
+    smoothed = moving_average(x, 3)
     moves = _moves(x)
     idx = np.flatnonzero(moves > 0)
     idx = idx[idx > 0]

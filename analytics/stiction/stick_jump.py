@@ -89,6 +89,7 @@ __all__ = [
     "analyse_window",
     "find_stick_episodes",
     "loop_gain_sign",
+    "moving_average",
     "op_travel",
     "robust_noise",
     "travel_increments",
@@ -206,7 +207,7 @@ def robust_noise(x: FloatArray) -> float:
     return float(np.sqrt(np.mean(moving**2) * moving.size / d.size / 2.0))
 
 
-def _moving_average(x: FloatArray, width: int) -> FloatArray:
+def moving_average(x: FloatArray, width: int) -> FloatArray:
     """Centred moving average of ``width`` samples, the ends padded with the edge values."""
     if width <= 1:
         return x.astype(np.float64, copy=True)
@@ -246,7 +247,7 @@ def op_travel(op: FloatArray, *, smoothing: int = 3, noise_sigmas: float = 3.0) 
     """OP travel beyond noise over a window: :func:`valve_travel` of OP smoothed
     over ``smoothing`` samples, with a backlash of ``noise_sigmas`` OP noise
     standard deviations (:func:`robust_noise`)."""
-    return valve_travel(_moving_average(op, smoothing), noise_sigmas * robust_noise(op))
+    return valve_travel(moving_average(op, smoothing), noise_sigmas * robust_noise(op))
 
 
 def loop_gain_sign(op: FloatArray, pv: FloatArray, sp: FloatArray | None) -> int:
@@ -405,8 +406,8 @@ def find_stick_episodes(
     """
     pv_noise = robust_noise(proxy)
     op_noise = robust_noise(op)
-    y = _moving_average(proxy, smoothing)
-    u = _moving_average(op, smoothing)
+    y = moving_average(proxy, smoothing)
+    u = moving_average(op, smoothing)
     span = float(np.ptp(y))
     band = max(band_sigmas * pv_noise / np.sqrt(smoothing), 1e-9 * max(span, 1.0))
     if reference is None:
@@ -486,7 +487,7 @@ def valve_proxy(pv: FloatArray, ts: float, process_type: ProcessType | None,
     samples)."""
     if process_type == INTEGRATING:
         slope = np.diff(pv, prepend=pv[0]) / ts
-        return _moving_average(slope, smoothing)
+        return moving_average(slope, smoothing)
     return pv
 
 
