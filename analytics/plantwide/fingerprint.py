@@ -76,12 +76,14 @@ from analytics.valves import ChoudhuryValve, IdealValve, ValveModel
 
 __all__ = [
     "MIN_DISTORTION",
+    "MIN_OP_SHARE",
     "MODEL_ERROR",
     "VALVE_PENALTY",
     "CandidateFit",
     "Fingerprint",
     "LinearCheck",
     "ModelLocalisation",
+    "UnitModel",
     "linear_check",
     "locate_sticky_valves",
     "measure_fingerprint",
@@ -101,11 +103,49 @@ must remove to be named; chosen among 2-12 on simulated columns with seeds
 wrong gains, external sines), not on the seeds the tests and the benchmark
 score."""
 
+MIN_OP_SHARE = 0.01
+"""A valve is a candidate only if its OP's amplitude at the cycle is at least this
+share of the largest OP amplitude: a valve whose OP hardly moves can be neither
+blamed nor cleared by the cycle (its loop is still in the balance, healthy)."""
+
 MIN_DISTORTION = 0.015
 """Least third harmonic a named valve must add to its output, relative to its OP's
 fundamental.  A sticky valve distorts (0.013-1.9 on the calibration columns), a
 healthy valve passing on an external sine does not (at most 0.003); chosen
 with :data:`VALVE_PENALTY` (0.01-0.05 tried)."""
+
+
+@dataclass(frozen=True)
+class UnitModel:
+    """A unit's own model: its process matrix and configured controllers.
+
+    Attributes
+    ----------
+    loops : tuple of str
+        Loop ids in the row and column order of ``process``.
+    process : n x n nested sequence of TransferFunction or None
+        ``G[i][j]`` from valve ``j`` to PV ``i`` (% of span; thesis Eq. 2.10
+        for the column).
+    controllers : tuple of PIDController
+        The configured controller of each loop.
+    hold_delay : float or None
+        Dead time of the controllers' zero-order hold, s; None for half the
+        sampling interval of the data.
+    """
+
+    loops: tuple[str, ...]
+    process: ProcessMatrix
+    controllers: tuple[PIDController, ...]
+    hold_delay: float | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.loops)
+        if len(set(self.loops)) != n or n == 0:
+            raise ModelSpecError(f"a unit model needs distinct loop ids, got {self.loops}")
+        if len(self.controllers) != n:
+            raise ModelSpecError(f"{n} loops but {len(self.controllers)} controllers")
+        if len(self.process) != n or any(len(row) != n for row in self.process):
+            raise ModelSpecError(f"the process matrix must be {n} x {n}, one row per loop")
 
 
 @dataclass(frozen=True)
@@ -210,7 +250,8 @@ class ModelLocalisation:
         controllers explain the OP from the PV at the cycle (large values mean
         the model's tunings are not those running).
     candidates : tuple of CandidateFit
-        Every non-empty set, best first.
+        Every non-empty set of valves whose OP moves at the cycle
+        (:data:`MIN_OP_SHARE`), best first.
     no_valve_misfit : float
         Misfit with every valve healthy (what a linear unit would leave).
     no_valve_harmonic_misfit : float
@@ -497,9 +538,10 @@ def locate_sticky_valves(
     healthy_third = float(np.sum(np.abs(b3) ** 2))
     healthy = float(np.sum(np.abs(b - a.sum(axis=1)) ** 2)) + healthy_third
     _, band, jump = _gain_set()
+    testable = [k for k in range(n) if abs(x[k]) >= MIN_OP_SHARE * np.abs(x).max()]
     candidates = []
-    for size in range(1, n + 1):
-        for members in itertools.combinations(range(n), size):
+    for size in range(1, len(testable) + 1):
+        for members in itertools.combinations(testable, size):
             fundamental, chosen = _fit_fundamental(a, b, members)
             third, harmonic = _fit_third(a3, b3, members)
             s_fit = band[chosen] * np.abs(x[list(members)])
