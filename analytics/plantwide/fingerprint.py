@@ -32,7 +32,8 @@ valve's DF is taken at the amplitude its own OP has in the measured cycle.
    not depend on ``C``; its residual says whether model and data agree at all
    (``controller_residual``).  The sets are ranked by misfit plus
    :data:`VALVE_PENALTY` per valve; a set is admitted only if it beats the
-   healthy unit and each of its valves distorts (``|e_k| / |x_k| >=``
+   healthy unit, leaves at most :data:`FIT_SHARE` of its misfit, and each of
+   its valves distorts (``|e_k| / |x_k| >=``
    :data:`MIN_DISTORTION`): an external sine makes a healthy valve look like
    a lagging gain at the fundamental, but it adds no harmonic.
 4. **Forward check**: the winning set with its fitted ``S`` and ``J`` goes
@@ -75,6 +76,7 @@ from analytics.simulation import PIDController
 from analytics.valves import ChoudhuryValve, IdealValve, ValveModel
 
 __all__ = [
+    "FIT_SHARE",
     "MIN_DISTORTION",
     "MIN_OP_SHARE",
     "MODEL_ERROR",
@@ -107,6 +109,11 @@ MIN_OP_SHARE = 0.01
 """A valve is a candidate only if its OP's amplitude at the cycle is at least this
 share of the largest OP amplitude: a valve whose OP hardly moves can be neither
 blamed nor cleared by the cycle (its loop is still in the balance, healthy)."""
+
+FIT_SHARE = 0.5
+"""A set is named only if it leaves at most this share of the misfit of healthy
+valves: a set that explains a sliver of a cycle (its other valves being
+cleared by the distortion floor) does not name the cycle's source."""
 
 MIN_DISTORTION = 0.015
 """Least third harmonic a named valve must add to its output, relative to its OP's
@@ -556,7 +563,8 @@ def locate_sticky_valves(
             ))
     candidates.sort(key=lambda c: c.score)
     admitted = [c for c in candidates
-                if c.score < healthy and min(c.distortion) >= MIN_DISTORTION]
+                if c.score < healthy and c.misfit <= FIT_SHARE * healthy
+                and min(c.distortion) >= MIN_DISTORTION]
     best = admitted[0] if admitted else candidates[0]
     named = best.loops if admitted else ()
     predicted = None
@@ -580,14 +588,15 @@ def _note(check: LinearCheck, named: tuple[str, ...], best: CandidateFit, health
         cause = ("an external disturbance or a nonlinearity other than a valve"
                  if check.stable else "the tuning, an external disturbance or another "
                  "nonlinearity")
-        if best.score >= healthy:
+        if best.score >= healthy or best.misfit > FIT_SHARE * healthy:
             why = f"healthy valves explain it as well (misfit {healthy:.3g})"
         else:
             why = (f"{', '.join(best.loops)} would fit it (misfit {best.misfit:.3g} against "
                    f"{healthy:.3g}) but add no third harmonic (at most "
                    f"{min(best.distortion):.3f} of the OP, a sticky valve adds "
                    f"{MIN_DISTORTION:g} or more)")
-        return f"the cycle of {period_s:.4g} s comes from {cause}: {why}"
+        return (f"no set of sticky valves explains the cycle of {period_s:.4g} s: {why}; "
+                f"unless another test names a valve, it comes from {cause}")
     text = (f"sticky: {', '.join(named)} (harmonic-balance misfit {best.misfit:.3g} against "
             f"{healthy:.3g} with healthy valves)")
     if predicted is not None:
