@@ -22,7 +22,13 @@ and the single-loop methods then blame every valve whose loop cycles.
    fit noise).  A healthy valve in a loop shaken by a neighbour's cycle
    passes its OP through unchanged; a stiction model of it adds nothing.
 
-The named valves are those of step 4, in the order of their evidence; the
+5. **The unit's own model** (optional, :mod:`analytics.plantwide.fingerprint`,
+   thesis chapter 3): with the process matrix and the configured controllers,
+   the linear loops are checked and each cycle's fingerprint is held against
+   the harmonic balance (thesis Eqs. 3.11-3.14, ERRATA item 9) of every set
+   of sticky valves; the set it names joins the valves of step 4.
+
+The named valves are those of steps 4 and 5, in the order of their evidence; the
 shape count of step 2 and the nonlinearity ranking of step 3 are reported
 beside them.  On the simulated column (thesis section 2.4) the ranking by
 the surrogate index does not single out the sticky valves -- every signal of
