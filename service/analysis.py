@@ -18,11 +18,13 @@ from numpy.typing import NDArray
 
 from analytics.diagnosis import diagnose_loop
 from analytics.kpi import loop_kpis
-from analytics.plantwide import diagnose_unit
+from analytics.lti import TransferFunction
+from analytics.plantwide import UnitModel, diagnose_unit
+from analytics.simulation import PIDController
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
-    from service.config import LoopConfig
+    from service.config import LoopConfig, UnitConfig
 
 __all__ = [
     "UnitWindows",
@@ -33,6 +35,7 @@ __all__ = [
     "health_score",
     "stiction_pattern_text",
     "to_percent_of_span",
+    "unit_model_spec",
     "unit_windows",
     "valve_decisions",
 ]
@@ -238,11 +241,41 @@ def unit_windows(buffers: LoopBuffers, loops: Sequence[LoopConfig], window_s: fl
     return UnitWindows(signals, intervals, tuple(incomplete))
 
 
-def analyse_unit(signals: dict[str, tuple[FloatArray, FloatArray]], ts: float
-                 ) -> dict[str, Any]:
+def unit_model_spec(unit: UnitConfig | None, loops: Sequence[LoopConfig],
+                    windows: UnitWindows) -> dict[str, Any] | None:
+    """The unit's own model for its diagnosis, in plain (picklable) form: the plant file's
+    ``process`` matrix and the configured controllers of its loops, in matrix order.
+
+    None (the diagnosis then runs on the data alone) when the unit has no matrix, a
+    loop of the matrix has no controller, or its window is incomplete.
+    """
+    if unit is None or unit.process is None:
+        return None
+    by_id = {loop.id: loop for loop in loops}
+    controllers = []
+    for loop_id in unit.process.loops:
+        loop = by_id.get(loop_id)
+        if loop is None or loop.controller is None or loop_id not in windows.signals:
+            return None
+        c = loop.controller
+        controllers.append({"Kc": c.Kc, "Td": c.Td, "action": c.action,
+                            **({"Ti": c.Ti} if c.type != "P" and c.Ti is not None else {})})
+    return {"loops": list(unit.process.loops), "matrix": unit.process.matrix,
+            "controllers": controllers}
+
+
+def analyse_unit(signals: dict[str, tuple[FloatArray, FloatArray]], ts: float,
+                 model: dict[str, Any] | None = None) -> dict[str, Any]:
     """Which valves of a unit stick (:func:`analytics.plantwide.diagnose_unit`, thesis
-    chapter 2), JSON-ready; ``signals`` as in :class:`UnitWindows`."""
-    return diagnose_unit(signals, ts).to_dict()
+    chapters 2 and 3), JSON-ready; ``signals`` as in :class:`UnitWindows`, ``model`` as
+    :func:`unit_model_spec` gives it (None: from the data alone)."""
+    unit_model = None if model is None else UnitModel(
+        tuple(model["loops"]),
+        tuple(tuple(None if entry is None else TransferFunction.from_dict(entry)
+                    for entry in row) for row in model["matrix"]),
+        tuple(PIDController.from_dict(c) for c in model["controllers"]),
+    )
+    return diagnose_unit(signals, ts, model=unit_model).to_dict()
 
 
 def valve_decisions(diagnosis: dict[str, Any]) -> tuple[list[str], list[str]]:

@@ -63,6 +63,7 @@ from service.analysis import (
     analyse_unit,
     analyse_window,
     stiction_pattern_text,
+    unit_model_spec,
     unit_windows,
     valve_decisions,
 )
@@ -636,7 +637,9 @@ class AnalysisScheduler:
                 self._finish_unit(unit_id, windows, now, round_end,
                                   JobOutcome("failed", error=str(exc)))
                 continue
-            yield AnalysisJob(f"unit {unit_id}", analyse_unit, (windows.signals, ts),
+            config = next((u for u in self.registry.plant.units if u.id == unit_id), None)
+            model = unit_model_spec(config, loops, windows)
+            yield AnalysisJob(f"unit {unit_id}", analyse_unit, (windows.signals, ts, model),
                               partial(self._finish_unit, unit_id, windows, now, round_end))
 
     def _finish_unit(self, unit_id: str, windows: UnitWindows, now: float,

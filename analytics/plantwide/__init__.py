@@ -5,9 +5,14 @@
   constant amplitude.
 * :mod:`~analytics.plantwide.decomposition` -- thesis step 2: the number of
   known shapes (sticky valves) in the PV cycles, chosen on held-out cycles.
+* :mod:`~analytics.plantwide.fingerprint` -- with the unit's own model
+  (process matrix and tunings, thesis chapter 3): the linear check and every
+  candidate set of sticky valves held against the harmonic balance of the
+  measured cycle.
 * :mod:`~analytics.plantwide.unit` -- :func:`diagnose_unit`, the whole
-  diagnosis of a unit: groups, shapes, the surrogate ranking of step 3 and
-  the own-valve test that names the sticky valves.
+  diagnosis of a unit: groups, shapes, the surrogate ranking of step 3, the
+  own-valve test and, with a model, the fingerprint, which name the sticky
+  valves.
 """
 
 from analytics.plantwide.decomposition import (
@@ -15,6 +20,17 @@ from analytics.plantwide.decomposition import (
     ShapeDecomposition,
     decompose_cycles,
     fit_cycle,
+)
+from analytics.plantwide.fingerprint import (
+    MIN_DISTORTION,
+    CandidateFit,
+    Fingerprint,
+    LinearCheck,
+    ModelLocalisation,
+    UnitModel,
+    linear_check,
+    locate_sticky_valves,
+    measure_fingerprint,
 )
 from analytics.plantwide.groups import (
     RAYLEIGH_ENVELOPE_CV,
@@ -32,18 +48,27 @@ from analytics.plantwide.unit import (
 )
 
 __all__ = [
+    "MIN_DISTORTION",
     "RAYLEIGH_ENVELOPE_CV",
+    "CandidateFit",
     "CycleFit",
+    "Fingerprint",
     "GroupDiagnosis",
     "GroupMember",
+    "LinearCheck",
     "LoopEvidence",
+    "ModelLocalisation",
     "OscillationGroup",
     "ShapeDecomposition",
     "UnitDiagnosis",
+    "UnitModel",
     "ValveFinding",
     "decompose_cycles",
     "diagnose_unit",
     "envelope_variation",
     "find_oscillation_groups",
     "fit_cycle",
+    "linear_check",
+    "locate_sticky_valves",
+    "measure_fingerprint",
 ]

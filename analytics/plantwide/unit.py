@@ -22,7 +22,13 @@ and the single-loop methods then blame every valve whose loop cycles.
    fit noise).  A healthy valve in a loop shaken by a neighbour's cycle
    passes its OP through unchanged; a stiction model of it adds nothing.
 
-The named valves are those of step 4, in the order of their evidence; the
+5. **The unit's own model** (optional, :mod:`analytics.plantwide.fingerprint`,
+   thesis chapter 3): with the process matrix and the configured controllers,
+   the linear loops are checked and each cycle's fingerprint is held against
+   the harmonic balance (thesis Eqs. 3.11-3.14, ERRATA item 9) of every set
+   of sticky valves; the set it names joins the valves of step 4.
+
+The named valves are those of steps 4 and 5, in the order of their evidence; the
 shape count of step 2 and the nonlinearity ranking of step 3 are reported
 beside them.  On the simulated column (thesis section 2.4) the ranking by
 the surrogate index does not single out the sticky valves -- every signal of
@@ -54,6 +60,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -66,6 +73,13 @@ from analytics.diagnosis import HAMMERSTEIN_GAIN_SCALE
 from analytics.errors import DataError
 from analytics.oscillation import MIN_SAMPLES
 from analytics.plantwide.decomposition import ShapeDecomposition, decompose_cycles
+from analytics.plantwide.fingerprint import (
+    LinearCheck,
+    ModelLocalisation,
+    UnitModel,
+    linear_check,
+    locate_sticky_valves,
+)
 from analytics.plantwide.groups import (
     RAYLEIGH_ENVELOPE_CV,
     GroupMember,
@@ -79,6 +93,8 @@ from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinear
 
 __all__ = [
     "LIMIT_CYCLE_ENVELOPE_CV",
+    "MODEL_CONFIDENCE",
+    "MODEL_NOTE",
     "GroupDiagnosis",
     "LoopEvidence",
     "UnitDiagnosis",
@@ -93,6 +109,15 @@ LIMIT_CYCLE_ENVELOPE_CV = 0.5 * RAYLEIGH_ENVELOPE_CV
 cycle: half the Rayleigh value of a noise-driven resonance (0.26).  The sticky
 reactor cooling valve of the Tennessee Eastman process gives 0.08; normal
 operation of the same loop 0.45-0.55."""
+
+MODEL_NOTE = ("diagnosed from the data alone; the unit's process matrix and controller "
+              "tunings would make it stronger: with them every sticky set is tested "
+              "against the harmonic balance of the measured cycle")
+"""What the report says when no model was given."""
+
+MODEL_CONFIDENCE = 0.7
+"""Confidence of a valve named by the model's fingerprint alone (the data's own-valve
+test did not confirm it); a valve both name keeps the higher of the two."""
 
 FAST_CYCLE_CONFIDENCE = 0.6
 """Highest confidence for a valve named from a fast cycle: the localisation and
@@ -171,6 +196,10 @@ class GroupDiagnosis:
         where it decides).
     note : str
         How the group was diagnosed, or why it was not.
+    model : ModelLocalisation or None
+        The harmonic-balance fingerprint of the cycle against the unit's model
+        (:func:`~analytics.plantwide.fingerprint.locate_sticky_valves`); None
+        without a model or when the cycle is too short or too fast for it.
     """
 
     period_s: float
@@ -182,6 +211,7 @@ class GroupDiagnosis:
     sticky_valves: tuple[str, ...]
     envelope_cv: float | None
     note: str
+    model: ModelLocalisation | None = None
 
     @property
     def ranking(self) -> tuple[tuple[str, float], ...]:
@@ -240,6 +270,9 @@ class UnitDiagnosis:
     sticky_valves : tuple of ValveFinding
         The valves named sticky, most confident first; empty when no valve
         is to blame.
+    linear : LinearCheck or None
+        The unit's model with healthy valves under the configured tunings
+        (None without a model).
     """
 
     loops: tuple[str, ...]
@@ -247,6 +280,7 @@ class UnitDiagnosis:
     ts: float
     groups: tuple[GroupDiagnosis, ...]
     sticky_valves: tuple[ValveFinding, ...]
+    linear: LinearCheck | None = None
 
     @property
     def k(self) -> int:
@@ -266,6 +300,11 @@ class UnitDiagnosis:
                 for f in self.sticky_valves
             ],
             "groups": [_group_dict(g) for g in self.groups],
+            "model_used": self.linear is not None,
+            "linear": None if self.linear is None else {
+                "stable": self.linear.stable, "margin": self.linear.margin,
+                "margin_omega": self.linear.margin_omega, "note": self.linear.note},
+            "note": (MODEL_NOTE if self.linear is None else self.linear.note),
         }
 
 
@@ -300,6 +339,7 @@ def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:
         "sticky_valves": list(group.sticky_valves),
         "envelope_cv": group.envelope_cv,
         "note": group.note,
+        "model": None if group.model is None else group.model.to_dict(),
     }
 
 
@@ -463,6 +503,7 @@ def _diagnose_group(
     min_cycles: float,
     max_k: int,
     surrogate_settings: Mapping[str, int],
+    model: UnitModel | None,
 ) -> GroupDiagnosis:
     loops = tuple(dict.fromkeys(owner[m.signal] for m in group.members if m.signal in owner))
     samples = next(iter(signals.values())).size
@@ -498,9 +539,18 @@ def _diagnose_group(
         reverse=True,
     )
     named = tuple(e.loop for e in evidence if e.sticky)
+    localisation = None
+    if model is not None:
+        localisation = locate_sticky_valves(
+            {loop: (signals[f"op_{loop}"], signals[f"pv_{loop}"]) for loop in model.loops},
+            ts, model.process, model.controllers, period_s=group.period_s,
+            hold_delay=model.hold_delay,
+        )
+        notes.append(f"unit model: {localisation.note}")
+        named = tuple(dict.fromkeys([*named, *localisation.sticky_valves]))
     if named:
         notes.insert(0, f"sticky: {', '.join(named)} (own-valve stiction model, replicated "
-                        "in both halves of the window)")
+                        "in both halves of the window, or the unit model's fingerprint)")
     elif any((e.nonlinearity or 0.0) > 1.0 for e in evidence):
         notes.insert(0, "nonlinear cycle, but no valve of the group explains it: look for "
                         "another nonlinearity or a source outside the unit")
@@ -508,11 +558,30 @@ def _diagnose_group(
         notes.insert(0, "no valve of the group explains the cycle and no signal is nonlinear: "
                         "a linear oscillation (tuning or an external disturbance)")
     return GroupDiagnosis(group.period_s, cycles, group.members, loops, decomposition,
-                          tuple(evidence), named, None, "; ".join(notes))
+                          tuple(evidence), named, None, "; ".join(notes), localisation)
 
 
 def _finding(group: GroupDiagnosis, loop: str) -> ValveFinding:
-    evidence = next(e for e in group.evidence if e.loop == loop)
+    """The finding of one named valve: the own-valve test's, the model's, or both."""
+    evidence = next((e for e in group.evidence if e.loop == loop), None)
+    found = None if evidence is None or not evidence.sticky else _data_finding(group, evidence)
+    model = group.model
+    fit = None if model is None else model.fit_of(model.sticky_valves)
+    if model is None or fit is None or loop not in fit.loops:
+        if found is None:
+            raise ValueError(f"no evidence names loop {loop!r}")
+        return found
+    if found is not None:
+        return dataclasses.replace(
+            found, confidence=max(found.confidence, MODEL_CONFIDENCE),
+            reason=f"{found.reason}; the unit model's fingerprint names it too")
+    k = fit.loops.index(loop)
+    return ValveFinding(loop, MODEL_CONFIDENCE, group.period_s, fit.S[k], fit.J[k],
+                        f"the unit model's fingerprint names it: {model.note}")
+
+
+def _data_finding(group: GroupDiagnosis, evidence: LoopEvidence) -> ValveFinding:
+    loop = evidence.loop
     if group.envelope_cv is not None:
         confidence = FAST_CYCLE_CONFIDENCE * margin_confidence(
             group.envelope_cv, LIMIT_CYCLE_ENVELOPE_CV, LIMIT_CYCLE_ENVELOPE_CV / 2
@@ -534,6 +603,7 @@ def diagnose_unit(
     surrogates: int = 50,
     samples_per_cycle: int = 30,
     seed: int = 0,
+    model: UnitModel | None = None,
 ) -> UnitDiagnosis:
     """Find the sticky valves of a unit of interacting loops (see the module docstring).
 
@@ -556,6 +626,12 @@ def diagnose_unit(
     neighbours, surrogates, samples_per_cycle, seed : int
         ``K``, ``M``, ``S_n`` and the seed of the surrogate index (thesis
         Remark 5).
+    model : UnitModel, optional
+        The unit's process matrix and configured controllers (its loops among
+        those of ``loops``).  With it the linear loop is checked and every
+        cycle's fingerprint is held against the harmonic balance of every
+        sticky set (:func:`~analytics.plantwide.fingerprint.locate_sticky_valves`);
+        the valves it names join those of the own-valve test.
 
     Returns
     -------
@@ -567,7 +643,7 @@ def diagnose_unit(
         If there is no loop, ``ts`` is not positive, or a signal is not
         one-dimensional, finite, as long as the others and at least
         :data:`analytics.oscillation.MIN_SAMPLES` long (the message names
-        the loop and signal).
+        the loop and signal), or the model names a loop that is not given.
 
     Examples
     --------
@@ -584,9 +660,12 @@ def diagnose_unit(
     signals, owner = _unit_signals(loops, measurements or {})
     settings = {"neighbours": neighbours, "surrogates": surrogates,
                 "samples_per_cycle": samples_per_cycle, "seed": seed}
+    missing = [] if model is None else [loop for loop in model.loops if loop not in loops]
+    if missing:
+        raise DataError(f"the unit model's loops {missing} have no OP and PV in the data")
     groups = tuple(
         _diagnose_group(g, owner, signals, ts, min_cycles=min_cycles, max_k=max_k,
-                        surrogate_settings=settings)
+                        surrogate_settings=settings, model=model)
         for g in find_oscillation_groups(signals, ts)
     )
     best: dict[str, ValveFinding] = {}
@@ -601,4 +680,7 @@ def diagnose_unit(
         ts=float(ts),
         groups=groups,
         sticky_valves=tuple(sorted(best.values(), key=lambda f: f.confidence, reverse=True)),
+        linear=None if model is None else linear_check(
+            model.process, model.controllers,
+            hold_delay=ts / 2 if model.hold_delay is None else model.hold_delay),
     )

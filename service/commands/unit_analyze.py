@@ -1,10 +1,15 @@
-"""``loopwatch unit-analyze FILE.csv [--loops LIST] [--skip S] [--ts S] [--time COL] [--json]``.
+"""``loopwatch unit-analyze FILE.csv [--loops LIST] [--model MODEL.json] [--skip S] [--ts S]
+[--time COL] [--json]``.
 
 Diagnoses a unit of interacting loops from one CSV file with a column
 ``op_<loop>`` and a column ``pv_<loop>`` for every loop (the columns that
 ``loopwatch simulate`` writes for a multi-loop model) and a time column:
 the plant-wide oscillation groups, the number of sticky valves and which
-ones (:func:`analytics.plantwide.diagnose_unit`).
+ones (:func:`analytics.plantwide.diagnose_unit`).  With ``--model`` (the
+model file of ``loopwatch predict``: ``process`` matrix and ``controllers``,
+loops in the order of ``names`` or else of ``--loops``; its ``valves`` are
+not used) the unit's own model tests every sticky set against the measured
+cycle (:func:`analytics.plantwide.locate_sticky_valves`).
 """
 
 from __future__ import annotations
@@ -20,8 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from analytics.errors import AnalyticsError
-from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, diagnose_unit
-from service.commands import CliError
+from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, UnitModel, diagnose_unit
+from analytics.plantwide.unit import MODEL_NOTE
+from analytics.simulation import ClosedLoopModel
+from service.commands import CliError, read_json_file
 from service.loop_csv import LoopCsvError, read_loop_csv
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
@@ -41,6 +48,9 @@ def register(commands: Any) -> None:
     parser.add_argument(
         "--skip", type=float, default=0.0,
         help="seconds at the start of the file to leave out (e.g. a start-up transient)",
+    )
+    parser.add_argument(
+        "--model", help="model file of the unit (process matrix and controllers, as for predict)"
     )
     parser.add_argument("--ts", type=float, help="sampling interval in seconds")
     parser.add_argument("--time", help="name of the time column")
@@ -103,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
     names = _loop_names(path, args.loops)
     data = {loop: _read_loop(path, loop, args) for loop in names}
     ts = data[names[0]][0]
+    model = None if args.model is None else _unit_model(Path(args.model), names)
     try:
-        diagnosis = diagnose_unit({loop: (op, pv) for loop, (_, op, pv) in data.items()}, ts)
+        diagnosis = diagnose_unit({loop: (op, pv) for loop, (_, op, pv) in data.items()}, ts,
+                                  model=model)
     except AnalyticsError as exc:
         raise CliError(f"{path}: {exc}") from None
     if args.json:
@@ -112,6 +124,28 @@ def run(args: argparse.Namespace) -> int:
     else:
         print_unit_diagnosis(diagnosis, str(path), sys.stdout)
     return 0
+
+
+def _unit_model(path: Path, names: list[str]) -> UnitModel:
+    """The process matrix and controllers of a ``predict`` model file, as a unit model."""
+    spec = read_json_file(path)
+    if not isinstance(spec, dict):
+        raise CliError(f"{path}: a model must be a JSON object")
+    spec = {"valves": [{"model": "ideal"}] * len(spec.get("controllers") or []), **spec}
+    try:
+        model = ClosedLoopModel.from_dict(spec)
+    except (AnalyticsError, KeyError, TypeError, ValueError) as exc:
+        raise CliError(f"{path}: {exc}") from None
+    matrix = model.process if isinstance(model.process, tuple) else ((model.process,),)
+    loops = tuple(spec["names"]) if "names" in spec else tuple(names)
+    if len(loops) != len(matrix):
+        raise CliError(f"{path}: the model has {len(matrix)} loops, the unit {len(loops)} "
+                       f"({', '.join(loops)}); list them in the model's 'names'")
+    unknown = [loop for loop in loops if loop not in names]
+    if unknown:
+        raise CliError(f"{path}: the model's loops {unknown} are not among the unit's "
+                       f"({', '.join(names)})")
+    return UnitModel(loops, matrix, tuple(loop.controller for loop in model.loops))
 
 
 def _print_group(group: GroupDiagnosis, out: TextIO) -> None:
@@ -148,6 +182,8 @@ def print_unit_diagnosis(diagnosis: UnitDiagnosis, source: str, out: TextIO) -> 
                   f"{size})", file=out)
     else:
         print("sticky valves: none found (k = 0)", file=out)
+    print(f"model: {'none; ' if d.linear is None else ''}"
+          f"{MODEL_NOTE if d.linear is None else d.linear.note}", file=out)
     if not d.groups:
         print("oscillation groups: none; no loop oscillates", file=out)
         return

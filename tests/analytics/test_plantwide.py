@@ -24,13 +24,18 @@ import pytest
 from analytics.diagnosis import diagnose_loop
 from analytics.errors import DataError
 from analytics.plantwide import (
+    MIN_DISTORTION,
     RAYLEIGH_ENVELOPE_CV,
+    ModelLocalisation,
     UnitDiagnosis,
+    UnitModel,
     decompose_cycles,
     diagnose_unit,
     envelope_variation,
     find_oscillation_groups,
     fit_cycle,
+    linear_check,
+    locate_sticky_valves,
 )
 from analytics.scenarios import column3x3
 from analytics.simulation import Disturbance
@@ -258,7 +263,18 @@ def test_column_with_three_sticky_valves_finds_valves_1_and_2(column_diagnoses):
     "healthy valve (thesis Table 2.6 claims k = 3)",
 )
 def test_column_with_three_sticky_valves_gives_k_3(column_diagnoses):
-    assert column_diagnoses[(1, 2, 3)].k == 3
+    assert column_diagnoses[(1, 2, 3)].k == 3  # from the data alone
+
+
+@pytest.mark.slow
+def test_column_with_three_sticky_valves_gives_k_3_with_the_unit_model():
+    # Issue 22 re-examines the xfail above: the slower of the two cycles (about 325 s) needs
+    # valves 1 and 3 in the harmonic balance, the faster one valves 1 and 2.
+    model = column3x3(sticky=(1, 2, 3))
+    result = diagnose_unit(column_unit(model), 0.5, model=column_model(model))
+    assert result.k == 3
+    by_model = {loop for g in result.groups if g.model for loop in g.model.sticky_valves}
+    assert by_model == {"loop1", "loop2", "loop3"}
 
 
 @pytest.mark.slow
@@ -381,3 +397,107 @@ def test_tep_sticky_condenser_valve_is_not_blamed_on_another_valve(name):
 )
 def test_tep_sticky_condenser_valve_is_named():
     assert tep_named("d15_te.dat") == ["XMV(11)"]
+
+
+# ----------------------------------------------------------------------------
+# the unit's own model: harmonic-balance fingerprint (thesis chapter 3)
+
+
+def column_model(model) -> UnitModel:
+    return UnitModel(tuple(loop.name for loop in model.loops), model.process,
+                     tuple(loop.controller for loop in model.loops))
+
+
+def fingerprint_of(model) -> ModelLocalisation:
+    unit = column_unit(model)
+    spec = column_model(model)
+    return locate_sticky_valves(unit, 0.5, spec.process, spec.controllers)
+
+
+def test_column_tunings_2_11_are_linearly_stable_and_3_26_sampled_are_not():
+    # Thesis Eq. 3.25 (= 2.11-2.13) is stable; Eq. 3.26 with the 0.5 s hold is not
+    # (analytics.limit_cycle.predict_model says the same).
+    for tuning, stable in (("2.11", True), ("3.26", False)):
+        spec = column_model(column3x3(tuning=tuning))
+        check = linear_check(spec.process, spec.controllers, hold_delay=0.25)
+        assert check.stable is stable
+        assert ("never from the tuning" in check.note) is stable
+        assert (check.margin > 0.2) is stable
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sticky", [(1,), (2,), (1, 2), (1, 3)])
+def test_fingerprint_names_the_simulated_sticky_set(sticky):
+    # Seed 7: none of the seeds 100-103 the penalty and the distortion floor were chosen on.
+    found = fingerprint_of(column3x3(sticky=sticky, seed=7))
+    assert found.sticky_valves == tuple(f"loop{i}" for i in sticky)
+    assert found.linear.stable
+    best = found.fit_of(found.sticky_valves)
+    assert best is not None and best.misfit < found.no_valve_misfit / 3
+    assert min(best.distortion) >= MIN_DISTORTION
+    assert max(found.controller_residual) < 0.2  # the configured tunings explain OP from PV
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="valve 3 alone: the set {3} fits best (misfit 2 against 19 with healthy valves) but "
+    "adds a third harmonic of 0.0149 of its OP, just under the floor 0.015 chosen on seeds "
+    "100-103 (0.013-0.058 there for {3}; an external sine passed on through 20 % wrong gains "
+    "reached 0.012)",
+)
+def test_fingerprint_names_valve_3_alone():
+    assert fingerprint_of(column3x3(sticky=(3,), seed=7)).sticky_valves == ("loop3",)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="with valve 2 also sticking, valve 3's OP swings 3-13 times its stick band "
+    "(A = 15-65 %, S = 5 %); its describing function is then 0.99-1.02 at the cycle and it adds "
+    "no third harmonic a healthy valve would not: the fingerprint cannot see it",
+)
+def test_fingerprint_names_valve_3_beside_valve_2():
+    found = fingerprint_of(column3x3(sticky=(2, 3), seed=7))
+    assert found.sticky_valves == ("loop2", "loop3")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("loop", "at", "period"), [(0, "input", 200.0), (1, "output", 150.0)])
+def test_fingerprint_blames_no_valve_for_an_external_sinusoid(loop, at, period):
+    model = column3x3(sticky=())
+    loops = list(model.loops)
+    loops[loop] = dataclasses.replace(
+        loops[loop],
+        disturbances=(*loops[loop].disturbances, Disturbance("sine", 1.0, at=at, period=period)),
+    )
+    found = fingerprint_of(dataclasses.replace(model, loops=tuple(loops)))
+    assert found.sticky_valves == ()
+    assert found.fingerprint.period_s == pytest.approx(period, rel=0.02)
+    assert "external disturbance" in found.note
+
+
+@pytest.mark.slow
+def test_unit_diagnosis_with_the_model_names_the_sticky_set_and_checks_the_tunings():
+    model = column3x3(sticky=(1, 2), seed=7)
+    result = diagnose_unit(column_unit(model), 0.5, model=column_model(model))
+    assert {f.loop for f in result.sticky_valves} == {"loop1", "loop2"}
+    assert result.linear is not None and result.linear.stable
+    report = json.loads(json.dumps(result.to_dict()))
+    assert report["model_used"] is True and report["k"] == 2
+    assert "never from the tuning" in report["note"]
+    assert all(g["model"]["sticky_valves"] for g in report["groups"])
+
+
+def test_without_a_model_the_report_says_one_would_help():
+    k = np.arange(4000)
+    unit = {"a": (np.sin(2 * np.pi * k / 80), np.sin(2 * np.pi * k / 80 - 1))}
+    report = diagnose_unit(unit, 1.0).to_dict()
+    assert report["model_used"] is False and "would make it stronger" in report["note"]
+
+
+def test_a_model_loop_without_data_is_refused():
+    model = column3x3()
+    unit = {"loop1": (np.zeros(3000), np.zeros(3000))}
+    with pytest.raises(DataError, match="loop2"):
+        diagnose_unit(unit, 0.5, model=column_model(model))

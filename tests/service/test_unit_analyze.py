@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
 import pytest
 
+from analytics.scenarios import column3x3
 from service.cli import main
 from service.commands import CliError, unit_analyze
 
@@ -92,3 +94,54 @@ def test_a_missing_file_is_a_user_error(tmp_path):
 def test_a_negative_skip_is_refused(tmp_path):
     with pytest.raises(CliError, match="--skip must be a number of seconds >= 0, got -1"):
         run(str(tmp_path / "any.csv"), "--skip", "-1")
+
+
+def column_model_file(tmp_path, names=("loop1", "loop2", "loop3")) -> str:
+    """The column's model in the format of ``loopwatch predict`` (its valves left out)."""
+    model = column3x3()
+    spec = {
+        "dt": model.dt,
+        "names": list(names),
+        "process": {"matrix": [[g.to_dict() for g in row] for row in model.process]},
+        "controllers": [loop.controller.to_dict() for loop in model.loops],
+    }
+    path = tmp_path / "column.json"
+    path.write_text(json.dumps(spec))
+    return str(path)
+
+
+@pytest.mark.slow
+def test_model_tests_every_sticky_set_against_the_cycle(column_csv, tmp_path, capsys):
+    model = column_model_file(tmp_path)
+    assert run(column_csv, "--loops", "loop1,loop2,loop3", "--skip", "2000", "--model", model,
+               "--json") == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["k"] == 2
+    assert {v["loop"] for v in report["sticky_valves"]} == {"loop1", "loop2"}
+    assert report["model_used"] is True and report["linear"]["stable"] is True
+    for group in report["groups"]:  # every non-empty set of the valves whose OP moves
+        assert len(group["model"]["candidates"]) in (1, 3, 7)
+        assert set(group["model"]["sticky_valves"]) <= {"loop1", "loop2"}
+    fast = min(report["groups"], key=lambda g: g["period_s"])["model"]
+    assert len(fast["candidates"]) == 7 and set(fast["sticky_valves"]) == {"loop1", "loop2"}
+    assert run(column_csv, "--skip", "2000", "--model", model) == 0
+    out = capsys.readouterr().out
+    assert "model: the linear loops are stable" in out
+
+
+@pytest.mark.slow
+def test_without_a_model_the_report_asks_for_one(column_csv, capsys):
+    assert run(column_csv, "--skip", "2000", "--json") == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["model_used"] is False and "would make it stronger" in report["note"]
+
+
+def test_a_model_of_other_loops_is_refused(tmp_path):
+    path = tmp_path / "unit.csv"
+    k = np.arange(3000)
+    rows = ["t,op_a,pv_a,op_b,pv_b"] + [f"{t},{np.sin(t / 9):.4f},{np.cos(t / 9):.4f},0,0"
+                                        for t in k]
+    path.write_text("\n".join(rows))
+    model = column_model_file(tmp_path, names=("a", "b", "c"))
+    with pytest.raises(CliError, match=r"the model's loops \['c'\] are not among the unit's"):
+        run(str(path), "--model", model, "--loops", "a,b")

@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from analytics.scenarios import column3x3
-from connectors.plant_sim import COLUMN_LOOPS
+from connectors.plant_sim import COLUMN_LOOPS, _controller_config, column_process
 from service.config import PlantConfig, Settings
 from service.server import Service, build_service
 from service.store.db import Store
@@ -32,18 +32,23 @@ WINDOW = 3600.0
 VIEWER_HEADERS = {"X-API-Key": ADMIN}
 
 
-def column_plant(unit: str | None) -> PlantConfig:
-    """The column's loops as the plant simulator configures them, in ``unit``."""
+def column_plant(unit: str | None, *, model: bool = False) -> PlantConfig:
+    """The column's loops as the plant simulator configures them, in ``unit``; with
+    ``model``, the unit's process matrix and the loops' controllers as well (the demo's
+    plant file has both)."""
     column = column3x3(sticky=(2,))
+    process = {"process": column_process()} if model else {}
     return PlantConfig.model_validate({
-        "units": [{"id": "column", "name": "Ethanol-water column, 3x3"}],
+        "units": [{"id": "column", "name": "Ethanol-water column, 3x3", **process}],
         "loops": [{
             "id": loop.id, "name": loop.name, "unit": unit, "ts": column.dt,
             "tags": {s: f"{loop.id}.{s.upper()}" for s in ("op", "pv", "sp")},
             "ranges": {signal: list(span) for signal, span in loop.ranges},
             "process_type": "self-regulating", "valve_asset": loop.valve_asset,
             "importance": loop.importance,
-        } for loop in COLUMN_LOOPS],
+            **({"controller": _controller_config(column.loops[i].controller, 1.0, loop)}
+               if model else {}),
+        } for i, loop in enumerate(COLUMN_LOOPS)],
     })
 
 
@@ -134,6 +139,24 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
     with svc.state.store.session() as session:
         assert len(session.scalars(select(UnitAnalysisRun)).all()) == 2
     assert tickets(svc) == [("FV-502", "AIC-502")]
+
+
+def test_with_the_units_model_only_the_sticky_valve_gets_a_ticket_too(make_service, batch):
+    # Issue 22: the demo's plant file gives the column its process matrix and controllers;
+    # the unit diagnosis then also holds the cycle against every sticky set.
+    svc = make_service(column_plant(unit="column", model=True))
+    svc.state.ingest(batch)
+    svc.scheduler.run_round(FIRST_ROUND)
+    svc.scheduler.run_round(T0)
+    assert tickets(svc) == [("FV-502", "AIC-502")]
+    with svc.state.store.session() as session:
+        latest = session.scalars(select(UnitAnalysisRun)
+                                 .where(UnitAnalysisRun.round_end == T0)).one()
+        assert latest.sticky_loops == ["AIC-502"]
+        result = latest.result
+    assert result["model_used"] is True and result["linear"]["stable"] is True
+    assert all(g["model"]["sticky_valves"] in ([], ["AIC-502"]) for g in result["groups"])
+    assert any(g["model"]["sticky_valves"] == ["AIC-502"] for g in result["groups"])
 
 
 def test_without_the_unit_the_loop_battery_tickets_the_neighbours_too(make_service, batch):
