@@ -403,9 +403,9 @@ class StickJumpDetector:
     pushed and at most ``max_contrary_share`` of the clear jumps go against
     it; no stiction when the jumps go either way (``min_random_share``), or
     when OP travelled at least ``min_travel`` (OP units, % of span) with
-    fewer episodes than needed and no more than contrary jumps and PV following OP through most of it (the
-    share of travel made during holds below ``max_hold_share``); undecided
-    otherwise.
+    fewer episodes than needed and no more than contrary jumps and PV
+    following OP through most of it (the share of travel made during holds
+    below ``max_hold_share``); undecided otherwise.
 
     Attributes
     ----------
