@@ -34,7 +34,7 @@ from service.ingest import (
 )
 from service.metrics import Metrics
 from service.plant import PlantRegistry
-from service.security import RateLimiter
+from service.security import ConcurrencyLimiter, RateLimiter
 from service.spool import (
     IngestSpool,
     SpooledBatch,
@@ -103,6 +103,8 @@ class AppState:
     spool: IngestSpool = field(init=False)
     keys: KeyVerifier = field(init=False)
     limiter: RateLimiter = field(init=False)
+    auth_failures: RateLimiter = field(init=False)
+    analyses: ConcurrencyLimiter = field(init=False)
 
     def buffers_for(self, session: Session, loops: Sequence[LoopConfig], window_s: float,
                     now: float) -> LoopBuffers:
@@ -117,6 +119,9 @@ class AppState:
         self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
                                    burst=self.settings.rate_limit_burst)
+        self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
+                                         burst=self.settings.auth_failure_burst)
+        self.analyses = ConcurrencyLimiter(self.settings.analyses_per_key)
         self._flushing = threading.Lock()
         self._next_flush = -math.inf  # time.monotonic() of the next attempt to write the spool
 
