@@ -352,6 +352,10 @@ class Settings(BaseSettings):
         description="longest pause while a client sends a request body, s")
     keep_alive_s: float = Field(
         default=5.0, gt=0, description="idle keep-alive connections are closed after, s")
+    forwarded_allow_ips: str = Field(
+        default="127.0.0.1",
+        description="proxies (comma-separated addresses, or *) whose X-Forwarded-For "
+                    "names the client: the address failed authentications count against")
     max_connections: int = Field(
         default=1000, ge=1,
         description="open connections (and requests) at once; beyond, new requests get 503")

@@ -322,8 +322,10 @@ def uvicorn_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
     """How ``loopwatch serve`` runs uvicorn: the header deadline
     (``LOOPWATCH_HEADER_TIMEOUT_S``), idle keep-alive connections closed after
     ``LOOPWATCH_KEEP_ALIVE_S``, at most ``LOOPWATCH_MAX_CONNECTIONS`` connections
-    (requests beyond get 503), request heads of at most :data:`MAX_HEADER_BYTES`.
-    The body deadline is :class:`service.security.BodyTimeoutMiddleware`'s."""
+    (requests beyond get 503), request heads of at most :data:`MAX_HEADER_BYTES`,
+    the client's address from ``X-Forwarded-For`` of the proxies in
+    ``LOOPWATCH_FORWARDED_ALLOW_IPS`` only.  The body deadline is
+    :class:`service.security.BodyTimeoutMiddleware`'s."""
     protocol = type("ServeH11Protocol", (DeadlineH11Protocol,),
                     {"header_timeout_s": settings.header_timeout_s})
     return uvicorn.Config(
@@ -331,6 +333,7 @@ def uvicorn_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
         timeout_keep_alive=max(1, round(settings.keep_alive_s)),
         limit_concurrency=settings.max_connections,
         h11_max_incomplete_event_size=MAX_HEADER_BYTES,
+        proxy_headers=True, forwarded_allow_ips=settings.forwarded_allow_ips,
     )
 
 
