@@ -246,12 +246,14 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
         keys_d = [make_key(port, "viewer", f"dashboard {i}") for i in range(args.dashboards)]
         keys_m = [make_key(port, "viewer", f"model check {i}")
                   for i in range(args.model_checks)]
+        prefilled = 0
         if keys_m:
             now = time.time()
-            Client(port, ADMIN, Tally()).request(
+            prefill = Client(port, ADMIN, Tally()).request(
                 "prefill", "POST", "/api/v1/ingest",
                 [entry for loop in range(min(CHECKED_LOOPS, args.loops))
                  for entry in recent_hour(loop, now)])
+            prefilled = prefill["stored"]
         stop = threading.Event()
         clients = args.historians + args.dashboards
         tallies = [Tally() for _ in range(clients + args.model_checks)]
@@ -317,7 +319,7 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
         "non-2xx": float(sum(errors.values())),
         "5xx": float(sum(n for s, n in errors.items() if s >= 500)),
         "connection errors": float(sum(total.failures.values())),
-        "lost samples": float(total.stored - in_store),
+        "lost samples": float(total.stored + prefilled - in_store),
         "books off by": received - books,
     }
     print(f"  run: {elapsed:.1f} s, statuses {dict(sorted(total.statuses.items()))}, "

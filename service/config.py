@@ -343,6 +343,13 @@ class Settings(BaseSettings):
         description="expensive analyses (model check, advice, unit diagnosis and "
                     "prediction) one API key may run at once",
     )
+    analysis_processes: int = Field(
+        default=1, ge=1,
+        description="processes that run the API's expensive analyses (apart from the "
+                    "request threads, so their compiled kernels hold no lock the other "
+                    "requests need); twice as many may be admitted at once, one waiting "
+                    "per process, the rest get 503",
+    )
     analysis_retry_s: float = Field(
         default=5.0, gt=0, description="Retry-After of a key refused an analysis, s")
     header_timeout_s: float = Field(

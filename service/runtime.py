@@ -13,9 +13,13 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeoutError
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar, cast
 
 from sqlalchemy.orm import Session
 
@@ -23,6 +27,7 @@ from connectors.base import DeliveryCounters, Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
+from service.executors import end_executor
 from service.ingest import (
     REFUSAL_REASONS,
     IngestError,
@@ -44,9 +49,16 @@ from service.spool import (
 )
 from service.store.db import Store
 
-__all__ = ["SPOOL_REFUSAL_REASONS", "AppState", "SampleAccounting"]
+__all__ = ["SPOOL_REFUSAL_REASONS", "AnalysisUnavailableError", "AppState", "SampleAccounting"]
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class AnalysisUnavailableError(RuntimeError):
+    """An expensive analysis of a request could not run: its process died or it ran
+    longer than ``settings.analysis_timeout_s`` (HTTP 503)."""
 
 SPOOL_REFUSAL_REASONS = ("spool_full", "spool_write_error")
 """Refusals of the spool: full during an outage; a spooled batch the store then refused
@@ -121,9 +133,68 @@ class AppState:
                                    burst=self.settings.rate_limit_burst)
         self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
                                          burst=self.settings.auth_failure_burst)
-        self.analyses = ConcurrencyLimiter(self.settings.analyses_per_key)
+        self.analyses = ConcurrencyLimiter(per_key=self.settings.analyses_per_key,
+                                           total=2 * self.settings.analysis_processes)
+        self._analysis_pool: ProcessPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
+        self._answers: OrderedDict[Hashable, Any] = OrderedDict()
         self._flushing = threading.Lock()
         self._next_flush = -math.inf  # time.monotonic() of the next attempt to write the spool
+
+    def analyse(self, function: Callable[..., T], *args: Any) -> T:
+        """``function(*args)`` in the API's analysis process(es), waited for here.
+
+        Compiled kernels hold the interpreter lock while they run; in a
+        separate process they cannot hold up the other requests.  The
+        caller holds a slot of :attr:`analyses`, so at most two analyses per
+        process are submitted at once.
+
+        Raises
+        ------
+        AnalysisUnavailableError
+            The process died, or the analysis outlived ``analysis_timeout_s``
+            (its process is then killed; the next analysis starts a new one).
+        """
+        with self._pool_lock:
+            if self._analysis_pool is None:
+                self._analysis_pool = ProcessPoolExecutor(self.settings.analysis_processes)
+            pool = self._analysis_pool
+        try:
+            return pool.submit(function, *args).result(timeout=self.settings.analysis_timeout_s)
+        except (BrokenProcessPool, FutureTimeoutError) as exc:
+            with self._pool_lock:
+                if self._analysis_pool is pool:
+                    self._analysis_pool = None
+            end_executor(pool)
+            reason = ("took longer than LOOPWATCH_ANALYSIS_TIMEOUT_S "
+                      f"({self.settings.analysis_timeout_s:g} s)"
+                      if isinstance(exc, FutureTimeoutError) else "its process died")
+            raise AnalysisUnavailableError(f"The analysis {reason}; try again later") from None
+
+    ANSWERS_KEPT = 256
+    """Answers of pure analyses kept by :meth:`analyse_cached`."""
+
+    def analyse_cached(self, function: Callable[..., T], *args: Hashable) -> T:
+        """:meth:`analyse` for a pure function of hashable arguments (JSON text, ids):
+        the last :attr:`ANSWERS_KEPT` answers are kept and given again."""
+        key = (function.__module__, function.__qualname__, args)
+        with self._pool_lock:
+            if key in self._answers:
+                self._answers.move_to_end(key)
+                return cast(T, self._answers[key])
+        answer = self.analyse(function, *args)
+        with self._pool_lock:
+            self._answers[key] = answer
+            if len(self._answers) > self.ANSWERS_KEPT:
+                self._answers.popitem(last=False)
+        return answer
+
+    def close_analyses(self) -> None:
+        """End the analysis process(es), if any were started."""
+        with self._pool_lock:
+            pool, self._analysis_pool = self._analysis_pool, None
+        if pool is not None:
+            end_executor(pool)
 
     def _account(self, report: IngestReport, *, received: bool = True) -> None:
         """Feed the buffers and count; ``received`` False for a batch counted on entering

@@ -140,22 +140,25 @@ class RateLimiter:
 
 
 class ConcurrencyLimiter:
-    """At most ``per_key`` tasks at once per key (expensive analyses of one API key)."""
+    """At most ``per_key`` tasks at once per key and ``total`` in all (expensive analyses)."""
 
-    def __init__(self, per_key: int) -> None:
-        if per_key < 1:
-            raise ValueError(f"need per_key >= 1, got {per_key}")
+    def __init__(self, *, per_key: int, total: int) -> None:
+        if not (per_key >= 1 and total >= 1):
+            raise ValueError(f"need per_key >= 1 and total >= 1, got {per_key}, {total}")
         self.per_key = per_key
+        self.total = total
         self._running: dict[Hashable, int] = {}
         self._lock = threading.Lock()
 
-    def acquire(self, key: Hashable) -> bool:
-        """Take a slot of ``key``; False if all of its slots are taken."""
+    def acquire(self, key: Hashable) -> str | None:
+        """Take a slot of ``key``: None if granted, else what is full, "key" or "total"."""
         with self._lock:
             if self._running.get(key, 0) >= self.per_key:
-                return False
+                return "key"
+            if sum(self._running.values()) >= self.total:
+                return "total"
             self._running[key] = self._running.get(key, 0) + 1
-            return True
+            return None
 
     def release(self, key: Hashable) -> None:
         """Give back a slot taken by :meth:`acquire`."""

@@ -174,6 +174,7 @@ class Service:
             self.webhook.close()
         if self.scheduler is not None:
             self.scheduler.executor.shutdown(wait=False, cancel_futures=True)
+        self.state.close_analyses()
         self.state.store.close()
 
 

@@ -47,7 +47,7 @@ from service.api.routes import (
     tickets,
     unit_prediction,
 )
-from service.runtime import AppState
+from service.runtime import AnalysisUnavailableError, AppState
 from service.security import install_protections, retry_after
 from service.spool import StoreUnavailableError, is_store_outage
 from service.tickets import TicketStateError
@@ -144,6 +144,12 @@ def create_app(state: AppState) -> FastAPI:
         problems = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]}
                     for e in exc.errors()[:MAX_PROBLEMS]]
         return JSONResponse(status_code=422, content={"detail": problems})
+
+    @app.exception_handler(AnalysisUnavailableError)
+    async def analysis_unavailable(_: Request, exc: AnalysisUnavailableError) -> JSONResponse:
+        """The analysis process died or the analysis ran too long: 503."""
+        return JSONResponse(status_code=503, content={"detail": str(exc)}, headers={
+            "Retry-After": retry_after(state.settings.analysis_retry_s)})
 
     @app.exception_handler(PoolTimeoutError)
     async def store_busy(request: Request, _: PoolTimeoutError) -> JSONResponse:

@@ -171,14 +171,20 @@ def _analysis_slot(state: StateDep, principal: Reader) -> Iterator[Principal]:
 
     A key already running ``settings.analyses_per_key`` of them gets 429 with
     ``Retry-After``, so one client cannot take every worker thread and
-    database connection.
+    database connection; when the service runs all it admits (two per
+    analysis process), 503 with ``Retry-After``.
     """
-    if not state.analyses.acquire(principal.id):
+    full = state.analyses.acquire(principal.id)
+    retry = {"Retry-After": retry_after(state.settings.analysis_retry_s)}
+    if full == "key":
         raise HTTPException(
             429, f"Key {principal.name!r} already runs {state.analyses.per_key} expensive "
                  "analysis at a time (model check, advice, unit diagnosis or prediction); "
-                 "retry when it has finished",
-            headers={"Retry-After": retry_after(state.settings.analysis_retry_s)})
+                 "retry when it has finished", headers=retry)
+    if full == "total":
+        raise HTTPException(
+            503, f"The service already runs its {state.analyses.total} expensive analyses "
+                 "at once (LOOPWATCH_ANALYSIS_PROCESSES); retry later", headers=retry)
     try:
         yield principal
     finally:

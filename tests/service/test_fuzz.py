@@ -32,6 +32,11 @@ from urllib.parse import quote
 
 import pytest
 import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+from hypothesis.errors import Unsatisfiable
+from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error
 from schemathesis.core.failures import FailureGroup
 from schemathesis.specs.openapi.checks import (
@@ -40,11 +45,6 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
-from fastapi.testclient import TestClient
-from hypothesis import HealthCheck, example, given, settings
-from hypothesis.errors import Unsatisfiable
-from hypothesis import strategies as st
-from schemathesis import GenerationMode
 from sqlalchemy import select
 
 from service.config import Settings
@@ -186,7 +186,7 @@ def test_every_operation_answers_what_its_schema_says(tmp_path, capsys):
                     case.validate_response(response, checks=CONFORMANCE,
                                            headers={"X-API-Key": ADMIN})
                 except FailureGroup as exc:
-                    where = f"{operation.method.upper()} {operation.path} {mode.value}"
+                    where = f"{case.method} {case.operation.path}"
                     violations.setdefault(where, f"{response.status_code}: {exc}"[:800])
 
             try:

@@ -132,6 +132,13 @@ def test_one_key_runs_one_expensive_analysis_at_a_time(tmp_path):
     assert int(refused.headers["Retry-After"]) >= 1
     assert "analysis" in refused.json()["detail"]
     assert client.post(url, headers=viewer).status_code == 200  # free again afterwards
+    viewers = [{"X-API-Key": client.post("/api/v1/keys", json={"name": f"v{i}", "role": "viewer"},
+                                         headers=HEADERS).json()["key"]} for i in range(3)]
+    with ThreadPoolExecutor(3) as pool:  # one analysis process admits two at once
+        answers = list(pool.map(lambda k: client.post(url, headers=k), viewers))
+    assert sorted(a.status_code for a in answers) == [200, 200, 503], [a.text for a in answers]
+    assert "Retry-After" in next(a for a in answers if a.status_code == 503).headers
+    service.state.close_analyses()
     service.executor.shutdown()
     service.state.store.close()
 

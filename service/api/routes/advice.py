@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
 from typing import Any
 
 from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
 from analytics.tuning import advise
-from service.api.deps import Analyst, SessionDep, error_responses
+from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
 from service.tickets import latest_loop_run
@@ -22,15 +21,15 @@ SIMULATED_S = 4000.0
 """Length of the simulations that verify each candidate tuning."""
 
 
-@lru_cache(maxsize=256)
 def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
-    """Advice is a pure function of the run and the loop's configuration: cache it."""
+    """Advice is a pure function of the run and the loop's configuration (cached by
+    :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
     model = identified_loop(json.loads(config), json.loads(diagnosis))
     return advise(model.closed_loop(SIMULATED_S)).to_dict()
 
 
 @router.get("/loops/{loop_id}/advice")
-def loop_advice(loop_id: str, session: SessionDep, _: Analyst) -> dict[str, Any]:
+def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) -> dict[str, Any]:
     """Retunes that remove or reduce the stiction cycle until the valve is repaired.
 
     Built from the latest stiction estimate (S, J and the identified process)
@@ -50,8 +49,8 @@ def loop_advice(loop_id: str, session: SessionDep, _: Analyst) -> dict[str, Any]
     except ModelUnavailableError as exc:
         raise HTTPException(409, f"Advice not available: {exc}") from None
     try:
-        advice = _advice_for_run(
-            run.id, json.dumps(loop.config, sort_keys=True),
+        advice = state.analyse_cached(
+            _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
             json.dumps(run.result, sort_keys=True),
         )
     except AnalyticsError as exc:

@@ -63,6 +63,12 @@ def _longest_complete_stretch(signals: list[NDArray[np.float64]]) -> tuple[int, 
     return int(starts[longest]), int(stops[longest])
 
 
+def _check(op: NDArray[np.float64], pv: NDArray[np.float64], ts: float,
+           sp: NDArray[np.float64] | None, model: LoopModel | None) -> dict[str, Any]:
+    """The model check and its overlay as JSON (run in the analysis process)."""
+    return check_model(op, pv, ts, sp=sp, model=model).to_dict(overlay=True)
+
+
 @router.post("/loops/{loop_id}/model-check")
 def loop_model_check(
     loop_id: str,
@@ -73,9 +79,10 @@ def loop_model_check(
 ) -> dict[str, Any]:
     """What the simulation of the loop gets wrong, the cause, the extended model, the gain.
 
-    A plain ``def``: FastAPI runs it in its thread pool, off the event loop.  The
-    model is checked on the longest stretch of the current window where
-    OP, PV (and SP, when the loop has one) are all present.  404 for an
+    A plain ``def`` (FastAPI's thread pool) waiting for the check in the analysis
+    process (:meth:`service.runtime.AppState.analyse`).  The model is checked on
+    the longest stretch of the current window where OP, PV (and SP, when the
+    loop has one) are all present.  404 for an
     unknown loop or one without samples in its window; 422 with the reason
     for an invalid model, a loop without OP or PV, or too little complete data.
     """
@@ -111,11 +118,10 @@ def loop_model_check(
                  f"({window.t.size} samples at {window.ts:g} s) has {stop - start}")
     part = slice(start, stop)
     try:
-        result = check_model(op[part], pv[part], window.ts,
-                             sp=None if sp is None else sp[part], model=model)
+        out = state.analyse(_check, op[part], pv[part], window.ts,
+                            None if sp is None else sp[part], model)
     except AnalyticsError as exc:
         raise HTTPException(422, f"Model check not possible: {exc}") from None
-    out = result.to_dict(overlay=True)
     out["overlay"]["t"] = window.t[part].tolist()
     return {"loop_id": loop_id, "window_start": float(window.t[start]),
             "window_end": float(window.t[stop - 1]), "ts": window.ts, "samples": stop - start,

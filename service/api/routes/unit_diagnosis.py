@@ -53,7 +53,7 @@ def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
         raise HTTPException(404, "Unit diagnosis not available: no loop of the unit has a "
                                  "complete OP and PV window")
     try:
-        result = analyse_unit(windows.signals, windows.ts)
+        result = state.analyse(analyse_unit, windows.signals, windows.ts)
     except (UnitWindowsError, AnalyticsError) as exc:
         raise HTTPException(422, f"Unit diagnosis not available: {exc}") from None
     return {"unit_id": unit_id, "source": "on_demand", "round_end": None, "window_end": now,

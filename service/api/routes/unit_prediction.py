@@ -10,7 +10,6 @@ the amplitude consistency of ERRATA item 9) and simulates it beside.
 from __future__ import annotations
 
 import json
-from functools import lru_cache
 from typing import Any
 
 from fastapi import APIRouter, HTTPException
@@ -39,9 +38,9 @@ CONFIGURE_MATRIX = (
 )
 
 
-@lru_cache(maxsize=64)
 def _prediction_for(spec: str) -> dict[str, Any]:
-    """The prediction is a pure function of the model: cache it by its JSON."""
+    """The prediction is a pure function of the model (cached by its JSON with
+    :meth:`service.runtime.AppState.analyse_cached`)."""
     _, report = predict_spec(json.loads(spec), source="unit model")
     return report.to_dict()
 
@@ -143,7 +142,7 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
             "controllers": controllers, "valves": [v["valve"] for v in valves],
             "names": unit.process.loops}
     try:
-        prediction = _prediction_for(json.dumps(spec, sort_keys=True))
+        prediction = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
     except (ModelError, AnalyticsError) as exc:
         raise HTTPException(422, f"Prediction not available: {exc}") from None
     return {**answer, **prediction}
