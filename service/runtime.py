@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -54,6 +55,10 @@ __all__ = ["SPOOL_REFUSAL_REASONS", "AnalysisUnavailableError", "AppState", "Sam
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+ANALYSIS_NICENESS = 10
+"""The analysis processes run at a lower CPU priority: on a busy machine the requests
+(and ingest) of the API process go first, the analyses take longer."""
 
 
 class AnalysisUnavailableError(RuntimeError):
@@ -145,7 +150,8 @@ class AppState:
         """``function(*args)`` in the API's analysis process(es), waited for here.
 
         Compiled kernels hold the interpreter lock while they run; in a
-        separate process they cannot hold up the other requests.  The
+        separate process (at a lower CPU priority, :data:`ANALYSIS_NICENESS`)
+        they cannot hold up the other requests.  The
         caller holds a slot of :attr:`analyses`, so at most two analyses per
         process are submitted at once.
 
@@ -157,7 +163,9 @@ class AppState:
         """
         with self._pool_lock:
             if self._analysis_pool is None:
-                self._analysis_pool = ProcessPoolExecutor(self.settings.analysis_processes)
+                self._analysis_pool = ProcessPoolExecutor(
+                    self.settings.analysis_processes, initializer=os.nice,
+                    initargs=(ANALYSIS_NICENESS,))
             pool = self._analysis_pool
         try:
             return pool.submit(function, *args).result(timeout=self.settings.analysis_timeout_s)
