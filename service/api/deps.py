@@ -96,8 +96,9 @@ ERROR_RESPONSES = error_responses(400, 401, 403, 413, 422, 429, 503)
 """Errors any route behind a key may answer (route-specific: 404 and 409)."""
 
 
-def get_state(request: Request) -> AppState:
-    """The application's :class:`AppState`."""
+async def get_state(request: Request) -> AppState:
+    """The application's :class:`AppState` (async: it does no I/O, and a plain def
+    would cost every request a trip through the thread pool)."""
     state: AppState = request.app.state.loopwatch
     return state
 
