@@ -33,7 +33,7 @@ from service.api.deps import get_session
 from service.auth import authenticate
 from service.config import ConfigError, PlantConfig, Settings
 from service.server import Service, build_service
-from service.store.db import Store, migrate
+from service.store.db import migrate
 from service.store.models import ApiKey
 from tests.service.test_api import ADMIN, T0, plant
 from tests.service.test_model_check_api import case_batch
@@ -307,9 +307,24 @@ def test_keys_are_stored_salted_with_a_key_id_that_is_not_secret(svc):
     assert ADMIN[:6] not in dump
 
 
-def test_keys_stored_before_the_migration_still_authenticate(tmp_path):
-    url = f"sqlite:///{tmp_path / 'old.db'}"
-    engine = create_engine(url)
+@pytest.fixture(params=["sqlite", "postgresql"])
+def empty_database(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:
+    """The URL of an empty database (no schema) on SQLite or a real PostgreSQL."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'old.db'}"
+        return
+    server_url = request.getfixturevalue("postgres_url")
+    admin = create_engine(server_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as connection:
+        connection.execute(text("CREATE DATABASE loopwatch_before_0004"))
+    yield server_url.rsplit("/", 1)[0] + "/loopwatch_before_0004"
+    with admin.connect() as connection:
+        connection.execute(text("DROP DATABASE loopwatch_before_0004 WITH (FORCE)"))
+    admin.dispose()
+
+
+def test_keys_and_loops_stored_before_migration_0004_are_kept(empty_database):
+    engine = create_engine(empty_database)
     migrate(engine, "0003")
     old_key = "lw_" + "A" * 40
     with engine.begin() as connection:
@@ -317,13 +332,23 @@ def test_keys_stored_before_the_migration_still_authenticate(tmp_path):
             "INSERT INTO api_keys (name, role, key_hash, prefix, created_at) "
             "VALUES ('old', 'viewer', :hash, :prefix, 0)"),
             {"hash": hashlib.sha256(old_key.encode()).hexdigest(), "prefix": old_key[:8]})
+        connection.execute(text("INSERT INTO units (id, name) VALUES ('u1', 'Unit 1')"))
+        connection.execute(text(
+            "INSERT INTO loops (id, name, unit_id, config, created_at, updated_at) "
+            "VALUES ('NEW-1', 'old', 'u1', :config, 0, 0)"),
+            {"config": json.dumps({**NEW_LOOP, "id": "NEW-1"})})
+        connection.execute(text("INSERT INTO tags (name, loop_id, signal) VALUES "
+                                "('NEW.OP', 'NEW-1', 'op'), ('NEW.PV', 'NEW-1', 'pv')"))
     engine.dispose()
-    store = Store(url)
-    with store.session() as session:
+    service = build_service(Settings(database_url=empty_database, api_key=ADMIN), plant(),
+                            executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    with service.state.store.session() as session:
         row = authenticate(session, old_key)
-        assert row is not None and row.name == "old" and not row.key_id.startswith("lw_A")
+        assert row is not None and row.name == "old" and row.key_id.startswith("ext-")
         assert authenticate(session, old_key + "x") is None
-    store.close()
+    assert "NEW-1" in {loop.id for loop in service.state.registry.plant.loops}
+    service.executor.shutdown()
+    service.state.store.close()
 
 
 # ----------------------------------------------------------------------------- 9: slow clients
