@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeoutError
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from typing import Any, Protocol, TypeVar, cast
 
 from sqlalchemy.orm import Session
@@ -163,9 +164,11 @@ class AppState:
         """
         with self._pool_lock:
             if self._analysis_pool is None:
+                # spawned, not forked: a fork would inherit this process's sockets and
+                # pipes and hold them open (a client's connection, a child's stdin)
                 self._analysis_pool = ProcessPoolExecutor(
-                    self.settings.analysis_processes, initializer=os.nice,
-                    initargs=(ANALYSIS_NICENESS,))
+                    self.settings.analysis_processes, mp_context=get_context("spawn"),
+                    initializer=os.nice, initargs=(ANALYSIS_NICENESS,))
             pool = self._analysis_pool
         try:
             return pool.submit(function, *args).result(timeout=self.settings.analysis_timeout_s)
