@@ -316,6 +316,11 @@ class Settings(BaseSettings):
     max_batch_samples: int = Field(
         default=200_000, gt=0, description="most samples taken in one ingest batch"
     )
+    ingest_concurrency: int = Field(
+        default=1, ge=1,
+        description="ingest batches and CSV uploads validated and written at once by one "
+                    "process (SQLite writes one at a time anyway; more may help PostgreSQL)",
+    )
     rate_limit_per_s: float = Field(
         default=20.0, gt=0, description="requests per second sustained by one API key"
     )

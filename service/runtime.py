@@ -38,6 +38,7 @@ from service.ingest import (
     _validate,
     ingest_batch,
     ingest_csv,
+    parse_batch,
 )
 from service.metrics import Metrics
 from service.plant import PlantRegistry
@@ -141,6 +142,7 @@ class AppState:
                                          burst=self.settings.auth_failure_burst)
         self.analyses = ConcurrencyLimiter(per_key=self.settings.analyses_per_key,
                                            total=2 * self.settings.analysis_processes)
+        self._ingest_slots = threading.BoundedSemaphore(self.settings.ingest_concurrency)
         self._analysis_pool: ProcessPoolExecutor | None = None
         self._pool_lock = threading.Lock()
         self._answers: OrderedDict[Hashable, Any] = OrderedDict()
@@ -227,6 +229,11 @@ class AppState:
     def ingest(self, batch: list[dict[str, Any]] | list[Any]) -> IngestReport:
         """Store a batch (one transaction), then feed the rolling buffers.
 
+        At most ``settings.ingest_concurrency`` batches (and CSV uploads) are
+        validated and written at once: on SQLite they would only queue for
+        the write lock, and in the meantime hold the interpreter lock that
+        the other requests need.
+
         While the store is unreachable, or the spool still holds batches, the
         batch is spooled instead and a :class:`~service.spool.SpooledReport`
         returned.
@@ -240,7 +247,16 @@ class AppState:
             The store is unreachable and the batch does not fit in the spool;
             it is counted as refused (``spool_full``).
         """
-        items = _validate(batch)
+        with self._ingest_slots:
+            return self._ingest(_validate(batch))
+
+    def ingest_json(self, body: bytes) -> IngestReport:
+        """:meth:`ingest` of a request body, parsed in the same slot
+        (:func:`service.ingest.parse_batch`: refused in bounded time)."""
+        with self._ingest_slots:
+            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples))
+
+    def _ingest(self, items: list[TagItems]) -> IngestReport:
         samples = sum(len(entry.items) for entry in items)
         if samples > self.settings.max_batch_samples:
             raise IngestError(
@@ -319,6 +335,10 @@ class AppState:
             The store is unreachable (CSV uploads are not spooled: send the
             file again later).
         """
+        with self._ingest_slots:
+            return self._ingest_csv(text)
+
+    def _ingest_csv(self, text: str) -> IngestReport:
         if len(self.spool) and time.monotonic() >= self._next_flush:
             self.flush_spool()
         try:

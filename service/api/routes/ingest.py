@@ -9,8 +9,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import TypeAdapter
 
-from service.api.deps import ERROR_RESPONSES, AppState, Principal, StateDep, require
-from service.ingest import IngestError, IngestReport, TagItems, parse_batch
+from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
+from service.ingest import IngestError, IngestReport, TagItems
 
 router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"], responses=ERROR_RESPONSES)
 Historian = Annotated[Principal, Depends(require("ingest"))]
@@ -40,10 +40,6 @@ def _inlined(schema: dict[str, Any]) -> dict[str, Any]:
 BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems]).json_schema())
 
 
-def _ingest_body(state: AppState, body: bytes) -> IngestReport:
-    return state.ingest(parse_batch(body, max_samples=state.settings.max_batch_samples))
-
-
 @router.post(
     "",
     responses={200: {"description": "every item stored or already stored"},
@@ -64,7 +60,7 @@ async def ingest(request: Request, state: StateDep, _: Historian) -> JSONRespons
     """
     body = await request.body()
     try:
-        return _response(await run_in_threadpool(_ingest_body, state, body))
+        return _response(await run_in_threadpool(state.ingest_json, body))
     except IngestError as exc:
         raise HTTPException(422, str(exc)) from None
 
