@@ -8,11 +8,21 @@ of ``--loops`` loops (OP, PV, SP tags).  For ``--duration`` seconds:
   every sample new (each client owns its tags and advances its own clock);
 * ``--dashboards`` clients (one viewer key each) poll every
   ``--poll-s`` what the dashboard asks for: the loop list, the bad actors,
-  the alarms and one loop's data.
+  the alarms and one loop's data;
+* ``--model-checks`` clients (one viewer key each) run model checks back to
+  back (``POST /api/v1/loops/{id}/model-check``) on the first
+  :data:`CHECKED_LOOPS` loops, which get an hour of a simulated loop (a
+  first-order process under PI control, ending now) before the clock starts.
+
+Issue 20's scenario, 2,000 loops with 20 dashboards while historians push and
+2 clients run model checks::
+
+    .venv/bin/python benchmarks/load.py --loops 2000 --dashboards 20 --model-checks 2 \
+        --repeat 1 --duration 60
 
 Printed per run and as the median of ``--repeat`` runs: the sustained
 ingest rate (samples acknowledged per second), the latency of ingest
-batches and of dashboard requests (median and p99), the server's memory
+batches, of dashboard requests and of model checks (p50 and p99), the server's memory
 growth from the end of the warm-up to the end (RSS), and the errors: non-2xx
 answers by status, 5xx, and lost samples (acknowledged as stored but not in
 the store; the service's own books must also balance).  Everything runs on
@@ -55,6 +65,10 @@ from tests.servers import free_port, postgres_server  # noqa: E402
 
 ADMIN = "load-benchmark-admin-key-0123456789"
 WARM_UP_S = 2.0
+CHECKED_LOOPS = 4
+"""Loops with an hour of recent data for the model-check clients."""
+BACKGROUND = ("ingest", "model check")
+"""Request kinds that are not the dashboard's."""
 
 
 @dataclass
@@ -104,6 +118,7 @@ class Client:
 def plant_file(path: Path, loops: int) -> list[str]:
     """A plant of ``loops`` loops; the tags, in order."""
     entries = [{"id": f"L{i:04d}", "unit": "u1", "ts": 1.0,
+                "ranges": {"op": [0, 100], "pv": [0, 100]},
                 "tags": {s: f"L{i:04d}.{s.upper()}" for s in ("op", "pv", "sp")}}
                for i in range(loops)]
     path.write_text(yaml.safe_dump({"units": [{"id": "u1", "name": "load"}], "loops": entries}))
@@ -171,6 +186,37 @@ def historian(port: int, key: str, tags: list[str], samples: int, start: float,
         t += samples
 
 
+def recent_hour(loop: int, end: float) -> list[dict[str, Any]]:
+    """An hour of a first-order process (K 1.5, tau 30 s) under PI control, ending at
+    ``end``, with set-point steps every 10 min and measurement noise: an ingest batch."""
+    rng = np.random.default_rng(loop)
+    n = 3600
+    sp = 50.0 + 10.0 * np.sign(np.sin(2 * np.pi * np.arange(n) / 1200.0))
+    op, pv = np.empty(n), np.empty(n)
+    x, integral = 50.0, 0.0
+    for k in range(n):
+        pv[k] = x + rng.normal(0.0, 0.2)
+        error = sp[k] - pv[k]
+        integral += error
+        op[k] = float(np.clip(50.0 + 0.6 * error + 0.6 * integral / 20.0, 0.0, 100.0))
+        x += (1.5 * (op[k] - 50.0) + 50.0 - x) / 30.0
+    t = end - n + np.arange(n)
+    return [{"tag": f"L{loop:04d}.{name}",
+             "items": [{"timestamp": float(a), "value": float(b)}
+                       for a, b in zip(t, v, strict=True)]}
+            for name, v in (("OP", op), ("PV", pv), ("SP", sp))]
+
+
+def model_checker(port: int, key: str, seed: int, stop: threading.Event,
+                  tally: Tally) -> None:
+    client = Client(port, key, tally)
+    loop = seed
+    while not stop.is_set():
+        client.request("model check", "POST",
+                       f"/api/v1/loops/L{loop % CHECKED_LOOPS:04d}/model-check")
+        loop += 1
+
+
 def dashboard(port: int, key: str, loops: int, poll_s: float, seed: int,
               stop: threading.Event, tally: Tally) -> None:
     client = Client(port, key, tally)
@@ -198,8 +244,19 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
     with server(database_url, config, args.analysis_interval) as (process, port):
         keys_h = [make_key(port, "historian", f"historian {i}") for i in range(args.historians)]
         keys_d = [make_key(port, "viewer", f"dashboard {i}") for i in range(args.dashboards)]
+        keys_m = [make_key(port, "viewer", f"model check {i}")
+                  for i in range(args.model_checks)]
+        prefilled = 0
+        if keys_m:
+            now = time.time()
+            prefill = Client(port, ADMIN, Tally()).request(
+                "prefill", "POST", "/api/v1/ingest",
+                [entry for loop in range(min(CHECKED_LOOPS, args.loops))
+                 for entry in recent_hour(loop, now)])
+            prefilled = prefill["stored"]
         stop = threading.Event()
-        tallies = [Tally() for _ in range(args.historians + args.dashboards)]
+        clients = args.historians + args.dashboards
+        tallies = [Tally() for _ in range(clients + args.model_checks)]
         start = time.time() - 7 * 86400
         threads = [
             threading.Thread(target=historian, args=(
@@ -210,6 +267,9 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
             threading.Thread(target=dashboard, args=(
                 port, key, args.loops, args.poll_s, i, stop, tallies[args.historians + i]))
             for i, key in enumerate(keys_d)
+        ] + [
+            threading.Thread(target=model_checker, args=(port, key, i, stop, tallies[clients + i]))
+            for i, key in enumerate(keys_m)
         ]
         began = time.monotonic()
         for thread in threads:
@@ -239,30 +299,33 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
         in_store = int(connection.scalar(select(func.count()).select_from(Sample)) or 0)
     engine.dispose()
     ingest = np.array(total.latencies.get("ingest", [np.nan]))
-    reads = np.concatenate([np.array(v) for k, v in total.latencies.items() if k != "ingest"]
-                           or [np.array([np.nan])])
+    reads = np.concatenate([np.array(v) for k, v in total.latencies.items()
+                            if k not in BACKGROUND] or [np.array([np.nan])])
+    checks = np.array(total.latencies.get("model check", [np.nan]))
     errors = {status: n for status, n in total.statuses.items() if status >= 300}
     result = {
         "ingest samples/s": (accepted_at_end - accepted_at_warm_up)
                             / max(args.duration - WARM_UP_S, 1e-9),
         "batches": float(ingest.size),
-        "ingest median ms": float(np.median(ingest) * 1e3),
+        "ingest p50 ms": float(np.median(ingest) * 1e3),
         "ingest p99 ms": float(np.percentile(ingest, 99) * 1e3),
         "dashboard requests": float(reads.size),
-        "dashboard median ms": float(np.median(reads) * 1e3),
+        "dashboard p50 ms": float(np.median(reads) * 1e3),
         "dashboard p99 ms": float(np.percentile(reads, 99) * 1e3),
+        "model checks": float(np.isfinite(checks).sum()),
+        "model check p50 ms": float(np.median(checks) * 1e3),
         "RSS growth MiB": rss_end - rss_start,
         "RSS end MiB": rss_end,
         "non-2xx": float(sum(errors.values())),
         "5xx": float(sum(n for s, n in errors.items() if s >= 500)),
         "connection errors": float(sum(total.failures.values())),
-        "lost samples": float(total.stored - in_store),
+        "lost samples": float(total.stored + prefilled - in_store),
         "books off by": received - books,
     }
     print(f"  run: {elapsed:.1f} s, statuses {dict(sorted(total.statuses.items()))}, "
           f"failures {dict(total.failures)}")
     for kind, values in sorted(total.latencies.items()):
-        print(f"    {kind:<11} n={len(values):6d}  median {np.median(values) * 1e3:7.1f} ms"
+        print(f"    {kind:<11} n={len(values):6d}  p50 {np.median(values) * 1e3:7.1f} ms"
               f"  p99 {np.percentile(values, 99) * 1e3:7.1f} ms")
     return result
 
@@ -276,14 +339,18 @@ def main() -> None:
     parser.add_argument("--tags", type=int, default=50, help="tags per batch")
     parser.add_argument("--samples", type=int, default=20, help="samples per tag per batch")
     parser.add_argument("--poll-s", type=float, default=1.0, help="dashboard poll interval")
+    parser.add_argument("--model-checks", type=int, default=0,
+                        help="clients running model checks back to back")
     parser.add_argument("--analysis-interval", type=float, default=3600.0)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--store", choices=("sqlite", "postgresql"), default="sqlite")
     args = parser.parse_args()
-    if not (0 < args.duration <= 600 and args.historians + args.dashboards <= 200):
+    if not (0 < args.duration <= 600
+            and args.historians + args.dashboards + args.model_checks <= 200):
         parser.error("keep the load bounded: --duration up to 600 s, at most 200 clients")
     print(f"load: {args.historians} historians x {args.tags} tags x {args.samples} samples, "
-          f"{args.dashboards} dashboards polling every {args.poll_s:g} s, {args.loops} loops, "
+          f"{args.dashboards} dashboards polling every {args.poll_s:g} s, "
+          f"{args.model_checks} model-check clients, {args.loops} loops, "
           f"{args.duration:g} s x {args.repeat}, {args.store}")
     runs = []
     with ExitStack() as stack:

@@ -1,8 +1,13 @@
 """API keys and roles.
 
-A key is shown once, when it is created; the store keeps only its SHA-256
-hash and an 8-character prefix to tell keys apart in lists.  Roles grant
-permissions:
+A key is shown once, when it is created.  The store keeps a key id that is
+not secret (it names the key in lists and logs), a random salt per key and
+``SHA-256(salt || SHA-256(key))``: a stolen table neither shows the keys nor
+lets one hash be tried against all rows at once.  A generated key carries its
+id (``lw_<key id>_<secret>``), so it is checked against one row; a key chosen
+by the operator (the bootstrap ``LOOPWATCH_API_KEY``, and keys stored before
+migration 0004) has an ``ext-`` id and is checked against those rows, which
+are few.  Roles grant permissions:
 
 ==========  ====  ======  =======  ======  =====
 role        read  alarms  tickets  ingest  admin
@@ -27,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import re
 import secrets
 import threading
 import time
@@ -34,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, cast
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.spool import StoreUnavailableError, is_store_outage
@@ -45,6 +51,7 @@ __all__ = [
     "PERMISSIONS",
     "ROLES",
     "AuthError",
+    "KeyConflictError",
     "KeyVerifier",
     "Permission",
     "Principal",
@@ -55,6 +62,7 @@ __all__ = [
     "hash_key",
     "list_keys",
     "revoke_key",
+    "salted_hash",
 ]
 
 Role = Literal["viewer", "operator", "maintenance", "historian", "admin"]
@@ -73,39 +81,77 @@ class AuthError(ValueError):
     """A key operation was refused (unknown role, unknown key)."""
 
 
+class KeyConflictError(AuthError):
+    """A key operation that would lock every administrator out."""
+
+
+EXTERNAL_ID_PREFIX = "ext-"
+"""Key ids of keys that do not carry their id (bootstrap keys, keys from before 0004)."""
+
+_GENERATED = re.compile(r"lw_([0-9a-f]{12})_[A-Za-z0-9_-]{40}")
+
+
 def hash_key(key: str) -> str:
-    """SHA-256 hex digest of a key (keys are random, so no salt is needed)."""
+    """SHA-256 hex digest of a key: the salted hash's input, and the in-memory cache key
+    of :class:`KeyVerifier` (never stored)."""
     return hashlib.sha256(key.encode()).hexdigest()
 
 
-def _insert(session: Session, key: str, name: str, role: Role, now: float) -> ApiKey:
-    row = ApiKey(name=name, role=role, key_hash=hash_key(key), prefix=key[:8], created_at=now)
+def salted_hash(key_digest: str, salt: str) -> str:
+    """What the store keeps of a key: ``SHA-256(salt || SHA-256(key))``, hex (both
+    arguments hex, ``key_digest`` from :func:`hash_key`)."""
+    return hashlib.sha256(bytes.fromhex(salt) + bytes.fromhex(key_digest)).hexdigest()
+
+
+def _insert(session: Session, key: str, key_id: str, name: str, role: Role,
+            now: float) -> ApiKey:
+    salt = secrets.token_hex(16)
+    row = ApiKey(name=name, role=role, key_id=key_id, salt=salt,
+                 key_hash=salted_hash(hash_key(key), salt), created_at=now)
     session.add(row)
     session.flush()
     return row
+
+
+def _candidates(session: Session, key: str) -> list[ApiKey]:
+    """The rows ``key`` may be: the one its id names, else the rows without one."""
+    generated = _GENERATED.fullmatch(key)
+    if generated is not None:
+        row = session.scalar(select(ApiKey).where(ApiKey.key_id == generated[1]))
+        if row is not None:
+            return [row]
+    return list(session.scalars(
+        select(ApiKey).where(ApiKey.key_id.startswith(EXTERNAL_ID_PREFIX))))
+
+
+def _matching(session: Session, key: str) -> ApiKey | None:
+    digest = hash_key(key)
+    for row in _candidates(session, key):
+        if hmac.compare_digest(row.key_hash, salted_hash(digest, row.salt)):
+            return row
+    return None
 
 
 def create_key(session: Session, name: str, role: str, now: float) -> tuple[str, ApiKey]:
     """A new random key for ``role``: the plain key (shown once) and its row."""
     if role not in ROLES:
         raise AuthError(f"unknown role {role!r}; roles are {', '.join(ROLES)}")
-    key = "lw_" + secrets.token_urlsafe(30)
-    return key, _insert(session, key, name, role, now)
+    key_id = secrets.token_hex(6)
+    key = f"lw_{key_id}_{secrets.token_urlsafe(30)}"
+    return key, _insert(session, key, key_id, name, role, now)
 
 
 def ensure_bootstrap_key(session: Session, key: str, now: float) -> None:
     """Store the bootstrap admin key (from the settings) unless it is already there."""
-    if session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key))) is None:
-        _insert(session, key, "bootstrap", "admin", now)
+    if _matching(session, key) is None:
+        _insert(session, key, EXTERNAL_ID_PREFIX + secrets.token_hex(6), "bootstrap",
+                "admin", now)
 
 
 def authenticate(session: Session, key: str) -> ApiKey | None:
     """The active key row matching ``key``, or None."""
-    digest = hash_key(key)
-    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == digest))
-    if row is None or row.revoked_at is not None:
-        return None
-    return row if hmac.compare_digest(row.key_hash, digest) else None
+    row = _matching(session, key)
+    return None if row is None or row.revoked_at is not None else row
 
 
 def list_keys(session: Session) -> list[ApiKey]:
@@ -114,10 +160,24 @@ def list_keys(session: Session) -> list[ApiKey]:
 
 
 def revoke_key(session: Session, key_id: int, now: float) -> ApiKey:
-    """Revoke key ``key_id``; revoking twice keeps the first time."""
+    """Revoke key ``key_id``; revoking twice keeps the first time.
+
+    Raises
+    ------
+    AuthError
+        No key has that id.
+    KeyConflictError
+        It is the last active admin key: nobody could manage keys afterwards.
+    """
     row = session.get(ApiKey, key_id)
     if row is None:
         raise AuthError(f"no API key with id {key_id}")
+    if row.revoked_at is None and row.role == "admin":
+        admins = session.scalar(select(func.count()).where(
+            ApiKey.role == "admin", ApiKey.revoked_at.is_(None)))
+        if admins == 1:
+            raise KeyConflictError(f"Key {key_id} is the last active admin key; create "
+                                   "another admin key before revoking it")
     if row.revoked_at is None:
         row.revoked_at = now
     return row

@@ -288,10 +288,12 @@ class Settings(BaseSettings):
     Secrets (the bootstrap key, the database URL with its password) are
     :class:`~pydantic.SecretStr`, so a logged or printed ``Settings`` shows
     ``**********`` instead.  Outside ``development`` a secret left at a known
-    default, and a CORS wildcard, are refused at start.
+    default, and a CORS wildcard, are refused at start; the refusal never shows the
+    input (``hide_input_in_errors``), as it would hold the secrets.
     """
 
-    model_config = SettingsConfigDict(env_prefix="LOOPWATCH_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="LOOPWATCH_", extra="ignore",
+                                      hide_input_in_errors=True)
 
     environment: Literal["development", "production"] = "development"
     data_dir: Path = Path("data")
@@ -326,6 +328,11 @@ class Settings(BaseSettings):
     max_batch_samples: int = Field(
         default=200_000, gt=0, description="most samples taken in one ingest batch"
     )
+    ingest_concurrency: int = Field(
+        default=1, ge=1,
+        description="ingest batches and CSV uploads validated and written at once by one "
+                    "process (SQLite writes one at a time anyway; more may help PostgreSQL)",
+    )
     rate_limit_per_s: float = Field(
         default=20.0, gt=0, description="requests per second sustained by one API key"
     )
@@ -340,6 +347,42 @@ class Settings(BaseSettings):
     spool_retry_s: float = Field(
         default=5.0, gt=0, description="pause between attempts to write the spool, s"
     )
+    auth_failure_burst: int = Field(
+        default=20, ge=1,
+        description="failed authentications one client address may make at once",
+    )
+    auth_failure_per_s: float = Field(
+        default=1.0, gt=0,
+        description="failed authentications per second sustained from one client address",
+    )
+    analyses_per_key: int = Field(
+        default=1, ge=1,
+        description="expensive analyses (model check, advice, unit diagnosis and "
+                    "prediction) one API key may run at once",
+    )
+    analysis_processes: int = Field(
+        default=1, ge=1,
+        description="processes that run the API's expensive analyses (apart from the "
+                    "request threads, so their compiled kernels hold no lock the other "
+                    "requests need); twice as many may be admitted at once, one waiting "
+                    "per process, the rest get 503",
+    )
+    analysis_retry_s: float = Field(
+        default=5.0, gt=0, description="Retry-After of a key refused an analysis, s")
+    header_timeout_s: float = Field(
+        default=10.0, gt=0, description="time a client has to send a request's headers, s")
+    body_timeout_s: float = Field(
+        default=30.0, gt=0,
+        description="longest pause while a client sends a request body, s")
+    keep_alive_s: float = Field(
+        default=5.0, gt=0, description="idle keep-alive connections are closed after, s")
+    forwarded_allow_ips: str = Field(
+        default="127.0.0.1",
+        description="proxies (comma-separated addresses, or *) whose X-Forwarded-For "
+                    "names the client: the address failed authentications count against")
+    max_connections: int = Field(
+        default=1000, ge=1,
+        description="open connections (and requests) at once; beyond, new requests get 503")
     auth_outage_grace_s: float = Field(
         default=3600.0, ge=0,
         description="while the store is unreachable, keys confirmed this recently still "
@@ -367,10 +410,11 @@ class Settings(BaseSettings):
 
     def _refuse_default_secrets(self) -> None:
         key = None if self.api_key is None else self.api_key.get_secret_value()
-        if key is None or key.lower() in KNOWN_DEFAULT_SECRETS or len(key) < 16:
+        if key is None or key.strip().lower() in KNOWN_DEFAULT_SECRETS \
+                or len(key.strip()) < 16 or key != key.strip():
             raise ValueError(
-                f"LOOPWATCH_API_KEY must be set to a secret of at least 16 characters "
-                f"in {self.environment}"
+                f"LOOPWATCH_API_KEY must be set to a secret of at least 16 characters, "
+                f"without leading or trailing blanks, in {self.environment}"
             )
         if self.database_url is not None:
             try:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 from collections import Counter
 from collections.abc import Collection, Iterable, Sequence
@@ -56,6 +57,7 @@ __all__ = [
     "TagReport",
     "ingest_batch",
     "ingest_csv",
+    "parse_batch",
     "parse_timestamp",
     "purge_samples",
 ]
@@ -68,6 +70,10 @@ REFUSAL_REASONS = (
     "conflict",
 )
 INSERT_CHUNK = 1000  # rows per INSERT: 4,000 parameters, well inside both databases' limits
+MAX_CSV_COLUMNS = 10_000
+"""Columns of a CSV upload (a wide upload: one per tag)."""
+MAX_REPORTED_ERRORS = 10
+"""Problems of a malformed batch named in the error; the rest are counted."""
 
 NewSample = tuple[float, float | None, bool]
 """A sample as stored: (time, value or None when bad, good)."""
@@ -311,14 +317,44 @@ def _validate(batch: Iterable[TagItems | dict[str, Any]]) -> list[TagItems]:
         problems = "; ".join(
             "batch" + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
             + f": {e['msg']}"
-            for e in exc.errors()[:5]
+            for e in exc.errors(include_url=False, include_input=False)[:MAX_REPORTED_ERRORS]
         )
-        more = exc.error_count() - 5
+        more = exc.error_count() - MAX_REPORTED_ERRORS
         raise IngestError(
             f"invalid batch: {problems}" + (f" (and {more} more)" if more > 0 else "")
         ) from None
     except TypeError:
         raise IngestError("invalid batch: expected a list of {tag, items} objects") from None
+
+
+def parse_batch(body: bytes, *, max_samples: int) -> list[TagItems]:
+    """A JSON batch from a request body, refused in time bounded by ``max_samples``.
+
+    The entries and items are counted before anything is validated, so a
+    batch of a million stray numbers costs a count, not a million errors;
+    the error names the first :data:`MAX_REPORTED_ERRORS` problems and counts
+    the others.  NaN and Infinity are read (some historians write them).
+
+    Raises
+    ------
+    IngestError
+        Not JSON, not a list of ``{tag, items}``, or more than ``max_samples``
+        entries or items.
+    """
+    try:
+        batch = json.loads(body)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise IngestError(f"invalid batch: not JSON: {exc}") from None
+    if not isinstance(batch, list):
+        raise IngestError("invalid batch: expected a list of {tag, items} objects")
+    samples = sum(len(entry["items"]) for entry in batch
+                  if isinstance(entry, dict) and isinstance(entry.get("items"), list))
+    for what, count in (("entries", len(batch)), ("samples", samples)):
+        if count > max_samples:
+            raise IngestError(
+                f"batch of {count} {what} is longer than the limit of {max_samples} "
+                "(LOOPWATCH_MAX_BATCH_SAMPLES); split it")
+    return _validate(batch)
 
 
 def _insert(session: Session, rows: list[dict[str, Any]]) -> set[tuple[str, float]]:
@@ -460,16 +496,21 @@ def _csv_rows(text: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
     if not any(rows[0]):
         raise IngestError("CSV row 1: the header row is empty; the first line must name the "
                           "columns")
+    if len(rows[0]) > MAX_CSV_COLUMNS:
+        raise IngestError(f"CSV row 1: {len(rows[0])} columns, more than the limit of "
+                          f"{MAX_CSV_COLUMNS}; split the upload")
     header = [name.strip() for name in rows[0]]
     body = [(number, row) for number, row in enumerate(rows[1:], start=2) if any(row)]
     for number, row in body:
         if len(row) != len(header):
             raise IngestError(f"CSV row {number}: {len(row)} cells, the header has {len(header)}")
+    seen: set[str] = set()
     for i, name in enumerate(header, start=1):
         if not name:
             raise IngestError(f"CSV row 1, column {i}: empty column name")
-        if name in header[: i - 1]:
+        if name in seen:
             raise IngestError(f"CSV row 1, column {i}: duplicate column {name!r}")
+        seen.add(name)
     return header, body
 
 

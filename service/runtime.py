@@ -11,11 +11,17 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeoutError
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from multiprocessing import get_context
+from typing import Any, Protocol, TypeVar, cast
 
 from sqlalchemy.orm import Session
 
@@ -23,6 +29,7 @@ from connectors.base import DeliveryCounters, Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
+from service.executors import end_executor
 from service.ingest import (
     REFUSAL_REASONS,
     IngestError,
@@ -31,10 +38,11 @@ from service.ingest import (
     _validate,
     ingest_batch,
     ingest_csv,
+    parse_batch,
 )
 from service.metrics import Metrics
 from service.plant import PlantRegistry
-from service.security import RateLimiter
+from service.security import ConcurrencyLimiter, RateLimiter
 from service.spool import (
     IngestSpool,
     SpooledBatch,
@@ -44,9 +52,20 @@ from service.spool import (
 )
 from service.store.db import Store
 
-__all__ = ["SPOOL_REFUSAL_REASONS", "AppState", "SampleAccounting"]
+__all__ = ["SPOOL_REFUSAL_REASONS", "AnalysisUnavailableError", "AppState", "SampleAccounting"]
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+ANALYSIS_NICENESS = 10
+"""The analysis processes run at a lower CPU priority: on a busy machine the requests
+(and ingest) of the API process go first, the analyses take longer."""
+
+
+class AnalysisUnavailableError(RuntimeError):
+    """An expensive analysis of a request could not run: its process died or it ran
+    longer than ``settings.analysis_timeout_s`` (HTTP 503)."""
 
 SPOOL_REFUSAL_REASONS = ("spool_full", "spool_write_error")
 """Refusals of the spool: full during an outage; a spooled batch the store then refused
@@ -103,6 +122,8 @@ class AppState:
     spool: IngestSpool = field(init=False)
     keys: KeyVerifier = field(init=False)
     limiter: RateLimiter = field(init=False)
+    auth_failures: RateLimiter = field(init=False)
+    analyses: ConcurrencyLimiter = field(init=False)
 
     def buffers_for(self, session: Session, loops: Sequence[LoopConfig], window_s: float,
                     now: float) -> LoopBuffers:
@@ -117,8 +138,76 @@ class AppState:
         self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
                                    burst=self.settings.rate_limit_burst)
+        self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
+                                         burst=self.settings.auth_failure_burst)
+        self.analyses = ConcurrencyLimiter(per_key=self.settings.analyses_per_key,
+                                           total=2 * self.settings.analysis_processes)
+        self._ingest_slots = threading.BoundedSemaphore(self.settings.ingest_concurrency)
+        self._analysis_pool: ProcessPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
+        self._answers: OrderedDict[Hashable, Any] = OrderedDict()
         self._flushing = threading.Lock()
         self._next_flush = -math.inf  # time.monotonic() of the next attempt to write the spool
+
+    def analyse(self, function: Callable[..., T], *args: Any) -> T:
+        """``function(*args)`` in the API's analysis process(es), waited for here.
+
+        Compiled kernels hold the interpreter lock while they run; in a
+        separate process (at a lower CPU priority, :data:`ANALYSIS_NICENESS`)
+        they cannot hold up the other requests.  The
+        caller holds a slot of :attr:`analyses`, so at most two analyses per
+        process are submitted at once.
+
+        Raises
+        ------
+        AnalysisUnavailableError
+            The process died, or the analysis outlived ``analysis_timeout_s``
+            (its process is then killed; the next analysis starts a new one).
+        """
+        with self._pool_lock:
+            if self._analysis_pool is None:
+                # spawned, not forked: a fork would inherit this process's sockets and
+                # pipes and hold them open (a client's connection, a child's stdin)
+                self._analysis_pool = ProcessPoolExecutor(
+                    self.settings.analysis_processes, mp_context=get_context("spawn"),
+                    initializer=os.nice, initargs=(ANALYSIS_NICENESS,))
+            pool = self._analysis_pool
+        try:
+            return pool.submit(function, *args).result(timeout=self.settings.analysis_timeout_s)
+        except (BrokenProcessPool, FutureTimeoutError) as exc:
+            with self._pool_lock:
+                if self._analysis_pool is pool:
+                    self._analysis_pool = None
+            end_executor(pool)
+            reason = ("took longer than LOOPWATCH_ANALYSIS_TIMEOUT_S "
+                      f"({self.settings.analysis_timeout_s:g} s)"
+                      if isinstance(exc, FutureTimeoutError) else "its process died")
+            raise AnalysisUnavailableError(f"The analysis {reason}; try again later") from None
+
+    ANSWERS_KEPT = 256
+    """Answers of pure analyses kept by :meth:`analyse_cached`."""
+
+    def analyse_cached(self, function: Callable[..., T], *args: Hashable) -> T:
+        """:meth:`analyse` for a pure function of hashable arguments (JSON text, ids):
+        the last :attr:`ANSWERS_KEPT` answers are kept and given again."""
+        key = (function.__module__, function.__qualname__, args)
+        with self._pool_lock:
+            if key in self._answers:
+                self._answers.move_to_end(key)
+                return cast(T, self._answers[key])
+        answer = self.analyse(function, *args)
+        with self._pool_lock:
+            self._answers[key] = answer
+            if len(self._answers) > self.ANSWERS_KEPT:
+                self._answers.popitem(last=False)
+        return answer
+
+    def close_analyses(self) -> None:
+        """End the analysis process(es), if any were started."""
+        with self._pool_lock:
+            pool, self._analysis_pool = self._analysis_pool, None
+        if pool is not None:
+            end_executor(pool)
 
     def _account(self, report: IngestReport, *, received: bool = True) -> None:
         """Feed the buffers and count; ``received`` False for a batch counted on entering
@@ -140,6 +229,11 @@ class AppState:
     def ingest(self, batch: list[dict[str, Any]] | list[Any]) -> IngestReport:
         """Store a batch (one transaction), then feed the rolling buffers.
 
+        At most ``settings.ingest_concurrency`` batches (and CSV uploads) are
+        validated and written at once: on SQLite they would only queue for
+        the write lock, and in the meantime hold the interpreter lock that
+        the other requests need.
+
         While the store is unreachable, or the spool still holds batches, the
         batch is spooled instead and a :class:`~service.spool.SpooledReport`
         returned.
@@ -153,7 +247,16 @@ class AppState:
             The store is unreachable and the batch does not fit in the spool;
             it is counted as refused (``spool_full``).
         """
-        items = _validate(batch)
+        with self._ingest_slots:
+            return self._ingest(_validate(batch))
+
+    def ingest_json(self, body: bytes) -> IngestReport:
+        """:meth:`ingest` of a request body, parsed in the same slot
+        (:func:`service.ingest.parse_batch`: refused in bounded time)."""
+        with self._ingest_slots:
+            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples))
+
+    def _ingest(self, items: list[TagItems]) -> IngestReport:
         samples = sum(len(entry.items) for entry in items)
         if samples > self.settings.max_batch_samples:
             raise IngestError(
@@ -232,6 +335,10 @@ class AppState:
             The store is unreachable (CSV uploads are not spooled: send the
             file again later).
         """
+        with self._ingest_slots:
+            return self._ingest_csv(text)
+
+    def _ingest_csv(self, text: str) -> IngestReport:
         if len(self.spool) and time.monotonic() >= self._next_flush:
             self.flush_spool()
         try:

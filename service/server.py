@@ -25,6 +25,7 @@ nothing but the store, so any number of each can run:
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import logging
 import time
@@ -38,6 +39,7 @@ from typing import Any, Protocol
 import uvicorn
 from fastapi import FastAPI
 from sqlalchemy.exc import IntegrityError
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from connectors.base import SampleSink
 from service.api.app import create_app
@@ -65,6 +67,7 @@ __all__ = [
     "build_service",
     "ingest_shard",
     "serve",
+    "uvicorn_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -171,21 +174,25 @@ class Service:
             self.webhook.close()
         if self.scheduler is not None:
             self.scheduler.executor.shutdown(wait=False, cancel_futures=True)
+        self.state.close_analyses()
         self.state.store.close()
 
 
-def _register(store: Store, plant: PlantConfig, admin_key: str, now: float) -> None:
-    """Write the plant and the bootstrap key; replicas starting together may collide once."""
-    for attempt in (1, 2):
-        try:
-            with store.session() as session:
-                sync_plant(session, plant, now)
-                ensure_bootstrap_key(session, admin_key, now)
-            return
-        except IntegrityError:
-            if attempt == 2:
-                raise
-            log.info("another process registered the plant at the same time; updating it")
+def _register(store: Store, plant: PlantConfig, admin_key: str, now: float) -> PlantConfig:
+    """Write the plant and the bootstrap key; the plant to run, with the loops added
+    through the API (:func:`service.plant.sync_plant`).  Replicas starting together may
+    collide once."""
+    def register() -> PlantConfig:
+        with store.session() as session:
+            running_plant = sync_plant(session, plant, now)
+            ensure_bootstrap_key(session, admin_key, now)
+        return running_plant
+
+    try:
+        return register()
+    except IntegrityError:
+        log.info("another process registered the plant at the same time; updating it")
+        return register()
 
 
 def build_service(
@@ -225,7 +232,7 @@ def build_service(
     store = Store(settings.resolved_database_url)
     now = clock()
     admin_key, generated = settings.bootstrap_key()
-    _register(store, plant, admin_key, now)
+    plant = _register(store, plant, admin_key, now)
     # only a scheduling process analyses windows: the others keep no rolling buffers (ingest
     # then leaves every sample to the store, and 10,000 loops save 2.4 GiB per process)
     schedules = role in SCHEDULING_ROLES
@@ -264,6 +271,71 @@ def build_service(
     state.sources = list(connectors)
     return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
                    create_app(state), role=role, connectors=connectors)
+
+
+MAX_HEADER_BYTES = 16 * 1024
+"""Largest request head (request line and headers) uvicorn buffers, bytes."""
+
+
+class DeadlineH11Protocol(H11Protocol):
+    """uvicorn's HTTP/1.1 protocol with a deadline for a request's headers.
+
+    uvicorn closes idle keep-alive connections, but a client that sends its
+    headers a byte at a time is never cut off; here the connection is closed
+    when a request's headers are not complete ``header_timeout_s`` after the
+    connection opened or the previous response ended.
+    """
+
+    header_timeout_s = 10.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._deadline: asyncio.TimerHandle | None = self.loop.call_later(
+            self.header_timeout_s, self._headers_too_slow)
+
+    def handle_events(self) -> None:
+        cycle = self.cycle
+        super().handle_events()
+        if self.cycle is not cycle and self._deadline is not None:  # a request head arrived
+            self._deadline.cancel()
+            self._deadline = None
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if self._deadline is None and not self.transport.is_closing():
+            self._deadline = self.loop.call_later(self.header_timeout_s,
+                                                  self._headers_too_slow)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        super().connection_lost(exc)
+
+    def _headers_too_slow(self) -> None:
+        self._deadline = None
+        if (self.cycle is None or self.cycle.response_complete) \
+                and not self.transport.is_closing():
+            self.transport.close()
+
+
+def uvicorn_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
+    """How ``loopwatch serve`` runs uvicorn: the header deadline
+    (``LOOPWATCH_HEADER_TIMEOUT_S``), idle keep-alive connections closed after
+    ``LOOPWATCH_KEEP_ALIVE_S``, at most ``LOOPWATCH_MAX_CONNECTIONS`` connections
+    (requests beyond get 503), request heads of at most :data:`MAX_HEADER_BYTES`,
+    the client's address from ``X-Forwarded-For`` of the proxies in
+    ``LOOPWATCH_FORWARDED_ALLOW_IPS`` only.  The body deadline is
+    :class:`service.security.BodyTimeoutMiddleware`'s."""
+    protocol = type("ServeH11Protocol", (DeadlineH11Protocol,),
+                    {"header_timeout_s": settings.header_timeout_s})
+    return uvicorn.Config(
+        app, host=settings.host, port=settings.port, log_level="info", http=protocol,
+        timeout_keep_alive=max(1, round(settings.keep_alive_s)),
+        limit_concurrency=settings.max_connections,
+        h11_max_incomplete_event_size=MAX_HEADER_BYTES,
+        proxy_headers=True, forwarded_allow_ips=settings.forwarded_allow_ips,
+    )
 
 
 @contextmanager
@@ -324,4 +396,4 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
               f"{simulated.modbus_port}), the last {settings.window_s:g} s back-filled; "
               "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
               f"{settings.analysis_interval_s:g} s")
-    uvicorn.run(service.app, host=settings.host, port=settings.port, log_level="info")
+    uvicorn.Server(uvicorn_config(service.app, settings)).run()

@@ -1,23 +1,104 @@
-"""Shared state and dependencies of the API routes."""
+"""Shared state and dependencies of the API routes, and the parameter types they share."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request, Security
+from fastapi import Depends, HTTPException, Path, Query, Request, Security
 from fastapi.security import APIKeyHeader
+from pydantic import BaseModel, Field
 from sqlalchemy.orm import Session
 
 from service.auth import Permission, Principal
 from service.runtime import AppState
 from service.security import retry_after
 
-__all__ = ["AppState", "Principal", "RequireKey", "SessionDep", "StateDep", "require"]
+__all__ = [
+    "ERROR_RESPONSES",
+    "MAX_DB_INT",
+    "MAX_TIME_S",
+    "Analyst",
+    "AppState",
+    "Error",
+    "Offset",
+    "Principal",
+    "Reader",
+    "RequireKey",
+    "SessionDep",
+    "StateDep",
+    "TimeQuery",
+    "error_responses",
+    "require",
+    "row_id",
+]
+
+MAX_DB_INT = 2 ** 63 - 1
+"""The largest integer both databases hold (BIGINT; SQLite's INTEGER)."""
+
+MAX_TIME_S = 253402300799.0
+"""9999-12-31T23:59:59Z: the last UNIX time a date can be printed for."""
+
+Offset = Annotated[int, Query(ge=0, le=MAX_DB_INT, description="rows to skip")]
+TimeQuery = Annotated[float | None, Query(ge=0, le=MAX_TIME_S, description="UNIX s")]
 
 
-def get_state(request: Request) -> AppState:
-    """The application's :class:`AppState`."""
+def row_id(description: str) -> Any:
+    """A path parameter naming a stored row by its integer id (1 .. 2**63 - 1)."""
+    return Path(ge=1, le=MAX_DB_INT, description=description)
+
+
+class ValidationProblem(BaseModel):
+    """One problem with the request: where (``loc``) and what (``msg``)."""
+
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class Error(BaseModel):
+    """Every error answer: ``detail`` is a sentence saying what was wrong, or, for a
+    request that does not fit the schema, one entry per problem."""
+
+    detail: str | list[ValidationProblem] = Field(
+        description="what was wrong and where")
+
+
+ERROR_REASONS: dict[int, str] = {
+    400: "the request cannot be read as sent",
+    401: "missing, unknown or revoked API key",
+    403: "the key's role may not do this",
+    404: "not found",
+    409: "the request conflicts with the current state",
+    413: "the request body is larger than the limit",
+    422: "the request does not fit the schema, or a value in it cannot be used",
+    429: "too many requests for this key, failed authentications from this address, or "
+         "expensive analyses of this key at once",
+    503: "the store is unreachable or busy",
+}
+RETRIED = (429, 503)
+"""Statuses that carry ``Retry-After``."""
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """The OpenAPI responses of error ``codes``, with the :class:`Error` body."""
+    responses: dict[int | str, dict[str, Any]] = {}
+    for code in codes:
+        responses[code] = {"model": Error, "description": ERROR_REASONS[code]}
+        if code in RETRIED:
+            responses[code]["headers"] = {"Retry-After": {
+                "description": "seconds to wait before trying again",
+                "schema": {"type": "integer", "minimum": 1}}}
+    return responses
+
+
+ERROR_RESPONSES = error_responses(400, 401, 403, 413, 422, 429, 503)
+"""Errors any route behind a key may answer (route-specific: 404 and 409)."""
+
+
+async def get_state(request: Request) -> AppState:
+    """The application's :class:`AppState` (async: it does no I/O, and a plain def
+    would cost every request a trip through the thread pool)."""
     state: AppState = request.app.state.loopwatch
     return state
 
@@ -40,21 +121,30 @@ class RequireKey:
     """A dependency that admits active keys, counted against their rate limit.
 
     ``permission`` None admits any active key; otherwise the key's role must
-    grant it.  Missing, unknown or revoked key: 401; over the key's rate
-    limit: 429 with ``Retry-After``; a role without the permission: 403.
-    The route-table test reads ``permission`` to check every route's access.
+    grant it.  Missing, unknown or revoked key: 401; too many of those from
+    the client's address: 429 with ``Retry-After`` before the key is looked
+    up; over the key's rate limit: 429 with ``Retry-After``; a role without
+    the permission: 403.  The route-table test reads ``permission`` to check
+    every route's access.
     """
 
     def __init__(self, permission: Permission | None) -> None:
         self.permission = permission
 
-    def __call__(self, state: StateDep,
+    def __call__(self, request: Request, state: StateDep,
                  key: Annotated[str | None, Security(_key_header)]) -> Principal:
-        if not key:
-            raise HTTPException(401, "Missing API key (header X-API-Key)")
-        principal = state.keys.verify(key)
+        address = request.client.host if request.client else "unknown"
+        failures = state.auth_failures
+        blocked = failures.wait(address)
+        if blocked > 0:
+            raise HTTPException(
+                429, f"Too many failed authentications from {address}; retry later",
+                headers={"Retry-After": retry_after(blocked)})
+        principal = state.keys.verify(key) if key else None
         if principal is None:
-            raise HTTPException(401, "Invalid or revoked API key")
+            failures.acquire(address)
+            raise HTTPException(401, "Missing API key (header X-API-Key)" if not key
+                                else "Invalid or revoked API key")
         wait = state.limiter.acquire(principal.id)
         if wait > 0:
             raise HTTPException(
@@ -71,3 +161,36 @@ class RequireKey:
 def require(permission: Permission | None) -> RequireKey:
     """The dependency admitting keys whose role grants ``permission`` (None: any key)."""
     return RequireKey(permission)
+
+
+Reader = Annotated[Principal, Depends(require("read"))]
+"""Any key whose role may read."""
+
+
+def _analysis_slot(state: StateDep, principal: Reader) -> Iterator[Principal]:
+    """A reader holding one of its key's slots for expensive analyses until the answer.
+
+    A key already running ``settings.analyses_per_key`` of them gets 429 with
+    ``Retry-After``, so one client cannot take every worker thread and
+    database connection; when the service runs all it admits (two per
+    analysis process), 503 with ``Retry-After``.
+    """
+    full = state.analyses.acquire(principal.id)
+    retry = {"Retry-After": retry_after(state.settings.analysis_retry_s)}
+    if full == "key":
+        raise HTTPException(
+            429, f"Key {principal.name!r} already runs {state.analyses.per_key} expensive "
+                 "analysis at a time (model check, advice, unit diagnosis or prediction); "
+                 "retry when it has finished", headers=retry)
+    if full == "total":
+        raise HTTPException(
+            503, f"The service already runs its {state.analyses.total} expensive analyses "
+                 "at once (LOOPWATCH_ANALYSIS_PROCESSES); retry later", headers=retry)
+    try:
+        yield principal
+    finally:
+        state.analyses.release(principal.id)
+
+
+Analyst = Annotated[Principal, Depends(_analysis_slot)]
+"""A reader running an expensive analysis (model check, advice, unit diagnosis, prediction)."""

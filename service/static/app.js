@@ -108,6 +108,12 @@ async function request(path, options = {}) {
     method: options.method || "GET", headers,
     body: options.body === undefined ? undefined : JSON.stringify(options.body),
   });
+  const wait = Number(response.headers.get("Retry-After"));
+  if (response.status === 429 && !options.retried && wait > 0 && wait <= 10) {
+    // the key's rate, or its one expensive analysis at a time: wait as told, try once more
+    await new Promise((resolve) => setTimeout(resolve, wait * 1000));
+    return request(path, { ...options, retried: true });
+  }
   if (!response.ok) {
     let detail = response.statusText;
     try { detail = (await response.json()).detail; } catch (_) { /* not JSON */ }

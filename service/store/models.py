@@ -38,13 +38,18 @@ class Unit(Base):
 
 
 class Loop(Base):
-    """A control loop; ``config`` is its validated plant-file entry."""
+    """A control loop; ``config`` is its validated plant-file entry.
+
+    ``origin`` is ``plant_file`` or ``api`` (added by ``PUT /api/v1/loops/{id}``):
+    the store is the source of truth for the ``api`` loops, loaded at start.
+    """
 
     __tablename__ = "loops"
     id: Mapped[str] = mapped_column(String(64), primary_key=True)
     name: Mapped[str] = mapped_column(String(200), default="")
     unit_id: Mapped[str | None] = mapped_column(ForeignKey("units.id"), index=True)
     config: Mapped[dict[str, Any]]
+    origin: Mapped[str] = mapped_column(String(16), default="api", server_default="api")
     created_at: Mapped[float] = mapped_column(Float)
     updated_at: Mapped[float] = mapped_column(Float)
     tags: Mapped[list[Tag]] = relationship(back_populates="loop", cascade="all, delete-orphan")
@@ -221,14 +226,15 @@ class TicketEvent(Base):
 
 
 class ApiKey(Base):
-    """An API key: only its SHA-256 hash is stored; the prefix identifies it in lists."""
+    """An API key: a salted hash of it (service.auth) and an id that is not secret."""
 
     __tablename__ = "api_keys"
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     name: Mapped[str] = mapped_column(String(100))
     role: Mapped[str] = mapped_column(String(16))
-    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
-    prefix: Mapped[str] = mapped_column(String(12))
+    key_id: Mapped[str] = mapped_column(String(16), unique=True)
+    salt: Mapped[str] = mapped_column(String(32))
+    key_hash: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[float] = mapped_column(Float)
     revoked_at: Mapped[float | None] = mapped_column(Float)
 

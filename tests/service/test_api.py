@@ -91,7 +91,7 @@ def test_keys_are_shown_once_and_revocation_locks_out(client):
     assert listed["count"] == 2
     assert all("key" not in k and "key_hash" not in k for k in listed["data"])
     victim = next(k for k in listed["data"] if k["role"] == "viewer")
-    assert viewer["X-API-Key"].startswith(victim["prefix"])
+    assert viewer["X-API-Key"].startswith(f"lw_{victim['key_id']}_")
     assert client.delete(f"/api/v1/keys/{victim['id']}",
                          headers={"X-API-Key": ADMIN}).status_code == 200
     assert client.get("/api/v1/loops", headers=viewer).status_code == 401
@@ -244,7 +244,8 @@ def test_loops_can_be_added_by_an_admin(client):
     assert wrong.status_code == 422
     assert "unknown unit 'nowhere'" in wrong.text
     taken = client.put("/api/v1/loops/NEW-3", json=body, headers={"X-API-Key": ADMIN})
-    assert "duplicate tags (a tag belongs to one loop): 'NEW.PV'" in taken.text
+    assert (taken.status_code, taken.json()) == (
+        409, {"detail": "Tag 'NEW.PV' belongs to loop 'NEW-1'"})
     assert client.get("/api/v1/loops/NEW-2",
                       headers={"X-API-Key": ADMIN}).status_code == 404
 

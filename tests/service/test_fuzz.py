@@ -4,8 +4,10 @@ and nothing already stored is lost or changed.
 Two kinds of generated input:
 
 * schemathesis reads our own OpenAPI schema and sends what it allows and what
-  it does not (positive and negative cases) to the ingest, loop
-  configuration and model-check operations;
+  it does not (positive and negative cases) to every operation, checking
+  that each answer is one the schema describes (status code, content type,
+  headers, body), and, with more cases, to the ingest, loop configuration
+  and model-check operations;
 * hypothesis strategies aimed at the parsers behind them: near-valid loop
   configurations (a valid one with one part broken), ingest items of
   configured tags with any time stamp and value, and any text as CSV, both
@@ -33,7 +35,16 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
+from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
+from schemathesis.checks import not_a_server_error
+from schemathesis.core.failures import FailureGroup
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_headers_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 from sqlalchemy import select
 
 from service.config import Settings
@@ -137,6 +148,59 @@ def test_schemathesis_finds_no_server_error(service, method, path, mode):
 
     check()
     snapshot.assert_kept()
+
+
+CONFORMANCE = [not_a_server_error, status_code_conformance, content_type_conformance,
+               response_headers_conformance, response_schema_conformance]
+EVERY_OPERATION_EXAMPLES = 30
+"""Cases per operation and mode over every operation (about 2,000 requests, 1-2 min)."""
+
+
+def test_every_operation_answers_what_its_schema_says(tmp_path, capsys):
+    """Every /api/v1 operation (and /metrics), positive and negative cases: no 5xx and
+    every answer described by the schema.  SQLite only, to bound CI time; the key id 1
+    (the admin key the fuzzing uses) is left alone."""
+    svc = build_service(
+        Settings(database_url=f"sqlite:///{tmp_path / 'fuzz.db'}", api_key=ADMIN,
+                 window_s=3600, buffer_horizon_s=7200, rate_limit_burst=100_000,
+                 rate_limit_per_s=10_000.0, auth_failure_burst=100_000),
+        plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    svc.state.ingest(simulated_batch(200))
+    schema = schemathesis.openapi.from_asgi("/openapi.json", svc.app,
+                                            headers={"X-API-Key": ADMIN})
+    sent: list[int] = []
+    violations: dict[str, str] = {}
+    for result in schema.get_all_operations():
+        operation = result.ok()
+        for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
+            strategy = operation.as_strategy(generation_mode=mode).filter(
+                lambda case: case.path_parameters is None
+                or case.path_parameters.get("key_id") != 1)
+
+            @settings(FUZZ, max_examples=EVERY_OPERATION_EXAMPLES)
+            @given(case=strategy)
+            def check(case: Any) -> None:
+                response = case.call(headers={"X-API-Key": ADMIN})
+                sent.append(response.status_code)
+                try:
+                    case.validate_response(response, checks=CONFORMANCE,
+                                           headers={"X-API-Key": ADMIN})
+                except FailureGroup as exc:
+                    where = f"{case.method} {case.operation.path}"
+                    violations.setdefault(where, f"{response.status_code}: {exc}"[:800])
+
+            try:
+                check()
+            except Unsatisfiable:  # nothing to negate (an operation without parameters)
+                assert mode is GenerationMode.NEGATIVE, operation.path
+    server_errors = sum(status >= 500 for status in sent)
+    with capsys.disabled():
+        print(f"\nschemathesis over every operation: {len(sent)} requests, "
+              f"{server_errors} 5xx, {len(violations)} operations with schema violations")
+    assert not violations, "\n\n".join(f"{k}: {v}" for k, v in violations.items())
+    assert server_errors == 0
+    svc.executor.shutdown()
+    svc.state.store.close()
 
 
 # ----------------------------------------------------------------------------- loop configuration

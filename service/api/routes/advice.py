@@ -3,35 +3,33 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
 from analytics.tuning import advise
-from service.api.deps import Principal, SessionDep, require
+from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
 from service.tickets import latest_loop_run
 
-router = APIRouter(tags=["advice"])  # included by the loops router under /api/v1
-Reader = Annotated[Principal, Depends(require("read"))]
+# included by the loops router under /api/v1
+router = APIRouter(tags=["advice"], responses=error_responses(409))
 
 SIMULATED_S = 4000.0
 """Length of the simulations that verify each candidate tuning."""
 
 
-@lru_cache(maxsize=256)
 def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
-    """Advice is a pure function of the run and the loop's configuration: cache it."""
+    """Advice is a pure function of the run and the loop's configuration (cached by
+    :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
     model = identified_loop(json.loads(config), json.loads(diagnosis))
     return advise(model.closed_loop(SIMULATED_S)).to_dict()
 
 
 @router.get("/loops/{loop_id}/advice")
-async def loop_advice(loop_id: str, session: SessionDep, _: Reader) -> dict[str, Any]:
+def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) -> dict[str, Any]:
     """Retunes that remove or reduce the stiction cycle until the valve is repaired.
 
     Built from the latest stiction estimate (S, J and the identified process)
@@ -51,7 +49,7 @@ async def loop_advice(loop_id: str, session: SessionDep, _: Reader) -> dict[str,
     except ModelUnavailableError as exc:
         raise HTTPException(409, f"Advice not available: {exc}") from None
     try:
-        advice = await run_in_threadpool(
+        advice = state.analyse_cached(
             _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
             json.dumps(run.result, sort_keys=True),
         )

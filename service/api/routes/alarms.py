@@ -18,10 +18,21 @@ from service.alarms import (
     shelve,
     unshelve,
 )
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Offset,
+    Principal,
+    SessionDep,
+    StateDep,
+    error_responses,
+    require,
+    row_id,
+)
 from service.store.models import Alarm
 
-router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"])
+router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"],
+                   responses={**ERROR_RESPONSES, **error_responses(404, 409)})
+AlarmId = Annotated[int, row_id("the alarm's id")]
 Reader = Annotated[Principal, Depends(require("read"))]
 Operator = Annotated[Principal, Depends(require("alarms"))]
 Admin = Annotated[Principal, Depends(require("admin"))]
@@ -93,7 +104,7 @@ def list_all(
     loop_id: str | None = None,
     unit: str | None = None,
     state: Annotated[str | None, Query(description=f"one of {', '.join(ALARM_STATES)}")] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> AlarmsPublic:
     """Alarms, highest priority and newest first: without ``state`` every alarm that is
@@ -116,13 +127,13 @@ def _get(session: SessionDep, alarm_id: int) -> Alarm:
 
 
 @router.get("/{alarm_id}", response_model=AlarmDetail)
-def detail(alarm_id: int, session: SessionDep, _: Reader) -> AlarmDetail:
+def detail(alarm_id: AlarmId, session: SessionDep, _: Reader) -> AlarmDetail:
     """One alarm with every transition it went through."""
     return _detail(_get(session, alarm_id))
 
 
 @router.post("/{alarm_id}/acknowledge", response_model=AlarmDetail)
-def ack(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+def ack(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
         key: Operator) -> AlarmDetail:
     """Acknowledge (operator); 409 if the alarm is not waiting for it."""
     _get(session, alarm_id)
@@ -131,7 +142,7 @@ def ack(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
 
 
 @router.post("/{alarm_id}/shelve", response_model=AlarmDetail)
-def shelve_alarm(alarm_id: int, body: ShelveRequest, session: SessionDep, state: StateDep,
+def shelve_alarm(alarm_id: AlarmId, body: ShelveRequest, session: SessionDep, state: StateDep,
                  key: Operator) -> AlarmDetail:
     """Shelve for ``duration_s`` (operator); it comes back by itself."""
     _get(session, alarm_id)
@@ -140,7 +151,7 @@ def shelve_alarm(alarm_id: int, body: ShelveRequest, session: SessionDep, state:
 
 
 @router.post("/{alarm_id}/unshelve", response_model=AlarmDetail)
-def unshelve_alarm(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+def unshelve_alarm(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
                    key: Operator) -> AlarmDetail:
     """End a shelve early (operator)."""
     _get(session, alarm_id)
@@ -149,7 +160,7 @@ def unshelve_alarm(alarm_id: int, body: OperatorNote, session: SessionDep, state
 
 
 @router.post("/{alarm_id}/out-of-service", response_model=AlarmDetail)
-def out_of_service(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+def out_of_service(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
                    key: Admin) -> AlarmDetail:
     """Remove from service (admin), e.g. while the loop is in manual for maintenance."""
     _get(session, alarm_id)
@@ -158,7 +169,7 @@ def out_of_service(alarm_id: int, body: OperatorNote, session: SessionDep, state
 
 
 @router.post("/{alarm_id}/in-service", response_model=AlarmDetail)
-def in_service(alarm_id: int, body: OperatorNote, session: SessionDep, state: StateDep,
+def in_service(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
                key: Admin) -> AlarmDetail:
     """Return to service (admin)."""
     _get(session, alarm_id)

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
 from pydantic import BaseModel
 
-from service.api.deps import Principal, require
+from service.api.deps import ERROR_RESPONSES, Principal, require
 from service.auth import PERMISSIONS
 
 router = APIRouter(tags=["dashboard"])
@@ -56,7 +56,7 @@ def static_file(name: str) -> FileResponse:
     return FileResponse(path, media_type=MEDIA_TYPES[path.suffix], headers=NO_CACHE)
 
 
-@router.get("/api/v1/me", response_model=WhoAmI, tags=["keys"])
+@router.get("/api/v1/me", response_model=WhoAmI, tags=["keys"], responses=ERROR_RESPONSES)
 def who_am_i(key: Annotated[Principal, Depends(require("read"))]) -> WhoAmI:
     """The calling key's name, role and permissions (any role that may read)."""
     return WhoAmI(name=key.name, role=key.role,

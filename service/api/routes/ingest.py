@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any, cast
 
-from fastapi import APIRouter, Body, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
+from pydantic import TypeAdapter
 
-from service.api.deps import Principal, StateDep, require
+from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
 from service.ingest import IngestError, IngestReport, TagItems
 
-router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"])
+router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"], responses=ERROR_RESPONSES)
 Historian = Annotated[Principal, Depends(require("ingest"))]
 
 MAX_CSV_BYTES = 20 * 1024 * 1024
@@ -22,23 +23,44 @@ def _response(report: IngestReport) -> JSONResponse:
     return JSONResponse(status_code=207 if report.partial else 200, content=report.as_dict())
 
 
+def _inlined(schema: dict[str, Any]) -> dict[str, Any]:
+    """``schema`` with its ``$defs`` references replaced by the definitions."""
+    defs = schema.pop("$defs", {})
+
+    def resolve(node: Any) -> Any:
+        if isinstance(node, dict):
+            if "$ref" in node:
+                return resolve(defs[node["$ref"].rsplit("/", 1)[1]])
+            return {k: resolve(v) for k, v in node.items()}
+        return [resolve(v) for v in node] if isinstance(node, list) else node
+
+    return cast(dict[str, Any], resolve(schema))
+
+
+BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems]).json_schema())
+
+
 @router.post(
     "",
     responses={200: {"description": "every item stored or already stored"},
                207: {"description": "part of the batch refused; see the per-tag report"}},
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "application/json": {"schema": BATCH_SCHEMA}}}},
 )
-def ingest(
-    batch: Annotated[list[TagItems], Body()], state: StateDep, _: Historian
-) -> JSONResponse:
+async def ingest(request: Request, state: StateDep, _: Historian) -> JSONResponse:
     """Store samples of many tags: ``[{tag, items: [{timestamp, value, good}]}]``.
 
     Idempotent: items already stored with the same value count as
     ``already_stored``.  Unknown tags, bad timestamps, duplicates and
     conflicts are refused and counted per tag; NaN, null or ``good: false``
-    values are stored as bad samples.
+    values are stored as bad samples.  A batch of more than
+    ``LOOPWATCH_MAX_BATCH_SAMPLES`` entries or items is refused (422) before it
+    is validated; the body is read here and parsed and stored in the thread
+    pool, so no batch holds up the event loop.
     """
+    body = await request.body()
     try:
-        return _response(state.ingest(batch))
+        return _response(await run_in_threadpool(state.ingest_json, body))
     except IngestError as exc:
         raise HTTPException(422, str(exc)) from None
 

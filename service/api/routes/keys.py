@@ -7,11 +7,19 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, Field
 
-from service.api.deps import Principal, SessionDep, StateDep, require
-from service.auth import AuthError, Role, create_key, list_keys, revoke_key
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Principal,
+    SessionDep,
+    StateDep,
+    error_responses,
+    require,
+    row_id,
+)
+from service.auth import AuthError, KeyConflictError, Role, create_key, list_keys, revoke_key
 from service.store.models import ApiKey
 
-router = APIRouter(prefix="/api/v1/keys", tags=["keys"])
+router = APIRouter(prefix="/api/v1/keys", tags=["keys"], responses=ERROR_RESPONSES)
 Admin = Annotated[Principal, Depends(require("admin"))]
 
 
@@ -23,12 +31,13 @@ class KeyCreate(BaseModel):
 
 
 class KeyPublic(BaseModel):
-    """A key as listed: never the key itself, only its first characters."""
+    """A key as listed: never the key itself, only its id (not secret)."""
 
     id: int
     name: str
     role: str
-    prefix: str
+    key_id: str = Field(description="names the key; a generated key starts "
+                                    "lw_<key_id>_, the bootstrap key's id starts ext-")
     created_at: float
     revoked_at: float | None
 
@@ -64,10 +73,14 @@ def list_all(session: SessionDep, _: Admin) -> KeysPublic:
     return KeysPublic(data=[_public(r) for r in rows], count=len(rows))
 
 
-@router.delete("/{key_id}", response_model=KeyPublic)
-def revoke(key_id: int, session: SessionDep, state: StateDep, _: Admin) -> KeyPublic:
-    """Revoke a key; requests with it get 401 from now on."""
+@router.delete("/{key_id}", response_model=KeyPublic, responses=error_responses(404, 409))
+def revoke(key_id: Annotated[int, row_id("the key's row id (`id`)")], session: SessionDep,
+           state: StateDep, _: Admin) -> KeyPublic:
+    """Revoke a key; requests with it get 401 from now on.  409 for the last active
+    admin key (create another one first)."""
     try:
         return _public(revoke_key(session, key_id, state.clock()))
+    except KeyConflictError as exc:
+        raise HTTPException(409, str(exc)) from None
     except AuthError:
         raise HTTPException(404, "API key not found") from None

@@ -11,14 +11,25 @@ from pydantic import BaseModel, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
 
 from service.analysis import stiction_pattern_text
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Offset,
+    Principal,
+    SessionDep,
+    StateDep,
+    TimeQuery,
+    error_responses,
+    require,
+)
 from service.api.routes import advice, unit_diagnosis
 from service.bad_actors import score_loop
 from service.config import LoopConfig
+from service.plant import TagConflictError
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
 from service.tickets import run_episodes
 
-router = APIRouter(prefix="/api/v1", tags=["loops"])
+router = APIRouter(prefix="/api/v1", tags=["loops"],
+                   responses={**ERROR_RESPONSES, **error_responses(404)})
 router.include_router(advice.router)
 router.include_router(unit_diagnosis.router)
 Reader = Annotated[Principal, Depends(require("read"))]
@@ -245,7 +256,7 @@ def list_loops(
     _: Reader,
     unit: str | None = None,
     state: Annotated[str | None, Query(pattern="^(oscillating|stiction|healthy|unknown)$")] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> LoopsPublic:
     """Loops with their latest state; filter by unit and state, page with offset/limit."""
@@ -347,11 +358,15 @@ def get_loop_config(loop_id: str, session: SessionDep, _: Reader) -> dict[str, A
     return _loop_or_404(session, loop_id).config
 
 
-@router.put("/loops/{loop_id}", response_model=LoopPublic, status_code=200)
+@router.put("/loops/{loop_id}", response_model=LoopPublic, status_code=200,
+            responses=error_responses(409))
 def put_loop(
     loop_id: str, body: dict[str, Any], session: SessionDep, state: StateDep, _: Admin
 ) -> LoopPublic:
-    """Create or replace a loop from its configuration (admin)."""
+    """Create or replace a loop from its configuration (admin).  The loop is kept in the
+    store and loaded at every start (a loop of the plant file with the same id takes
+    its place again at the next start); 409 when one of its tags belongs to another
+    loop."""
     try:
         loop = LoopConfig.model_validate({**body, "id": loop_id})
         state.registry.upsert_loop(session, loop, state.clock())
@@ -359,6 +374,8 @@ def put_loop(
         raise HTTPException(
             422, exc.errors(include_url=False, include_context=False, include_input=False)
         ) from None
+    except TagConflictError as exc:
+        raise HTTPException(409, str(exc)) from None
     session.flush()
     state.buffers.add_loop(loop)
     return get_loop(loop_id, session, _)
@@ -373,7 +390,7 @@ def list_analyses(
     loop_id: str,
     session: SessionDep,
     _: Reader,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
 ) -> RunsPublic:
     """Analysis runs of a loop, newest first."""
@@ -479,8 +496,8 @@ def loop_data(
     session: SessionDep,
     state: StateDep,
     _: Reader,
-    start: float | None = None,
-    end: float | None = None,
+    start: TimeQuery = None,
+    end: TimeQuery = None,
     max_points: Annotated[int, Query(ge=10, le=100_000)] = 2000,
 ) -> LoopDataPublic:
     """Samples of the loop's tags between start and end (UNIX s; default: the last hour)."""

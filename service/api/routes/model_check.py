@@ -13,20 +13,25 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Body, Depends, HTTPException
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Body, HTTPException
 from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
 from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, check_model
 from service.analysis import to_percent_of_span
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Analyst,
+    SessionDep,
+    StateDep,
+    error_responses,
+)
 from service.config import LoopConfig
 from service.store.models import Loop
 
-router = APIRouter(prefix="/api/v1", tags=["model check"])
-Reader = Annotated[Principal, Depends(require("read"))]
+router = APIRouter(prefix="/api/v1", tags=["model check"],
+                   responses={**ERROR_RESPONSES, **error_responses(404)})
 
 EXAMPLE_MODEL = {
     "dt": 1.0, "op_bias": 50.0,
@@ -58,18 +63,26 @@ def _longest_complete_stretch(signals: list[NDArray[np.float64]]) -> tuple[int, 
     return int(starts[longest]), int(stops[longest])
 
 
+def _check(op: NDArray[np.float64], pv: NDArray[np.float64], ts: float,
+           sp: NDArray[np.float64] | None, model: LoopModel | None) -> dict[str, Any]:
+    """The model check and its overlay as JSON (run in the analysis process)."""
+    return check_model(op, pv, ts, sp=sp, model=model).to_dict(overlay=True)
+
+
 @router.post("/loops/{loop_id}/model-check")
-async def loop_model_check(
+def loop_model_check(
     loop_id: str,
     session: SessionDep,
     state: StateDep,
-    _: Reader,
+    _: Analyst,
     request: Annotated[ModelCheckRequest | None, Body()] = None,
 ) -> dict[str, Any]:
     """What the simulation of the loop gets wrong, the cause, the extended model, the gain.
 
-    The model is checked on the longest stretch of the current window where
-    OP, PV (and SP, when the loop has one) are all present.  404 for an
+    A plain ``def`` (FastAPI's thread pool) waiting for the check in the analysis
+    process (:meth:`service.runtime.AppState.analyse`).  The model is checked on
+    the longest stretch of the current window where OP, PV (and SP, when the
+    loop has one) are all present.  404 for an
     unknown loop or one without samples in its window; 422 with the reason
     for an invalid model, a loop without OP or PV, or too little complete data.
     """
@@ -105,13 +118,10 @@ async def loop_model_check(
                  f"({window.t.size} samples at {window.ts:g} s) has {stop - start}")
     part = slice(start, stop)
     try:
-        result = await run_in_threadpool(
-            check_model, op[part], pv[part], window.ts,
-            sp=None if sp is None else sp[part], model=model,
-        )
+        out = state.analyse(_check, op[part], pv[part], window.ts,
+                            None if sp is None else sp[part], model)
     except AnalyticsError as exc:
         raise HTTPException(422, f"Model check not possible: {exc}") from None
-    out = result.to_dict(overlay=True)
     out["overlay"]["t"] = window.t[part].tolist()
     return {"loop_id": loop_id, "window_start": float(window.t[start]),
             "window_end": float(window.t[stop - 1]), "ts": window.ts, "samples": stop - start,

@@ -43,7 +43,14 @@ from analytics.quantification import VALVE_MODELS
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
 from service import plots
 from service.analysis import to_percent_of_span
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Principal,
+    SessionDep,
+    StateDep,
+    TimeQuery,
+    require,
+)
 from service.api.routes.loops import loop_data
 from service.buffer import LoopBuffers, LoopWindowData
 from service.config import LoopConfig
@@ -51,7 +58,7 @@ from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
 from service.tickets import latest_loop_run
 
-router = APIRouter(prefix="/api/v1/loops", tags=["plots"])
+router = APIRouter(prefix="/api/v1/loops", tags=["plots"], responses=ERROR_RESPONSES)
 Reader = Annotated[Principal, Depends(require("read"))]
 
 PlotKind = Literal["trend", "signature", "spectrum", "nyquist", "history"]
@@ -318,8 +325,8 @@ def loop_plot(
     state: StateDep,
     key: Reader,
     image_format: Annotated[PlotFormat, Query(alias="format")] = "svg",
-    start: Annotated[float | None, Query(description="trend: UNIX s")] = None,
-    end: Annotated[float | None, Query(description="trend: UNIX s (default now)")] = None,
+    start: Annotated[TimeQuery, Query(description="trend: UNIX s")] = None,
+    end: Annotated[TimeQuery, Query(description="trend: UNIX s (default now)")] = None,
 ) -> Response:
     """A plot of the loop as SVG (default) or PNG; see the module docstring for the kinds."""
     loop = _loop_or_404(session, loop_id)

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import func, select
 
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import ERROR_RESPONSES, Principal, SessionDep, StateDep, require
 from service.store.models import Alarm, Loop, Ticket
 
 router = APIRouter(tags=["system"])
@@ -20,7 +20,7 @@ def liveness() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/metrics", response_class=PlainTextResponse)
+@router.get("/metrics", response_class=PlainTextResponse, responses=ERROR_RESPONSES)
 def metrics(
     session: SessionDep, state: StateDep, _: Annotated[Principal, Depends(require("read"))]
 ) -> str:

@@ -7,7 +7,16 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel, Field
 
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Offset,
+    Principal,
+    SessionDep,
+    StateDep,
+    error_responses,
+    require,
+    row_id,
+)
 from service.store.models import Ticket
 from service.tickets import (
     TICKET_STATES,
@@ -20,7 +29,9 @@ from service.tickets import (
     to_cmms_notification,
 )
 
-router = APIRouter(prefix="/api/v1/tickets", tags=["tickets"])
+router = APIRouter(prefix="/api/v1/tickets", tags=["tickets"],
+                   responses={**ERROR_RESPONSES, **error_responses(404, 409)})
+TicketId = Annotated[int, row_id("the ticket's id")]
 Reader = Annotated[Principal, Depends(require("read"))]
 Maintenance = Annotated[Principal, Depends(require("tickets"))]
 
@@ -93,7 +104,7 @@ def list_all(
     state: Annotated[str | None, Query(description=f"one of {', '.join(TICKET_STATES)}")] = None,
     loop_id: str | None = None,
     valve_asset: str | None = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> TicketsPublic:
     """Tickets, most urgent and newest first."""
@@ -105,19 +116,19 @@ def list_all(
 
 
 @router.get("/{ticket_id}", response_model=TicketDetail)
-def detail(ticket_id: int, session: SessionDep, _: Reader) -> TicketDetail:
+def detail(ticket_id: TicketId, session: SessionDep, _: Reader) -> TicketDetail:
     """One ticket with its evidence and history."""
     return _detail(_get(session, ticket_id))
 
 
 @router.get("/{ticket_id}/cmms")
-def cmms(ticket_id: int, session: SessionDep, _: Reader) -> dict[str, Any]:
+def cmms(ticket_id: TicketId, session: SessionDep, _: Reader) -> dict[str, Any]:
     """The ticket as a SAP PM M2 notification and a Maximo work order."""
     return to_cmms_notification(_get(session, ticket_id))
 
 
 @router.patch("/{ticket_id}", response_model=TicketDetail)
-def update(ticket_id: int, body: TicketUpdate, session: SessionDep, state: StateDep,
+def update(ticket_id: TicketId, body: TicketUpdate, session: SessionDep, state: StateDep,
            key: Maintenance) -> TicketDetail:
     """Move the ticket along open -> acknowledged -> scheduled -> done (or cancelled)."""
     _get(session, ticket_id)

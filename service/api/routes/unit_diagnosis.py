@@ -2,26 +2,25 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, HTTPException
 from sqlalchemy import select
 
 from analytics.errors import AnalyticsError
 from service.analysis import UnitWindowsError, analyse_unit, unit_windows
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.config import LoopConfig
 from service.store.models import Loop, Unit
 from service.tickets import latest_unit_run
 
-router = APIRouter(tags=["units"])  # included by the loops router under /api/v1
-Reader = Annotated[Principal, Depends(require("read"))]
+# included by the loops router under /api/v1
+router = APIRouter(tags=["units"], responses=error_responses(404))
 
 
 @router.get("/units/{unit_id}/diagnosis")
-async def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
-                         _: Reader) -> dict[str, Any]:
+def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
+                   _: Analyst) -> dict[str, Any]:
     """Which valves of the unit stick: oscillation groups, the shape decomposition, the
     surrogate ranking of every OP and PV, and the named valves with their confidence.
 
@@ -54,7 +53,7 @@ async def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
         raise HTTPException(404, "Unit diagnosis not available: no loop of the unit has a "
                                  "complete OP and PV window")
     try:
-        result = await run_in_threadpool(analyse_unit, windows.signals, windows.ts)
+        result = state.analyse(analyse_unit, windows.signals, windows.ts)
     except (UnitWindowsError, AnalyticsError) as exc:
         raise HTTPException(422, f"Unit diagnosis not available: {exc}") from None
     return {"unit_id": unit_id, "source": "on_demand", "round_end": None, "window_end": now,

@@ -10,22 +10,26 @@ the amplitude consistency of ERRATA item 9) and simulates it beside.
 from __future__ import annotations
 
 import json
-from functools import lru_cache
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, HTTPException
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
 from service.analysis import valve_decisions
-from service.api.deps import Principal, SessionDep, StateDep, require
+from service.api.deps import (
+    ERROR_RESPONSES,
+    Analyst,
+    SessionDep,
+    StateDep,
+    error_responses,
+)
 from service.prediction import ModelError, predict_spec
 from service.store.models import Loop, Unit
 from service.tickets import latest_loop_run, latest_unit_run
 
-router = APIRouter(prefix="/api/v1", tags=["units"])
-Reader = Annotated[Principal, Depends(require("read"))]
+router = APIRouter(prefix="/api/v1", tags=["units"],
+                   responses={**ERROR_RESPONSES, **error_responses(404, 409)})
 
 CONFIGURE_MATRIX = (
     "add 'process: {loops: [...], matrix: [[...]]}' to the unit in the plant file: one "
@@ -34,9 +38,9 @@ CONFIGURE_MATRIX = (
 )
 
 
-@lru_cache(maxsize=64)
 def _prediction_for(spec: str) -> dict[str, Any]:
-    """The prediction is a pure function of the model: cache it by its JSON."""
+    """The prediction is a pure function of the model (cached by its JSON with
+    :meth:`service.runtime.AppState.analyse_cached`)."""
     _, report = predict_spec(json.loads(spec), source="unit model")
     return report.to_dict()
 
@@ -87,8 +91,8 @@ def _valve(session: Session, loop_id: str, cleared: dict[str, int]
 
 
 @router.get("/units/{unit_id}/prediction")
-async def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
-                          _: Reader) -> dict[str, Any]:
+def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
+                    _: Analyst) -> dict[str, Any]:
     """The unit's stiction limit cycles: describing-function prediction and simulation.
 
     Every limit cycle of the unit's loops (frequency, period, OP amplitude per
@@ -138,7 +142,7 @@ async def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
             "controllers": controllers, "valves": [v["valve"] for v in valves],
             "names": unit.process.loops}
     try:
-        prediction = await run_in_threadpool(_prediction_for, json.dumps(spec, sort_keys=True))
+        prediction = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
     except (ModelError, AnalyticsError) as exc:
         raise HTTPException(422, f"Prediction not available: {exc}") from None
     return {**answer, **prediction}
