@@ -3,7 +3,7 @@
 ``GET /api/v1/reports/bad-actors?period=7d&format=csv``: one row per loop,
 worst first (the ranking of ``/plant/bad-actors``, :mod:`service.bad_actors`),
 with its score and why, its latest diagnosis and KPIs, and its open tickets.
-The PDF form is not built yet (501).
+The PDF form is not built yet: ``format`` takes ``csv`` only.
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ import csv
 import io
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 from sqlalchemy import func, select
 
-from service.api.deps import SessionDep, StateDep
+from service.api.deps import ERROR_RESPONSES, SessionDep, StateDep
 from service.api.routes.loops import PERIOD_PATTERN, Reader, bad_actor_rows, period_seconds
 from service.store.models import AnalysisRun, Ticket
 
-router = APIRouter(prefix="/api/v1/reports", tags=["reports"])
+router = APIRouter(prefix="/api/v1/reports", tags=["reports"], responses=ERROR_RESPONSES)
 
 COLUMNS = (
     "rank", "loop", "name", "unit", "importance", "score", "severity", "bad_share", "runs",
@@ -59,12 +59,10 @@ def _number(value: Any, digits: int = 4) -> str:
 def bad_actor_report(
     session: SessionDep, state: StateDep, _: Reader,
     period: Annotated[str, Query(pattern=PERIOD_PATTERN)] = "7d",
-    fmt: Annotated[str, Query(alias="format", pattern="^(csv|pdf)$")] = "csv",
+    fmt: Annotated[str, Query(alias="format", pattern="^csv$")] = "csv",
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
 ) -> Response:
-    """The bad-actor report over ``period`` as CSV (``format=pdf`` is not built yet: 501)."""
-    if fmt == "pdf":
-        raise HTTPException(501, "The PDF report is not available yet; use format=csv")
+    """The bad-actor report over ``period`` as CSV (the only ``format`` so far)."""
     until = state.clock()
     since = until - period_seconds(period)
     ranked = bad_actor_rows(session, since, until, period, state.settings.window_s)[:limit]
