@@ -490,12 +490,15 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
         """Flush every ``flush_interval_s``, and once more when ``stop`` is set.
 
         Stopped by the event rather than cancelled: a sink call cannot be
-        cancelled half-way, and its samples must be counted either way.
+        cancelled half-way, and its samples must be counted either way.  The
+        last flush comes after the stop, so samples that arrived while a flush
+        was in the sink are delivered too.
         """
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), self.config.flush_interval_s)
             await self._flush()
+        await self._flush()
 
     async def _flush(self) -> None:
         """Hand the pending samples to the sink; on failure keep them for the next flush."""

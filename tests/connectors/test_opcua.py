@@ -316,6 +316,35 @@ def test_samples_the_sink_refused_at_the_stop_stay_pending():
     run(scenario)
 
 
+
+def test_samples_that_arrive_while_the_last_flush_is_in_the_sink_are_delivered_at_the_stop():
+    # The stop comes while a flush is in the sink (a busy store); what arrived meanwhile
+    # is delivered by one more flush, not left pending (found by a loaded CI run).
+    server = PlainServer(free_port(), ["LIC-303.PV"])
+    in_sink, release = threading.Event(), threading.Event()
+    delivered: list[dict[str, Any]] = []
+
+    def slow_sink(batch: list[dict[str, Any]]) -> None:
+        in_sink.set()
+        release.wait(10)
+        delivered.extend(batch)
+
+    async def scenario() -> None:
+        connector = OpcUaConnector(endpoint(server, flush_interval_s=0.1), slow_sink,
+                                   backoff=FAST_BACKOFF)
+        async with server, running(connector):
+            await wait_for(in_sink.is_set)  # the initial value is in the sink
+            for k in range(1, 6):
+                await server.write("LIC-303.PV", float(k), EPOCH + k)
+            await wait_for(lambda: connector.counters.samples == 6)
+            threading.Timer(0.3, release.set).start()  # the sink finishes after the stop
+        counters = connector.counters
+        assert (counters.samples, counters.delivered, counters.pending) == (6, 6, 0)
+
+    run(scenario)
+    assert sum(len(entry["items"]) for entry in delivered) == 6
+
+
 # --- supervision ----------------------------------------------------------------
 
 

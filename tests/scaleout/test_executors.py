@@ -91,7 +91,8 @@ def test_the_pipeline_runs_on_the_cluster_workers_with_the_same_result(cluster: 
         executor.shutdown()
     local = [analyse_window(*window_args(c)) for c in cases]
     assert remote == local
-    assert [d["stiction"]["verdict"] for d in remote] == ["stiction", "no_stiction"]
+    # the healthy loop hardly moves its valve: too little to judge (issue 17)
+    assert [d["stiction"]["verdict"] for d in remote] == ["stiction", "undecided"]
 
 
 def test_shutdown_cancels_what_is_queued_and_leaves_the_cluster_running(cluster: Any) -> None:
