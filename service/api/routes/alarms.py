@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi import APIRouter, Body, Depends, HTTPException, Query
 from pydantic import BaseModel, Field
 
 from service.alarms import (
@@ -83,6 +83,14 @@ class OperatorNote(BaseModel):
     note: str = Field(default="", max_length=500)
 
 
+OptionalNote = Annotated[OperatorNote | None, Body()]
+"""The note of an alarm action: the body may be left out (no note)."""
+
+
+def _note(body: OperatorNote | None) -> str:
+    return "" if body is None else body.note
+
+
 class ShelveRequest(OperatorNote):
     """How long to shelve (at most 24 h)."""
 
@@ -133,12 +141,12 @@ def detail(alarm_id: AlarmId, session: SessionDep, _: Reader) -> AlarmDetail:
 
 
 @router.post("/{alarm_id}/acknowledge", response_model=AlarmDetail)
-def ack(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
-        key: Operator) -> AlarmDetail:
+def ack(alarm_id: AlarmId, session: SessionDep, state: StateDep,
+        key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """Acknowledge (operator); 409 if the alarm is not waiting for it."""
     _get(session, alarm_id)
     return _detail(acknowledge(session, alarm_id, actor=_actor(key), now=state.clock(),
-                               note=body.note))
+                               note=_note(body)))
 
 
 @router.post("/{alarm_id}/shelve", response_model=AlarmDetail)
@@ -151,27 +159,27 @@ def shelve_alarm(alarm_id: AlarmId, body: ShelveRequest, session: SessionDep, st
 
 
 @router.post("/{alarm_id}/unshelve", response_model=AlarmDetail)
-def unshelve_alarm(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
-                   key: Operator) -> AlarmDetail:
+def unshelve_alarm(alarm_id: AlarmId, session: SessionDep, state: StateDep,
+                   key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """End a shelve early (operator)."""
     _get(session, alarm_id)
     return _detail(unshelve(session, alarm_id, actor=_actor(key), now=state.clock(),
-                            note=body.note))
+                            note=_note(body)))
 
 
 @router.post("/{alarm_id}/out-of-service", response_model=AlarmDetail)
-def out_of_service(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
-                   key: Admin) -> AlarmDetail:
+def out_of_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
+                   key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Remove from service (admin), e.g. while the loop is in manual for maintenance."""
     _get(session, alarm_id)
     return _detail(remove_from_service(session, alarm_id, actor=_actor(key),
-                                       now=state.clock(), note=body.note))
+                                       now=state.clock(), note=_note(body)))
 
 
 @router.post("/{alarm_id}/in-service", response_model=AlarmDetail)
-def in_service(alarm_id: AlarmId, body: OperatorNote, session: SessionDep, state: StateDep,
-               key: Admin) -> AlarmDetail:
+def in_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
+               key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Return to service (admin)."""
     _get(session, alarm_id)
     return _detail(return_to_service(session, alarm_id, actor=_actor(key),
-                                     now=state.clock(), note=body.note))
+                                     now=state.clock(), note=_note(body)))
