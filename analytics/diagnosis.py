@@ -337,6 +337,21 @@ def transient_verdict(
     return verdict
 
 
+CYCLE_SLIP_BANDS = 5.0
+"""Smallest PV jump (in hold bands) of a stick-jump episode on a regular cycle.
+A smooth swing through its peak is cut by the band into holds whose levels
+differ by two to three bands, which look like small slips; a valve's slip is
+a fast move well beyond that (4-28 bands on the sticky valves of the synthetic
+library and the ISDB, 2.0-4.4 on the external sines of the library)."""
+
+
+def cycle_slips(analysis: EpisodeAnalysis) -> EpisodeAnalysis:
+    """``analysis`` with only the episodes whose jump reaches
+    :data:`CYCLE_SLIP_BANDS`: what counts as a slip on a regular cycle."""
+    return dataclasses.replace(analysis, episodes=tuple(
+        e for e in analysis.episodes if abs(e.pv_jump) >= CYCLE_SLIP_BANDS * analysis.band))
+
+
 def episode_stick_band(episodes: tuple[StickEpisode, ...]) -> float | None:
     """Stick band from the episodes: the median OP travel while the valve held.
 
@@ -480,17 +495,18 @@ def diagnose_loop(
     transient = [] if analysis is None else [d.decide(analysis) for d in TRANSIENT_DETECTORS]
     pattern = None
     if period_s is not None:
-        # On an irregular cycle the transient methods add the evidence of its
-        # holds; a regular cycle is for the cycle methods to judge (a slow
-        # external sine holds PV at its peaks while OP works, much like a valve),
-        # and so is health (a stiction cycle's noisy holds split).
+        # On a cycle the transient methods add the evidence of its holds, not of
+        # their absence (a stiction cycle's noisy holds split); on a regular
+        # cycle only clear slips count (:func:`cycle_slips`).
         evidence = [d.detect(window) for d in DEFAULT_DETECTORS]
-        if not oscillation.detected:
-            evidence += [
-                e if e.decision != NO_STICTION
-                else _set_aside(e, "set aside: on a cycle only holds count, not their absence")
-                for e in transient
-            ]
+        if oscillation.detected and analysis is not None:
+            cycle_analysis = cycle_slips(analysis)
+            transient = [d.decide(cycle_analysis) for d in TRANSIENT_DETECTORS]
+        evidence += [
+            e if e.decision != NO_STICTION
+            else _set_aside(e, "set aside: on a cycle only holds count, not their absence")
+            for e in transient
+        ]
         if estimate is not None:
             evidence.append(hammerstein_evidence(estimate))
         blinding = quality.codes() & {"quantisation", "compression"}

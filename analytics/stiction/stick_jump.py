@@ -34,8 +34,15 @@ Algorithm (:func:`find_stick_episodes`):
    quarter of the hold, and half the jump beyond the band is made within an
    eighth of it: the process could have followed OP within the hold, yet did
    not), followed by a hold at least a quarter as long (the valve sticks
-   again), not caused by OP (OP moved the jump's way less during the jump
-   than during the hold, and in a ramp through the hold, not in a kick),
+   again) -- or, when the next hold comes later, a slip into a moving valve:
+   on a stiction cycle the valve moves on with OP after slipping until OP
+   turns (Kano's model), and PV answers the slip as a process answers a
+   step, fast first and then slower (a healthy valve behind a dead time
+   leaves a hold slowly, then faster: a ramp response), by at least
+   ``follow_jump_bands`` bands within an eighth of the hold -- not caused by
+   OP (OP moved the jump's way less during the jump than during the hold,
+   unless the valve moves on with it, and in a ramp through the hold, not in
+   a kick),
    from a hold off the reference (the set point during the hold or just
    after the jump, else the median PV: the error is why the controller
    pushed) towards it, and in the direction in which OP had been pushing the
@@ -369,6 +376,8 @@ def find_stick_episodes(
     max_jump_op_share: float = 0.5,
     min_sharp_share: float = 0.5,
     min_range_share: float = 0.1,
+    follow_jump_bands: float = 4.0,
+    max_follow_ratio: float = 0.8,
     reference: FloatArray | None = None,
 ) -> EpisodeAnalysis:
     """Holds of the valve proxy with OP travel, and the jumps that end them.
@@ -391,7 +400,8 @@ def find_stick_episodes(
     max_jump_op_share : float
         Largest OP move during the jump in the direction that makes it, as a
         share of the hold's travel: a PV jump that OP made at the same time is
-        the process following OP.
+        the process following OP.  Not applied to a slip into a moving valve,
+        which moves on with OP by definition.
     min_sharp_share : float
         Share of the jump beyond the band PV must make within an eighth of the
         hold's length (at least 3 samples) after the hold ends.
@@ -400,6 +410,14 @@ def find_stick_episodes(
         closed loop the controller must push through the whole stick band, so
         a stick band is a sizeable part of OP's excursions, whereas a healthy
         valve's resolution steps (0.1-0.2 %) are a small part.
+    follow_jump_bands : float
+        Smallest slip (bands) within an eighth of the hold when the valve moves
+        on after it (no hold follows at once): twice ``min_jump_bands``, since
+        without the next hold the slip alone must stand out of the noise.
+    max_follow_ratio : float
+        Largest PV move in the next eighth of the hold after such a slip, as a
+        share of the slip: a slip decelerates (a process's step response), a
+        delayed answer to an OP ramp accelerates.
     reference : ndarray, optional
         What a stick-jump heads for (the set point); the proxy's median if
         None.
@@ -422,25 +440,45 @@ def find_stick_episodes(
     contrary: list[StickEpisode] = []
     for (s, e, level), (s_after, e_after, level_after) in pairwise(periods):
         length = e - s
-        pv_jump = level_after - level
-        # A slip is sharp: most of the jump happens within an eighth of the hold
-        # (a ramp cut into pieces by the band changes level just as much, slowly).
-        reach = min(e + max(3, length // 8), y.size - 1)
-        # (Counted from the band's edge, where a ramp's piece ends as well.)
+        step = max(3, length // 8)
+        # A slip is sharp: PV leaves the hold by a clear jump within an eighth of
+        # the hold (a slow swing through its peak, cut into holds by the band,
+        # leaves it by about one band in that time).
+        slip = float(y[min(e - 1 + step, y.size - 1)] - y[e - 1])
+        settled = (s_after - e <= max_transition_fraction * length
+                   # a hold cut by the window's end may be short
+                   and (e_after >= y.size or e_after - s_after >= max_transition_fraction * length))
+        if settled:
+            # The valve stuck again at once: PV settles at its new level.
+            pv_jump = level_after - level
+            jump_end = s_after
+        else:
+            # The valve slipped and moved on with OP until OP turned (Kano's model:
+            # the valve follows OP once moving); PV answers the slip as the process
+            # does a step, fast first, then slower, and ends the way it jumped.
+            later = y[min(e - 1 + 2 * step, y.size - 1)] - y[min(e - 1 + step, y.size - 1)]
+            if (abs(slip) < follow_jump_bands * band
+                    or later * np.sign(slip) > max_follow_ratio * abs(slip)
+                    or np.sign(level_after - level) != np.sign(slip)):
+                continue
+            pv_jump = slip
+            jump_end = -1  # where PV has made half its slip (below)
+        # Most of the jump happens within an eighth of the hold (a ramp cut into
+        # pieces by the band changes level just as much, slowly); counted from
+        # the band's edge, where a ramp's piece ends as well.
+        reach = min(e + step, y.size - 1)
         beyond = band + min_sharp_share * max(abs(pv_jump) - band, 0.0)
         risen = np.flatnonzero(np.abs(y[e:reach + 1] - level) >= beyond)
-        # After a slip the valve sticks again: PV settles at its new level for a
-        # while (a slow swing through its peak does not).
-        if (s_after - e > max_transition_fraction * length
-                or (e_after < y.size  # a hold cut by the window's end may be short
-                    and e_after - s_after < max_transition_fraction * length)
-                or abs(pv_jump) < min_jump_bands * band or risen.size == 0):
+        if (abs(pv_jump) < min_jump_bands * band or risen.size == 0
+                or np.sign(pv_jump) != np.sign(slip)):
             continue
+        if jump_end < 0:
+            jump_end = e + int(risen[0])
         # OP's move over the jump starts twice the jump's rise time before PV left
         # the hold: the process answers a kick of OP only after its delay and lag.
         lead = max(s, e - 1 - max(2, 2 * int(risen[0])))
         op_travel = float(u[lead] - u[s])
-        op_during_jump = float(u[min(s_after + min(2, e_after - s_after - 1), u.size - 1)]
+        op_during_jump = float(u[min(jump_end + min(2, e_after - s_after - 1), u.size - 1)]
                                - u[lead])
         # OP moving with the jump (the way that makes it) caused it; OP moving
         # against it is the controller answering the jump (proportional action).
@@ -451,7 +489,8 @@ def find_stick_episodes(
         # time is the process following OP.
         kick = float(np.max(np.abs(u[s + KICK_SAMPLES:lead + 1] - u[s:lead + 1 - KICK_SAMPLES]),
                             initial=0.0))
-        if (abs(op_travel) < min_travel or pushing > max_jump_op_share * abs(op_travel)
+        if (abs(op_travel) < min_travel
+                or (settled and pushing > max_jump_op_share * abs(op_travel))
                 or kick > max_jump_op_share * abs(op_travel)):
             continue
         # The controller pushed because PV held off its reference, and the slip
@@ -464,7 +503,7 @@ def find_stick_episodes(
                            float(np.median(reference[s_after:s_after + min_hold])) - level))
         direction = np.sign(pv_jump) * np.sign(op_travel)
         consistent = toward and (gain_sign == 0 or direction == gain_sign)
-        episode = StickEpisode(s, s_after, e, op_travel, float(pv_jump), op_during_jump,
+        episode = StickEpisode(s, jump_end, e, op_travel, float(pv_jump), op_during_jump,
                                bool(consistent))
         (episodes if consistent else contrary).append(episode)
     return EpisodeAnalysis(

@@ -17,6 +17,7 @@ from analytics.stiction.stick_jump import (
     travel_increments,
     valve_travel,
 )
+from analytics.synthetic_cases import synthetic_library
 from analytics.valves import IdealValve, KanoValve, ValveModel
 
 FLOW = TransferFunction.fopdt(1.2, 8.0, 2.0)
@@ -121,3 +122,39 @@ def test_too_little_valve_movement_is_not_judged():
     for detector in (StickJumpDetector(), StuckSectionsDetector()):
         evidence = detector.detect(LoopWindow(1.0, op, pv))
         assert evidence.decision == UNDECIDED
+
+
+def test_slips_into_a_moving_valve_are_episodes():
+    """A slip need not end in another hold: on a stiction cycle the valve moves
+    on with OP after it, and PV answers the slip fast first, then slower."""
+    case = next(c for c in synthetic_library() if c.name == "flow-he-S4-J2-ts1")
+    result = case.simulate()
+    mv = result.mv[0]
+    window = LoopWindow(case.ts, result.op[0], result.pv[0], sp=result.sp[0],
+                        process_type="self-regulating")
+    analysis = analyse_window(window)
+    assert analysis is not None and not analysis.contrary
+    moving_on = [e for e in analysis.episodes if e.end - e.jump_at < 10]
+    assert len(moving_on) >= 10
+    for episode in analysis.episodes:
+        # The valve held through the hold (PV leaves it 10 s of lag and dead
+        # time after the slip) and moved at its end, the way OP pushed.
+        assert np.ptp(mv[episode.start:episode.jump_at - 12]) < 0.05
+        assert np.sign(mv[episode.end + 5] - mv[episode.start]) == np.sign(episode.op_travel)
+
+
+@pytest.mark.parametrize(("dead_time", "lag"), [(60, 5), (60, 30), (120, 15)])
+def test_a_delayed_answer_to_an_op_ramp_is_no_slip(dead_time, lag):
+    """A healthy valve behind a long dead time: PV holds while OP ramps, then
+    leaves the hold slowly, faster and faster (a ramp response), unlike a slip
+    (fast first, then slower)."""
+    rng = np.random.default_rng(9)
+    k = np.arange(1200)
+    op = 40.0 + np.clip(k - 200, 0, 300) * 0.03 - np.clip(k - 700, 0, 300) * 0.03
+    delayed = np.concatenate([np.full(dead_time, op[0]), op[:-dead_time]])
+    response = np.zeros(k.size)
+    for i in range(1, k.size):  # first order lag
+        response[i] = response[i - 1] + (delayed[i] - 40.0 - response[i - 1]) / lag
+    pv = 50.0 + 1.5 * response + 0.03 * rng.standard_normal(k.size)
+    analysis = analyse_window(LoopWindow(1.0, op, pv))
+    assert analysis is not None and not analysis.episodes
