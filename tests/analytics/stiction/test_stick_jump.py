@@ -9,15 +9,17 @@ from analytics.lti import TransferFunction
 from analytics.simulation import Disturbance, Loop, PIDController, simulate
 from analytics.stiction.evidence import NO_STICTION, STICTION, UNDECIDED, LoopWindow
 from analytics.stiction.stick_jump import (
+    SMOOTHING_SCALES,
     StickJumpDetector,
     StuckSectionsDetector,
     analyse_window,
+    find_stick_episodes,
     loop_gain_sign,
     robust_noise,
     travel_increments,
     valve_travel,
 )
-from analytics.synthetic_cases import synthetic_library
+from analytics.synthetic_cases import synthetic_library, transient_library
 from analytics.valves import IdealValve, KanoValve, ValveModel
 
 FLOW = TransferFunction.fopdt(1.2, 8.0, 2.0)
@@ -158,3 +160,27 @@ def test_a_delayed_answer_to_an_op_ramp_is_no_slip(dead_time, lag):
     pv = 50.0 + 1.5 * response + 0.03 * rng.standard_normal(k.size)
     analysis = analyse_window(LoopWindow(1.0, op, pv))
     assert analysis is not None and not analysis.episodes
+
+
+def test_a_small_stick_band_on_a_noisy_flow_shows_at_a_coarser_smoothing():
+    """S = 0.5 %, J = 0.25 % under measurement noise: the slips are one to two
+    noise bands at three samples' smoothing, so only the coarser scale of
+    SMOOTHING_SCALES, with half the band, finds the holds and jumps."""
+    case = next(c for c in transient_library() if c.name == "flow-he-S0.5-J0.25-sp-steps-ts1")
+    result = case.simulate()
+    window = LoopWindow(case.ts, result.op[0], result.pv[0], sp=result.sp[0],
+                        process_type="self-regulating")
+    analysis = analyse_window(window)
+    assert analysis is not None
+    finest = find_stick_episodes(window.op, window.pv, gain_sign=analysis.gain_sign,
+                                 smoothing=SMOOTHING_SCALES[0], reference=window.sp)
+    assert not finest.episodes
+    assert len(analysis.episodes) >= 2 and not analysis.contrary
+    mv = result.mv[0]
+    # The valve slipped the way OP pushed at the end of every episode; in most
+    # it held still before (a coarse hold may span a slip smaller than its band).
+    held = [np.ptp(mv[e.start:e.jump_at - 15]) < 0.05 * case.S for e in analysis.episodes]
+    assert sum(held) >= 2 and sum(held) > len(held) / 2
+    for episode in analysis.episodes:
+        assert np.sign(mv[episode.end] - mv[episode.start]) == np.sign(episode.op_travel)
+    assert StickJumpDetector().decide(analysis).decision == STICTION
