@@ -12,9 +12,10 @@ Steps, each feeding the next:
    Every usable window in which the controller moved the valve is examined:
    a window whose OP travel beyond noise is below
    :data:`analytics.stiction.stick_jump.MIN_TRAVEL` is ``undecided`` ("not
-   enough valve movement to judge"), one with a cycle or enough travel goes
-   on.  A frozen PV while OP travels :data:`STUCK_MIN_TRAVEL` is the valve
-   (or its positioner or transmitter) stuck, not unusable data.
+   enough valve movement to judge"), with or without a cycle; one with
+   enough travel goes on (without OP, a cycle of PV alone).  A frozen PV
+   while OP travels :data:`STUCK_MIN_TRAVEL` is the valve (or its positioner
+   or transmitter) stuck, not unusable data.
 3. The stiction battery (:mod:`analytics.stiction.battery`).  With a cycle:
    the cycle methods, the transient methods of
    :mod:`analytics.stiction.stick_jump` and the Hammerstein identification
@@ -467,11 +468,16 @@ def diagnose_loop(
     travel = None
     if op_clean is not None:
         travel = op_travel(op_clean)
-    if period_s is None and (travel is None or travel < MIN_TRAVEL):
+    # Even a regular cycle needs the valve to travel: a micro-cycle of a tenth of
+    # a percent of OP exposes no stick band worth a repair (healthy plant_dev
+    # flows show them).  Without OP, a regular cycle of PV can still be judged.
+    if (travel is not None and travel < MIN_TRAVEL) or (travel is None and period_s is None):
+        cycle = ("no cycle" if period_s is None
+                 else "a cycle" if oscillation.detected else "no regular cycle")
         seen = "no OP" if travel is None else f"OP travelled {travel:.3g}"
         verdict = StictionVerdict(
             UNDECIDED, 0.0, 0.0, {},
-            f"not enough valve movement to judge: no cycle and {seen} (at least "
+            f"not enough valve movement to judge: {cycle} and {seen} (at least "
             f"{MIN_TRAVEL:g} needed)",
         )
         return LoopDiagnosis(samples, ts, quality, oscillation, process_type, source, None,
@@ -535,13 +541,17 @@ def diagnose_loop(
         period_s = None
         if source == "assumed" and verdict.verdict != STICTION:
             # The process type is a guess: a sticky valve on a level holds PV's
-            # slope, not PV.  Read the slope too; it is taken only if it finds
-            # stiction (it never did on the 37 healthy plant_dev and simulated
-            # transient windows, and found 6 of 7 sticky level valves).
+            # slope, not PV.  Read the slope too; it is taken only if its
+            # stick-jump episodes find stiction (a held slope alone is no slip:
+            # a healthy flow's smoothed slope held through an OP reversal in a
+            # part of a plant_dev window).  Without the type given it finds 18 of
+            # the 20 sticky valves of the transient library, none of its 21
+            # healthy look-alikes.
             slope = analyse_window(dataclasses.replace(window, process_type=INTEGRATING))
             slope_verdict = None if slope is None else transient_verdict(slope, battery)
             if slope is not None and slope_verdict is not None \
-                    and slope_verdict.verdict == STICTION:
+                    and slope_verdict.verdict == STICTION \
+                    and slope_verdict.methods["stick_jump"].decision == STICTION:
                 analysis, process_type, source = slope, INTEGRATING, "inferred"
                 verdict = StictionVerdict(
                     STICTION, slope_verdict.confidence, slope_verdict.score,

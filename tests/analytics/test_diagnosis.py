@@ -190,8 +190,9 @@ def test_transient_library_floor():
     assert false_alarms == 0
 
 
-def plant_dev_windows():
-    """(label, diagnosis) of every labelled window of ../shared/data/plant_dev."""
+def plant_dev_windows(parts=((0.0, 1.0),)):
+    """(label, diagnosis) of every labelled window of ../shared/data/plant_dev, or
+    of the given parts of each (start and end as shares of the window)."""
     import csv
 
     from service.loop_csv import read_loop_csv
@@ -201,8 +202,12 @@ def plant_dev_windows():
         rows = list(csv.DictReader(handle))
     for row in rows:
         data = read_loop_csv(labels.parent / f"{row['window']}.csv", ts=float(row["ts_s"]))
-        yield row["label"], diagnose_loop(ts=data.ts, op=data.op, pv=data.pv, sp=data.sp,
-                                          t=data.t)
+        n = len(data.op)
+        for start, end in parts:
+            part = slice(int(start * n), int(end * n))
+            yield row["label"], diagnose_loop(
+                ts=data.ts, op=data.op[part], pv=data.pv[part],
+                sp=None if data.sp is None else data.sp[part], t=data.t[part])
 
 
 @pytest.mark.slow
@@ -217,3 +222,17 @@ def test_plant_dev_floor():
             false_alarms += d.stiction.verdict == "stiction"
     assert found >= 9
     assert false_alarms == 0
+
+
+@pytest.mark.slow
+def test_parts_of_healthy_plant_windows_are_not_called_sticky():
+    """Held-out windows of the plant are other cuts of its loops: halves and
+    two-thirds of the 16 healthy windows (80 cuts) must not be called sticky
+    either.  Two kinds of false alarm were found this way and closed: a
+    micro-cycle of 0.15 % of OP on a healthy flow (now "not enough valve
+    movement"), and a flow read as a level whose smoothed slope held through
+    an OP reversal with no slip (the slope is taken only with episodes)."""
+    parts = ((0.0, 0.5), (0.5, 1.0), (0.25, 0.75), (0.0, 2 / 3), (1 / 3, 1.0))
+    false_alarms = [d.stiction.reason for label, d in plant_dev_windows(parts)
+                    if label == "no_stiction" and d.stiction.verdict == "stiction"]
+    assert not false_alarms
