@@ -26,6 +26,7 @@ nothing but the store, so any number of each can run:
 from __future__ import annotations
 
 import asyncio
+import gc
 import hashlib
 import logging
 import time
@@ -358,6 +359,23 @@ QUIET_LIBRARIES = ("asyncua", "pymodbus")
 subscription publish and every standard node it skips); their warnings show."""
 
 
+def freeze_startup_objects() -> None:
+    """Leave the objects made at start (modules, the plant's configuration, the store's
+    metadata) out of the garbage collector's full
+    collections from now on.
+
+    The collector's full collection walks every object it tracks while it holds the
+    interpreter lock; under issue 20's load (20 dashboards, 4 historians, 2,000
+    loops) it ran about once a second for 0.15-1.6 s, and every request waited for
+    it: most of the dashboard's p99.  Frozen objects are not walked again; garbage
+    made later is collected as before.
+    """
+    gc.collect()
+    gc.freeze()
+    log.info("%d objects made at start left out of full garbage collections",
+             gc.get_freeze_count())
+
+
 def serve(config: Path | None, *, host: str | None = None, port: int | None = None,
           role: str | None = None) -> None:
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
@@ -379,6 +397,7 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> Any:
         with running(service):
+            freeze_startup_objects()
             yield
 
     service.app.router.lifespan_context = lifespan
