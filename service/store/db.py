@@ -71,10 +71,16 @@ def _written_tables(session: Session) -> set[str]:
 
 
 def _note_flush(session: Session, _context: Any) -> None:
-    for obj in (*session.new, *session.dirty, *session.deleted):
-        table = getattr(obj, "__table__", None)
-        if table is not None:
-            _written_tables(session).add(table.name)
+    written = _written_tables(session)
+    for obj in session.new:
+        if hasattr(obj, "__table__") and not getattr(obj, "unread_when_new", False):
+            written.add(obj.__table__.name)
+    for obj in session.dirty:
+        if hasattr(obj, "__table__") and session.is_modified(obj):
+            written.add(obj.__table__.name)
+    for obj in session.deleted:
+        if hasattr(obj, "__table__"):
+            written.add(obj.__table__.name)
 
 
 def _note_statement(state: ORMExecuteState) -> None:
@@ -88,7 +94,9 @@ class Store:
 
     The store counts the committed transactions of its sessions that wrote each table
     (:meth:`version`): a copy of what was read from those tables is current while the
-    count has not moved.  Only this process's writes through its sessions are counted.
+    count has not moved.  Only this process's writes through its sessions are counted,
+    and not the new rows that say ``unread_when_new`` (an analysis run that is not
+    ``ok``: no shared view reads it), nor objects that were touched but not changed.
     """
 
     def __init__(self, url: str, *, run_migrations: bool = True) -> None:

@@ -41,6 +41,19 @@ def test_the_store_counts_the_commits_that_wrote_each_table(store):
         session.delete(session.get(Loop, "L9"))
     assert store.version("loops") == loops + 3
     assert store.version("loops", "units") == loops + units + 4
+    runs = store.version("analysis_runs")
+    with store.session() as session:  # a run without data: no shared view reads it
+        session.add(Unit(id="u8", name="Unit 8"))
+        session.add(Loop(id="L8", name="eight", config={}, created_at=T0, updated_at=T0))
+        session.flush()
+        session.add(AnalysisRun(loop_id="L8", started_at=T0, status="no_data"))
+    assert store.version("analysis_runs") == runs
+    with store.session() as session:  # touched, not changed
+        session.get(Loop, "L8").name = "eight"
+    assert store.version("loops") == loops + 4
+    with store.session() as session:
+        session.add(AnalysisRun(loop_id="L8", started_at=T0, status="ok"))
+    assert store.version("analysis_runs") == runs + 1
 
 
 def test_an_answer_is_shared_until_its_tables_are_written_or_it_is_too_old(store):
