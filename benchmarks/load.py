@@ -76,6 +76,7 @@ class Tally:
     """What the clients saw (each thread has its own; merged at the end)."""
 
     latencies: dict[str, list[float]] = field(default_factory=dict)
+    ends: dict[str, list[float]] = field(default_factory=dict)  # time.monotonic() of each
     statuses: Counter[int] = field(default_factory=Counter)
     stored: int = 0  # samples the service said it stored
     accepted: int = 0  # stored + already stored + spooled
@@ -84,6 +85,7 @@ class Tally:
     def add(self, other: Tally) -> None:
         for kind, values in other.latencies.items():
             self.latencies.setdefault(kind, []).extend(values)
+            self.ends.setdefault(kind, []).extend(other.ends.get(kind, []))
         self.statuses.update(other.statuses)
         self.stored += other.stored
         self.accepted += other.accepted
@@ -111,6 +113,7 @@ class Client:
             self.connection = http.client.HTTPConnection("127.0.0.1", self.port, timeout=60)
             return None
         self.tally.latencies.setdefault(kind, []).append(time.perf_counter() - start)
+        self.tally.ends.setdefault(kind, []).append(time.monotonic())
         self.tally.statuses[response.status] += 1
         return json.loads(payload) if response.status < 300 and payload else None
 
@@ -327,7 +330,22 @@ def one_run(args: argparse.Namespace, database_url: str, workdir: Path) -> dict[
     for kind, values in sorted(total.latencies.items()):
         print(f"    {kind:<11} n={len(values):6d}  p50 {np.median(values) * 1e3:7.1f} ms"
               f"  p99 {np.percentile(values, 99) * 1e3:7.1f} ms")
+    if args.timeline:
+        print_timeline(total, began, args.timeline)
     return result
+
+
+def print_timeline(total: Tally, began: float, slice_s: float) -> None:
+    """The dashboard's requests answered in each ``slice_s`` of the run: count, p50, p99."""
+    kinds = [k for k in total.latencies if k not in BACKGROUND]
+    ends = np.concatenate([np.array(total.ends[k]) for k in kinds]) - began
+    values = np.concatenate([np.array(total.latencies[k]) for k in kinds]) * 1e3
+    print("    dashboard by time (s from the clients' start: n, p50, p99 ms):")
+    for lo in np.arange(0.0, float(ends.max(initial=0.0)) + slice_s, slice_s):
+        inside = values[(ends >= lo) & (ends < lo + slice_s)]
+        if inside.size:
+            print(f"      {lo:5.0f}-{lo + slice_s:<5.0f} n={inside.size:5d}  "
+                  f"p50 {np.median(inside):7.1f}  p99 {np.percentile(inside, 99):7.1f}")
 
 
 def main() -> None:
@@ -343,6 +361,8 @@ def main() -> None:
                         help="clients running model checks back to back")
     parser.add_argument("--analysis-interval", type=float, default=3600.0)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--timeline", type=float, default=0.0, metavar="S",
+                        help="also print the dashboard's latency per S seconds of each run")
     parser.add_argument("--store", choices=("sqlite", "postgresql"), default="sqlite")
     args = parser.parse_args()
     if not (0 < args.duration <= 600

@@ -24,7 +24,7 @@ A loop bad in every run of the week with a strong regular oscillation
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,9 +32,11 @@ __all__ = [
     "BAD_SEVERITY",
     "COMPONENTS",
     "IMPORTANCE_WEIGHT",
+    "SCORED_KPIS",
     "LoopScore",
     "run_components",
     "score_loop",
+    "scored_kpis",
 ]
 
 BAD_SEVERITY = 0.3
@@ -51,6 +53,35 @@ COMPONENTS: dict[str, str] = {
     "diagnosis": "diagnosis (health)",
 }
 """The severity components of a run and how the ``why`` names them."""
+
+
+SCORED_KPIS: tuple[tuple[str, ...], ...] = (
+    ("oscillation_index",), ("harris", "normalised"), ("saturation",),
+    ("error", "within_limits"), ("service_factor", "normal"),
+)
+"""The paths in a run's KPIs (:meth:`analytics.kpi.LoopKpis.to_dict`) that
+:func:`run_components` reads: a store can extract them without the rest."""
+
+
+def scored_kpis(values: Sequence[float | None]) -> dict[str, Any]:
+    """The KPIs of a run rebuilt from the values at :data:`SCORED_KPIS` (None where a
+    run has none): :func:`run_components` gives the same components as from the whole.
+
+    >>> kpis = {"oscillation_index": 0.5, "saturation": 0.1, "harris": {"normalised": 0.75},
+    ...         "error": {"within_limits": None, "std": 2.0}, "service_factor": None}
+    >>> scored_kpis([0.5, 0.75, 0.1, None, None])["harris"]
+    {'normalised': 0.75}
+    >>> run_components(40.0, scored_kpis([0.5, 0.75, 0.1, None, None])) == run_components(
+    ...     40.0, kpis)
+    True
+    """
+    kpis: dict[str, Any] = {}
+    for path, value in zip(SCORED_KPIS, values, strict=True):
+        node = kpis
+        for name in path[:-1]:
+            node = node.setdefault(name, {})
+        node[path[-1]] = value
+    return kpis
 
 
 def run_components(health: float | None, kpis: dict[str, Any] | None) -> dict[str, float]:

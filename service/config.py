@@ -383,6 +383,12 @@ class Settings(BaseSettings):
     max_connections: int = Field(
         default=1000, ge=1,
         description="open connections (and requests) at once; beyond, new requests get 503")
+    read_cache_s: float = Field(
+        default=2.0, ge=0,
+        description="longest the loop list and the bad-actor ranking computed for one "
+                    "request are given to others, s (this process's writes show at once; "
+                    "0: every request reads the store)",
+    )
     auth_outage_grace_s: float = Field(
         default=3600.0, ge=0,
         description="while the store is unreachable, keys confirmed this recently still "

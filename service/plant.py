@@ -10,6 +10,8 @@ tag belongs to one loop: taking the tag of another loop is refused with
 from __future__ import annotations
 
 import threading
+from collections.abc import Mapping
+from types import MappingProxyType
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -107,6 +109,7 @@ class PlantRegistry:
     def __init__(self, plant: PlantConfig) -> None:
         self._plant = plant
         self._lock = threading.Lock()
+        self._index: tuple[PlantConfig | None, Mapping[str, tuple[str, str]]] = (None, {})
 
     @property
     def plant(self) -> PlantConfig:
@@ -135,7 +138,15 @@ class PlantRegistry:
             self._plant = plant
             return created
 
-    def tag_index(self) -> dict[str, tuple[str, str]]:
-        """tag -> (loop id, signal) for every configured tag."""
-        return {tag: (loop.id, signal) for loop in self._plant.loops
-                for signal, tag in loop.tags.items()}
+    def tag_index(self) -> Mapping[str, tuple[str, str]]:
+        """tag -> (loop id, signal) for every configured tag (read only).
+
+        Built once per configuration, not for every ingest batch: 2,000 loops took
+        a tenth of the ingest's time to index again each time."""
+        plant, index = self._index
+        if plant is not self._plant:
+            plant = self._plant
+            index = MappingProxyType({tag: (loop.id, signal) for loop in plant.loops
+                                      for signal, tag in loop.tags.items()})
+            self._index = (plant, index)
+        return index

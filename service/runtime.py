@@ -42,6 +42,7 @@ from service.ingest import (
 )
 from service.metrics import Metrics
 from service.plant import PlantRegistry
+from service.read_cache import ReadCache
 from service.security import ConcurrencyLimiter, RateLimiter
 from service.spool import (
     IngestSpool,
@@ -57,6 +58,9 @@ __all__ = ["SPOOL_REFUSAL_REASONS", "AnalysisUnavailableError", "AppState", "Sam
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+LOOP_VIEW_TABLES = ("loops", "analysis_runs", "alarms")
+"""The tables the loop list and the bad-actor ranking are read from."""
 
 ANALYSIS_NICENESS = 10
 """The analysis processes run at a lower CPU priority: on a busy machine the requests
@@ -124,6 +128,8 @@ class AppState:
     limiter: RateLimiter = field(init=False)
     auth_failures: RateLimiter = field(init=False)
     analyses: ConcurrencyLimiter = field(init=False)
+    loop_views: ReadCache = field(init=False)
+    """The loop states and bad-actor rankings the requests share (:mod:`service.read_cache`)."""
 
     def buffers_for(self, session: Session, loops: Sequence[LoopConfig], window_s: float,
                     now: float) -> LoopBuffers:
@@ -140,6 +146,8 @@ class AppState:
                                    burst=self.settings.rate_limit_burst)
         self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
                                          burst=self.settings.auth_failure_burst)
+        self.loop_views = ReadCache(self.store, LOOP_VIEW_TABLES,
+                                    max_age_s=self.settings.read_cache_s)
         self.analyses = ConcurrencyLimiter(per_key=self.settings.analyses_per_key,
                                            total=2 * self.settings.analysis_processes)
         self._ingest_slots = threading.BoundedSemaphore(self.settings.ingest_concurrency)

@@ -173,7 +173,10 @@ def _analysis_slot(state: StateDep, principal: Reader) -> Iterator[Principal]:
     A key already running ``settings.analyses_per_key`` of them gets 429 with
     ``Retry-After``, so one client cannot take every worker thread and
     database connection; when the service runs all it admits (two per
-    analysis process), 503 with ``Retry-After``.
+    analysis process), 503 with ``Retry-After``.  The slot is given back when the
+    route returns, before its answer is sent (``scope="function"``): a client that
+    sends its next analysis as soon as it has the answer is not refused (the load
+    benchmark's model-check clients were, now and then).
     """
     full = state.analyses.acquire(principal.id)
     retry = {"Retry-After": retry_after(state.settings.analysis_retry_s)}
@@ -192,5 +195,5 @@ def _analysis_slot(state: StateDep, principal: Reader) -> Iterator[Principal]:
         state.analyses.release(principal.id)
 
 
-Analyst = Annotated[Principal, Depends(_analysis_slot)]
+Analyst = Annotated[Principal, Depends(_analysis_slot, scope="function")]
 """A reader running an expensive analysis (model check, advice, unit diagnosis, prediction)."""

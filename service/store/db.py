@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,7 +12,7 @@ from alembic import command
 from alembic.config import Config
 from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import ORMExecuteState, Session, sessionmaker
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 
@@ -64,8 +65,39 @@ def migrate(engine: Engine, revision: str = "head") -> None:
         command.upgrade(config, revision)
 
 
+def _written_tables(session: Session) -> set[str]:
+    written: set[str] = session.info.setdefault("written_tables", set())
+    return written
+
+
+def _note_flush(session: Session, _context: Any) -> None:
+    written = _written_tables(session)
+    for obj in session.new:
+        if hasattr(obj, "__table__") and not getattr(obj, "unread_when_new", False):
+            written.add(obj.__table__.name)
+    for obj in session.dirty:
+        if hasattr(obj, "__table__") and session.is_modified(obj):
+            written.add(obj.__table__.name)
+    for obj in session.deleted:
+        if hasattr(obj, "__table__"):
+            written.add(obj.__table__.name)
+
+
+def _note_statement(state: ORMExecuteState) -> None:
+    table = getattr(state.statement, "table", None)
+    if (state.is_insert or state.is_update or state.is_delete) and table is not None:
+        _written_tables(state.session).add(table.name)
+
+
 class Store:
-    """The engine and a session factory; ``with store.session() as s`` commits or rolls back."""
+    """The engine and a session factory; ``with store.session() as s`` commits or rolls back.
+
+    The store counts the committed transactions of its sessions that wrote each table
+    (:meth:`version`): a copy of what was read from those tables is current while the
+    count has not moved.  Only this process's writes through its sessions are counted,
+    and not the new rows that say ``unread_when_new`` (an analysis run that is not
+    ``ok``: no shared view reads it), nor objects that were touched but not changed.
+    """
 
     def __init__(self, url: str, *, run_migrations: bool = True) -> None:
         self.url = url
@@ -73,6 +105,25 @@ class Store:
         if run_migrations:
             migrate(self.engine)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        self._writes: dict[str, int] = {}
+        self._writes_lock = threading.Lock()
+        event.listen(self._sessions, "after_flush", _note_flush)
+        event.listen(self._sessions, "do_orm_execute", _note_statement)
+        event.listen(self._sessions, "after_commit", self._count_commit)
+
+    def _count_commit(self, session: Session) -> None:
+        written = session.info.pop("written_tables", None)
+        if written:
+            with self._writes_lock:
+                for table in written:
+                    self._writes[table] = self._writes.get(table, 0) + 1
+
+    def version(self, *tables: str) -> int:
+        """How many committed transactions of this process wrote any of ``tables``
+        (counted after the commit: a read that starts after the count moved sees the
+        write)."""
+        with self._writes_lock:
+            return sum(self._writes.get(table, 0) for table in tables)
 
     @contextmanager
     def session(self) -> Iterator[Session]:

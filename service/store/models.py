@@ -114,6 +114,13 @@ class AnalysisRun(Base):
     scheduled_by: Mapped[str | None] = mapped_column(String(200))
     """The scheduler process (host:pid:nonce) that stored the run."""
 
+    @property
+    def unread_when_new(self) -> bool:
+        """A new run that is not ``ok`` changes neither the loop list nor the bad-actor
+        ranking, which read the ``ok`` runs only (:meth:`service.store.db.Store.version`):
+        a round of 2,000 loops without data must not make them be read again 2,000 times."""
+        return self.status != "ok"
+
 
 class UnitAnalysisRun(Base):
     """One multi-loop diagnosis of a unit (thesis chapter 2) on its loops' windows.

@@ -11,6 +11,7 @@ from sqlalchemy import delete, event, insert, select
 from service.config import PlantConfig
 from service.ingest import (
     INSERT_CHUNK,
+    TAGS_PER_LOOKUP,
     IngestError,
     IngestReport,
     ingest_batch,
@@ -404,3 +405,20 @@ def test_purge_deletes_only_older_samples(plant_store: Store) -> None:
     assert [row[1] for row in stored(plant_store)] == [NOW - i for i in range(4, -1, -1)]
     with pytest.raises(ValueError, match="finite"), plant_store.session() as session:
         purge_samples(session, math.nan)
+
+
+def test_a_batch_of_many_tags_is_compared_with_the_store_tag_by_tag(store):
+    """The samples already stored are read for many tags at once (TAGS_PER_LOOKUP per
+    statement): every tag's items are still compared with its own samples only."""
+    tags = [f"T{k:03d}.PV" for k in range(2 * TAGS_PER_LOOKUP + 5)]
+    batch = [{"tag": tag, "items": items((NOW - 10 - k, float(k)), (NOW - k, 1.0))}
+             for k, tag in enumerate(tags)]
+    with store.session() as session:
+        first = ingest_batch(session, batch, known_tags=set(tags), now=NOW)
+    assert (first.stored, first.already_stored) == (2 * len(tags), 0)
+    batch[-1]["items"][1]["value"] = 2.0  # the last tag's second sample changed
+    batch[0]["items"].append({"timestamp": NOW + 1, "value": 3.0})  # one new sample
+    with store.session() as session:
+        again = ingest_batch(session, batch, known_tags=set(tags), now=NOW)
+    assert (again.stored, again.already_stored) == (1, 2 * len(tags) - 1)
+    assert {t.tag: t.refused for t in again.tags if t.refused} == {tags[-1]: {"conflict": 1}}

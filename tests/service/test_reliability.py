@@ -7,6 +7,7 @@ uvicorn on a loopback port with the settings ``loopwatch serve`` uses.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import inspect
 import json
@@ -436,3 +437,38 @@ def test_a_detail_string_and_a_validation_list_both_fit_the_error_schema(svc):
     detail = schema["components"]["schemas"]["Error"]["properties"]["detail"]
     kinds = [option.get("type") or option.get("$ref") for option in detail["anyOf"]]
     assert "string" in kinds and "array" in kinds
+
+
+def test_an_analysis_slot_is_free_before_its_answer_is_sent(tmp_path):
+    """A client that sends its next model check as soon as it has the answer must find
+    its key's slot free (the load benchmark's clients got 429 now and then)."""
+    from analytics.model_check.cases import hidden_effect_case
+
+    service = sqlite_service(tmp_path)
+    service.state.ingest(case_batch(hidden_effect_case("gain_mismatch", 3, samples=3000)))
+    client = TestClient(service.app)
+    created = client.post("/api/v1/keys", json={"name": "v", "role": "viewer"},
+                          headers=HEADERS).json()
+    slot_at_answer: list[tuple[int, str | None]] = []
+
+    async def receive() -> dict[str, Any]:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def send(message: dict[str, Any]) -> None:
+        if message["type"] == "http.response.start":
+            taken = service.state.analyses.acquire(created["id"])
+            if taken is None:
+                service.state.analyses.release(created["id"])
+            slot_at_answer.append((message["status"], taken))
+
+    path = "/api/v1/loops/FIC-1/model-check"
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
+             "method": "POST", "scheme": "http", "path": path, "raw_path": path.encode(),
+             "query_string": b"", "root_path": "", "client": ("127.0.0.1", 50000),
+             "server": ("127.0.0.1", 8000),
+             "headers": [(b"x-api-key", created["key"].encode()), (b"content-length", b"0")]}
+    asyncio.run(service.app(scope, receive, send))
+    assert slot_at_answer == [(200, None)]
+    service.state.close_analyses()
+    service.executor.shutdown()
+    service.state.store.close()

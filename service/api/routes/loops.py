@@ -13,6 +13,7 @@ from sqlalchemy import BigInteger, cast, func, select
 from service.analysis import stiction_pattern_text
 from service.api.deps import (
     ERROR_RESPONSES,
+    AppState,
     Offset,
     Principal,
     SessionDep,
@@ -22,7 +23,7 @@ from service.api.deps import (
     require,
 )
 from service.api.routes import advice, unit_diagnosis
-from service.bad_actors import score_loop
+from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.config import LoopConfig
 from service.plant import TagConflictError
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
@@ -207,11 +208,16 @@ def _loop_rows(
     worst_first: bool = False,
     offset: int = 0,
     limit: int | None = None,
+    trusted: bool = False,
 ) -> tuple[list[LoopPublic], int]:
     """Loops joined with their latest successful run and active-alarm count, in one query.
 
-    Only the summary columns of the run are read (not the diagnosis JSON), and
-    filtering, ordering and paging happen in the database.
+    Only the summary columns of the run are read (not the diagnosis JSON), and of the
+    loop's configuration only the two fields listed (extracted by the database, not
+    parsed here: the plant's whole configuration would be parsed on every request);
+    filtering, ordering and paging happen in the database.  ``trusted`` builds the
+    rows without validating them again (their columns have the models' types): for
+    callers that read every loop.
     """
     latest = (
         select(AnalysisRun.loop_id, func.max(AnalysisRun.id).label("run_id"))
@@ -222,7 +228,8 @@ def _loop_rows(
         .group_by(Alarm.loop_id).subquery()
     )
     query = (
-        select(Loop.id, Loop.name, Loop.unit_id, Loop.config, *_RUN_COLUMNS,
+        select(Loop.id, Loop.name, Loop.unit_id, Loop.config["valve_asset"].as_string(),
+               Loop.config["importance"].as_string(), *_RUN_COLUMNS,
                func.coalesce(alarms.c.n, 0))
         .outerjoin(latest, latest.c.loop_id == Loop.id)
         .outerjoin(AnalysisRun, AnalysisRun.id == latest.c.run_id)
@@ -234,25 +241,52 @@ def _loop_rows(
         query = query.where(Loop.id == loop_id)
     if state is not None:
         query = query.where(_STATE_FILTERS[state])
-    count = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    if state is None:  # one row per loop: the joined subqueries have one row per loop
+        counted = select(func.count(Loop.id))
+        if unit is not None:
+            counted = counted.where(Loop.unit_id == unit)
+        if loop_id is not None:
+            counted = counted.where(Loop.id == loop_id)
+        count = session.scalar(counted) or 0
+    else:
+        count = session.scalar(select(func.count()).select_from(query.subquery())) or 0
     order = ([AnalysisRun.health.is_(None), AnalysisRun.health, Loop.id] if worst_first
              else [Loop.id])
     rows = session.execute(query.order_by(*order).offset(offset).limit(limit)).all()
+    make = LoopPublic.model_construct if trusted else LoopPublic
     data = [
-        LoopPublic(
-            id=r[0], name=r[1], unit=r[2], valve_asset=r[3].get("valve_asset"),
-            importance=r[3].get("importance", "medium"), health=r[4], oscillating=r[5],
-            period_s=r[6], verdict=r[7], confidence=r[8], S=r[9], J=r[10], analysed_at=r[11],
-            active_alarms=r[12],
+        make(
+            id=r[0], name=r[1], unit=r[2], valve_asset=r[3],
+            importance="medium" if r[4] is None else r[4], health=r[5], oscillating=r[6],
+            period_s=r[7], verdict=r[8], confidence=r[9], S=r[10], J=r[11], analysed_at=r[12],
+            active_alarms=r[13],
         )
         for r in rows
     ]
     return data, count
 
 
+_STATE_TESTS = {
+    "oscillating": lambda r: r.oscillating is True,
+    "stiction": lambda r: r.verdict == "stiction",
+    "healthy": lambda r: r.oscillating is False,
+    "unknown": lambda r: r.health is None,
+}
+""":data:`_STATE_FILTERS` on a row of :func:`loop_states`."""
+
+
+def loop_states(session: SessionDep, app: AppState) -> list[LoopPublic]:
+    """Every loop with its latest state, in the store's order of loop ids: read once and
+    shared by the requests until a loop, run or alarm is written
+    (:attr:`service.runtime.AppState.loop_views`).  The rows are shared: do not change
+    them."""
+    return app.loop_views.get(("loops",), lambda: _loop_rows(session, trusted=True)[0])
+
+
 @router.get("/loops", response_model=LoopsPublic)
 def list_loops(
     session: SessionDep,
+    app: StateDep,
     _: Reader,
     unit: str | None = None,
     state: Annotated[str | None, Query(pattern="^(oscillating|stiction|healthy|unknown)$")] = None,
@@ -260,8 +294,12 @@ def list_loops(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> LoopsPublic:
     """Loops with their latest state; filter by unit and state, page with offset/limit."""
-    data, count = _loop_rows(session, unit=unit, state=state, offset=offset, limit=limit)
-    return LoopsPublic(data=data, count=count)
+    rows = loop_states(session, app)
+    if unit is not None:
+        rows = [r for r in rows if r.unit == unit]
+    if state is not None:
+        rows = list(filter(_STATE_TESTS[state], rows))
+    return LoopsPublic(data=rows[offset:offset + limit], count=len(rows))
 
 
 PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
@@ -281,7 +319,8 @@ def period_seconds(period: str) -> float:
 
 
 def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
-                   bucket_s: float) -> list[BadActorPublic]:
+                   bucket_s: float, loops: list[LoopPublic] | None = None
+                   ) -> list[BadActorPublic]:
     """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
     runs started in ``(since, until]``, worst first: by score, then by health (loops not
     analysed last).
@@ -289,9 +328,11 @@ def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
     One run counts per ``bucket_s`` (the analysis window's length; buckets counted back
     from ``until``), the latest of its bucket: runs a minute apart on hour-long windows
     share most of their data, so they are one observation of the loop, not sixty, and a
-    week is 168 runs a loop, not 10,080.
+    week is 168 runs a loop, not 10,080.  ``loops``: every loop with its latest state
+    (:func:`loop_states`; read here when not given).
     """
-    loops, _ = _loop_rows(session)
+    if loops is None:
+        loops = _loop_rows(session, trusted=True)[0]
     # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
     # then integer division, which truncates on both.
     bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
@@ -302,17 +343,20 @@ def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
                AnalysisRun.started_at <= until)
         .group_by(AnalysisRun.loop_id, bucket)
     )
+    # only the KPIs the score reads, extracted by the database: parsing every run's
+    # diagnosis here cost more than the rest of the ranking
     runs: dict[str, list[tuple[float | None, dict[str, Any] | None]]] = {}
-    for loop_id, health, kpis in session.execute(
-        select(AnalysisRun.loop_id, AnalysisRun.health, AnalysisRun.result["kpis"])
+    for loop_id, health, *values in session.execute(
+        select(AnalysisRun.loop_id, AnalysisRun.health,
+               *(AnalysisRun.result[("kpis", *path)].as_float() for path in SCORED_KPIS))
         .where(AnalysisRun.id.in_(chosen))
     ):
-        runs.setdefault(loop_id, []).append((health, kpis))
+        runs.setdefault(loop_id, []).append((health, scored_kpis(values)))
     ranked = []
     for loop in loops:
         scored = score_loop(runs.get(loop.id, ()), loop.importance, period)
-        ranked.append(BadActorPublic(
-            **loop.model_dump(), score=scored.score, severity=scored.severity,
+        ranked.append(BadActorPublic.model_construct(
+            **loop.__dict__, score=scored.score, severity=scored.severity,
             bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
             worst=scored.worst, why=scored.why,
         ))
@@ -330,12 +374,24 @@ def bad_actors(
     """Loops ranked by their bad-actor score over ``period`` (``7d``, ``36h``; at most 92
     days): KPI severity x loop importance x time spent bad (:mod:`service.bad_actors`),
     each with ``why``; then by latest health, worst first; loops not analysed last.  One
-    run per analysis window length counts (:func:`bad_actor_rows`)."""
-    until = state.clock()
-    since = until - period_seconds(period)
-    ranked = bad_actor_rows(session, since, until, period, state.settings.window_s)
+    run per analysis window length counts (:func:`bad_actor_rows`).
+
+    The ranking is computed once for the requests that ask within
+    ``LOOPWATCH_READ_CACHE_S`` while no loop, run or alarm is written
+    (:mod:`service.read_cache`); ``since`` and ``until`` say which period it covers."""
+    seconds = period_seconds(period)
+
+    def rank() -> tuple[float, list[BadActorPublic]]:
+        until = state.clock()
+        return until, bad_actor_rows(session, until - seconds, until, period,
+                                     state.settings.window_s, loop_states(session, state))
+
+    def recent(answer: tuple[float, list[BadActorPublic]]) -> bool:
+        return abs(state.clock() - answer[0]) <= state.settings.read_cache_s
+
+    until, ranked = state.loop_views.get(("bad-actors", period), rank, recent)
     return BadActorsPublic(data=ranked[:limit], count=len(ranked), period=period,
-                           since=since, until=until)
+                           since=until - seconds, until=until)
 
 
 def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:

@@ -1,0 +1,119 @@
+"""Answers read from the store, shared by the requests that ask for them until it changes.
+
+Twenty dashboards polling the loop list and the bad-actor ranking of a plant
+of 2,000 loops each second asked the store for the same 2,000 rows twenty
+times a second, and ranked them twenty times: more work than one core does,
+so every request queued behind the others (issue 20's load benchmark).  A
+:class:`ReadCache` computes an answer once and gives it to every request
+that asks while
+
+* no transaction of this process that wrote one of the answer's tables has
+  committed since it was computed (:meth:`service.store.db.Store.version`:
+  an alarm raised, a loop changed or an analysis stored shows at once), and
+* it is at most ``max_age_s`` old, the bound on how late a write of another
+  process (an API replica, a scheduler elsewhere) shows.
+
+Requests that find the answer missing or stale while another request computes
+it wait for that computation instead of repeating it, and take its answer when
+it began after they arrived (it saw every write they could have seen), even if
+the store was written again meanwhile: while the scheduler stores a round of
+2,000 runs, one ranking at a time is computed, not one per request.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from service.store.db import Store
+
+__all__ = ["ReadCache"]
+
+T = TypeVar("T")
+
+
+@dataclass
+class _Entry:
+    value: Any
+    version: int
+    at: float
+    computation: int  # the number of the computation that made it (they count up)
+
+
+class ReadCache:
+    """Answers computed from ``tables`` of ``store``, kept while current (module docstring).
+
+    Parameters
+    ----------
+    store : Store
+        Counts the commits that wrote each table.
+    tables : sequence of str
+        The tables every answer is read from.
+    max_age_s : float
+        Longest an answer is given again (0: never; every request computes).
+    max_entries : int
+        Answers kept (the least recently computed go first).
+    clock : callable
+        Monotonic seconds (injectable for tests).
+    """
+
+    def __init__(self, store: Store, tables: tuple[str, ...], *, max_age_s: float,
+                 max_entries: int = 32, clock: Callable[[], float] = time.monotonic) -> None:
+        self.store, self.tables, self.max_age_s, self.clock = store, tables, max_age_s, clock
+        self.max_entries = max_entries
+        self._entries: dict[Hashable, _Entry] = {}
+        self._locks: dict[Hashable, threading.Lock] = {}
+        self._lock = threading.Lock()
+        self._computations = 0
+
+    def _current(self, key: Hashable, version: int,
+                 valid: Callable[[Any], bool] | None) -> _Entry | None:
+        entry = self._entries.get(key)
+        if (entry is None or entry.version != version
+                or self.clock() - entry.at > self.max_age_s
+                or (valid is not None and not valid(entry.value))):
+            return None
+        return entry
+
+    def get(self, key: Hashable, compute: Callable[[], T],
+            valid: Callable[[T], bool] | None = None) -> T:
+        """The answer kept under ``key`` if current (and ``valid(answer)``, when given),
+        else ``compute()``, kept.  ``compute`` must read the store after it is called."""
+        if self.max_age_s <= 0:
+            return compute()
+        with self._lock:
+            lock = self._locks.setdefault(key, threading.Lock())
+            arrived = self._computations
+        with lock:
+            entry = self._entries.get(key)
+            if entry is not None and entry.computation > arrived:
+                value: T = entry.value  # computed after this request arrived
+                return value
+            version = self.store.version(*self.tables)
+            entry = self._current(key, version, valid)
+            if entry is not None:
+                value = entry.value
+                return value
+            with self._lock:
+                self._computations += 1
+                computation = self._computations
+            at = self.clock()
+            value = compute()
+            with self._lock:
+                self._entries.pop(key, None)
+                self._entries[key] = _Entry(value, version, at, computation)
+                while len(self._entries) > self.max_entries:
+                    oldest = next(iter(self._entries))
+                    del self._entries[oldest]
+                    if oldest != key:
+                        self._locks.pop(oldest, None)
+            return value
+
+    def clear(self) -> None:
+        """Forget every answer."""
+        with self._lock:
+            self._entries.clear()
+            self._locks.clear()
