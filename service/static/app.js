@@ -541,7 +541,8 @@ async function renderLoop(loopId) {
   const quality = diagnosis ? diagnosis.quality.issues : [];
   const alarmsBox = h("div", {});
   const ticketsBox = h("div", {});
-  const stiction = diagnosis ? diagnosis.stiction : null;
+  // The final verdict on the valve (a unit's diagnosis may overrule the loop's own).
+  const stiction = diagnosis ? diagnosis.valve || diagnosis.stiction : null;
   const oscillation = diagnosis ? diagnosis.oscillation : null;
   main.replaceChildren(
     h("p", { class: "crumbs" }, h("a", { href: "#/" }, "Plant overview"),
@@ -556,6 +557,9 @@ async function renderLoop(loopId) {
       ["Valve verdict", verdictPill(stiction && stiction.verdict, stiction && stiction.confidence)],
       ["Stiction pattern", health.stiction_pattern || "—"],
       ["Why", stiction ? stiction.reason : "—"],
+      ...(stiction && stiction.decided_by === "unit" ? [["Decided by", `unit ${stiction.unit_id}'s `
+        + `diagnosis; this loop's own analysis: ${diagnosis.stiction.verdict.replace("_", " ")}, `
+        + "kept below as evidence"]] : []),
       ["Analysed", latest ? `${utc(latest.started_at)} (window ${utc(latest.window_start)} to `
         + `${utc(latest.window_end)})` : "not yet"],
       ["Valve", loop.valve_asset || "—"],
@@ -635,7 +639,8 @@ function stickyValvesList(diagnosis, valves) {
 function oscillationGroup(group, index, valves) {
   // One plant-wide oscillation: its loops, the surrogate nonlinearity ranking of every OP
   // and PV (thesis chapter 2, step 3) and each loop's evidence.
-  const sticky = new Set(group.sticky_valves);
+  // The API names valves by their tags: sticky_valves has the tags, sticky_loops the loops.
+  const sticky = new Set(group.sticky_loops);
   const rows = group.ranking.map((r, i) => {
     const loop = r.signal.split("_").slice(1).join("_");
     return h("tr", { "data-signal": r.signal },
