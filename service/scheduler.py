@@ -349,9 +349,11 @@ class AnalysisScheduler:
         return summaries
 
     def _window_args(self, loop: LoopConfig, now: float) -> tuple[Any, ...] | None:
-        """The arguments of :func:`analyse_window` for the loop's window ending at ``now``;
-        None when the window holds no sample."""
-        window = self.buffers.window(loop.id, self.settings.window_s, now)
+        """The arguments of :func:`analyse_window` for the loop's window ending at ``now``,
+        less the samples not yet arrived (:meth:`LoopBuffers.arrived_end`); None when the
+        window holds no sample."""
+        end = self.buffers.arrived_end([loop.id], now, self.settings.analysis_interval_s)
+        window = self.buffers.window(loop.id, self.settings.window_s, end)
         signals = {"op": window.op, "pv": window.pv, "sp": window.sp, "mv": window.mv}
         if window.t.size == 0 or all(x is None or not np.isfinite(x).any()
                                      for x in signals.values()):
@@ -630,7 +632,9 @@ class AnalysisScheduler:
         for unit_id, loops in units.items():
             if unit_id in done:
                 continue
-            windows = unit_windows(self.buffers, loops, self.settings.window_s, now)
+            end = self.buffers.arrived_end([loop.id for loop in loops], now,
+                                           self.settings.analysis_interval_s)
+            windows = unit_windows(self.buffers, loops, self.settings.window_s, end)
             if len(windows.signals) < 2:
                 continue
             try:
