@@ -80,8 +80,9 @@ def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
                    "as healthy") if run.verdict == "undecided" else None
         return entry, unknown
     estimate = (run.result or {}).get("quantification") or {}
-    if run.S is not None:
-        entry["valve"] = {"model": "choudhury", "S": run.S, "J": run.J or 0.0}
+    size = final or estimate  # the final verdict's size, the unit's when the loop has none
+    if size.get("S") is not None:
+        entry["valve"] = {"model": "choudhury", "S": size["S"], "J": size.get("J") or 0.0}
     elif estimate.get("fs") is not None and estimate.get("fd") is not None:
         entry["valve"] = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
     else:
