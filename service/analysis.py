@@ -88,9 +88,11 @@ def health_score(diagnosis: dict[str, Any]) -> float | None:
     actor, and a valve that sticks without a sustained cycle (pattern
     ``stick_jump``, or ``stuck``) is a bad actor too, if a milder one.  A
     stuck valve freezes PV, which makes the data unusable for everything
-    else; its stiction verdict is scored all the same.
+    else; its stiction verdict is scored all the same.  The verdict is the final one
+    on the valve (``diagnosis["valve"]``, :func:`service.verdicts.valve_verdict`) when
+    the diagnosis has one, else the loop's own.
     """
-    stiction = diagnosis["stiction"]
+    stiction = diagnosis.get("valve") or diagnosis["stiction"]
     sticky = stiction["verdict"] == "stiction"
     if not diagnosis["quality"]["usable"] and not sticky:
         return None

@@ -50,6 +50,7 @@ from service.store.models import ApiKey
 __all__ = [
     "PERMISSIONS",
     "ROLES",
+    "RUN_KEY_NAME",
     "AuthError",
     "KeyConflictError",
     "KeyVerifier",
@@ -141,11 +142,28 @@ def create_key(session: Session, name: str, role: str, now: float) -> tuple[str,
     return key, _insert(session, key, key_id, name, role, now)
 
 
-def ensure_bootstrap_key(session: Session, key: str, now: float) -> None:
-    """Store the bootstrap admin key (from the settings) unless it is already there."""
-    if _matching(session, key) is None:
-        _insert(session, key, EXTERNAL_ID_PREFIX + secrets.token_hex(6), "bootstrap",
-                "admin", now)
+RUN_KEY_NAME = "bootstrap, this run only"
+"""Name of an admin key generated for one run (no ``LOOPWATCH_API_KEY`` set)."""
+
+
+def ensure_bootstrap_key(session: Session, key: str, now: float, *,
+                         generated: bool = False) -> None:
+    """Store the bootstrap admin key unless it is already there.
+
+    A key from the settings is named ``bootstrap``.  A key ``generated`` for
+    this run (:meth:`service.config.Settings.bootstrap_key`) is named
+    :data:`RUN_KEY_NAME`, and revokes the keys generated for earlier runs:
+    nobody can use them again (their run printed them, and is over), so they
+    must not pile up as active admin keys, one per start.
+    """
+    if _matching(session, key) is not None:
+        return
+    new = _insert(session, key, EXTERNAL_ID_PREFIX + secrets.token_hex(6),
+                  RUN_KEY_NAME if generated else "bootstrap", "admin", now)
+    if generated:
+        for row in session.scalars(select(ApiKey).where(
+                ApiKey.name == RUN_KEY_NAME, ApiKey.revoked_at.is_(None), ApiKey.id != new.id)):
+            row.revoked_at = now
 
 
 def authenticate(session: Session, key: str) -> ApiKey | None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,6 +118,11 @@ class RingBuffer:
     def oldest_time(self) -> float | None:
         """Time of the oldest sample held, or None when empty."""
         return float(self._t[self._head]) if self._size else None
+
+    @property
+    def newest_time(self) -> float | None:
+        """Time of the newest sample held, or None when empty."""
+        return float(self._t[self._last]) if self._size else None
 
     @property
     def _last(self) -> int:
@@ -249,6 +254,25 @@ class LoopBuffers:
         with self._lock:
             times = [buffer.oldest_time for buffer in self._buffers.values()]
         return min((t for t in times if t is not None), default=None)
+
+    def arrived_end(self, loop_ids: Iterable[str], now: float, grace_s: float) -> float:
+        """The end of windows of ``loop_ids`` at ``now`` without samples not yet arrived.
+
+        A connector or historian delivers a sample a moment after its time
+        stamp, so the newest grid points of a window ending at ``now`` may
+        have no sample yet: they are not missing data.  This is the time up
+        to which every tag of the loops has delivered (the oldest of their
+        newest samples) when that lies less than ``grace_s`` before ``now``;
+        otherwise ``now``: a longer silence is a gap, for the data-quality
+        screen to report.
+        """
+        with self._lock:
+            newest = [self._buffers[tag].newest_time for loop_id in loop_ids
+                      if loop_id in self._loops for _, tag in self._loops[loop_id].tags.items()]
+        if not newest or any(t is None for t in newest):
+            return now
+        arrived = min(t for t in newest if t is not None)
+        return arrived if now - grace_s < arrived < now else now
 
     @property
     def tags(self) -> frozenset[str]:

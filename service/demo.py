@@ -96,13 +96,25 @@ class DemoFeeder:
 
         return sink
 
+    @property
+    def history_text(self) -> str:
+        """The back-filled history in words, as the start banner and the log say it.
+
+        >>> DemoFeeder(history_s=7200, max_batch_samples=1000, clock=lambda: 0.0).history_text
+        'the last 2 h (7200 s)'
+        """
+        hours, minutes = divmod(round(self.history_s / 60), 60)
+        words = " ".join(part for part in (f"{hours} h" if hours else "",
+                                           f"{minutes} min" if minutes else "") if part)
+        return f"the last {words or f'{self.history_s:g} s'} ({self.history_s:g} s)"
+
     def start(self, ingest: SampleSink) -> int:
         """Serve the plant and ingest its last ``history_s``; the number of samples."""
         self.plant.start_in_thread()
         now = self.clock()
         samples = self._ingest_history(ingest, now - self.history_s, dict.fromkeys(self.tags, now))
         self.backfilled_until = now
-        log.info("demo plant: back-filled %d samples of the last %g s", samples, self.history_s)
+        log.info("demo plant: back-filled %d samples of %s", samples, self.history_text)
         return samples
 
     def close_seam(self, ingest: SampleSink) -> int:

@@ -86,6 +86,8 @@ PLOT_WIDTH = 760
 """Width of every figure, px (the height follows from the number of panels)."""
 PANEL_HEIGHT = 300
 MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, MARGIN_BOTTOM = 70, 20, 34, 64
+TITLE_WIDTH = PLOT_WIDTH - 2 * MARGIN_RIGHT
+"""Room for a figure's title, which starts at the right margin's distance from the left."""
 PNG_ZOOM = 1.5
 """PNG pixels per SVG unit: 1140 px wide, sharp in an e-mail or a printed ticket."""
 FONT = "DejaVu Sans, Liberation Sans, Arial, Helvetica, sans-serif"
@@ -694,9 +696,19 @@ def _path(xs: FloatArray, ys: FloatArray, *, dots: bool) -> str:
     return "".join(parts)
 
 
+CHAR_WIDTH = {"normal": 0.62, "bold": 0.7}
+"""Widest mean advance of a character, in font sizes, of the fonts of :data:`FONT`
+(DejaVu Sans is the widest: 0.61 em for its regular text, 0.69 em bold)."""
+
+
 def _text(x: float, y: float, content: str, *, size: int = 12, anchor: str = "start",
-          weight: str = "normal", rotate: bool = False, colour: str = "#222222") -> str:
+          weight: str = "normal", rotate: bool = False, colour: str = "#222222",
+          fit: float | None = None) -> str:
+    """An SVG ``<text>``; with ``fit``, a text that could be wider than ``fit`` units is
+    squeezed to that width (``textLength``), so that no title is cut at the plot's edge."""
     transform = f' transform="rotate(-90 {x:.1f} {y:.1f})"' if rotate else ""
+    if fit is not None and len(content) * size * CHAR_WIDTH[weight] > fit:
+        transform += f' textLength="{fit:.1f}" lengthAdjust="spacingAndGlyphs"'
     return (f'<text x="{x:.1f}" y="{y:.1f}" font-size="{size}" text-anchor="{anchor}" '
             f'font-weight="{weight}" fill="{colour}"{transform}>{escape(content)}</text>')
 
@@ -795,7 +807,7 @@ def render_svg(figure: Figure) -> str:
         f'font-family="{FONT}">\n'
         f"<title>{escape(figure.title)}</title>\n<desc>{escape(figure.description)}</desc>\n"
         f'<rect width="{PLOT_WIDTH}" height="{height}" fill="#ffffff"/>\n'
-        f"{_text(MARGIN_LEFT, 20, figure.title, size=15, weight='bold')}\n"
+        f"{_text(MARGIN_RIGHT, 20, figure.title, size=15, weight='bold', fit=TITLE_WIDTH)}\n"
         f"{panels}\n</svg>\n"
     )
 

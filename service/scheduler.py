@@ -77,6 +77,7 @@ from service.plant import PlantRegistry
 from service.store.db import Store
 from service.store.models import AnalysisRun, IngestLog, Sample, UnitAnalysisRun
 from service.tickets import evidence_from_run, update_ticket_from_analysis
+from service.verdicts import latest_unit_decision, settle_run
 
 __all__ = ["MAX_TRIES", "SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
 
@@ -348,9 +349,11 @@ class AnalysisScheduler:
         return summaries
 
     def _window_args(self, loop: LoopConfig, now: float) -> tuple[Any, ...] | None:
-        """The arguments of :func:`analyse_window` for the loop's window ending at ``now``;
-        None when the window holds no sample."""
-        window = self.buffers.window(loop.id, self.settings.window_s, now)
+        """The arguments of :func:`analyse_window` for the loop's window ending at ``now``,
+        less the samples not yet arrived (:meth:`LoopBuffers.arrived_end`); None when the
+        window holds no sample."""
+        end = self.buffers.arrived_end([loop.id], now, self.settings.analysis_interval_s)
+        window = self.buffers.window(loop.id, self.settings.window_s, end)
         signals = {"op": window.op, "pv": window.pv, "sp": window.sp, "mv": window.mv}
         if window.t.size == 0 or all(x is None or not np.isfinite(x).any()
                                      for x in signals.values()):
@@ -367,8 +370,9 @@ class AnalysisScheduler:
 
     def _analyse(self, loops: Iterable[LoopConfig], now: float,
                  round_end: float | None) -> list[RunSummary]:
-        """Analyse ``loops`` on the windows ending at ``now``; the tickets of loops in units
-        of two or more loops wait for their unit's diagnosis (:meth:`_analyse_units`)."""
+        """Analyse ``loops`` on the windows ending at ``now``; the final verdict, alarms and
+        tickets of loops in units of two or more loops wait for their unit's diagnosis
+        (:meth:`_analyse_units`)."""
         loops = list(loops)
         order = {loop.id: i for i, loop in enumerate(loops)}
         in_units = {loop.id for members in self._units().values() for loop in members}
@@ -376,7 +380,7 @@ class AnalysisScheduler:
 
         def finish(loop: LoopConfig, outcome: JobOutcome) -> None:
             summary = self._finish_loop(loop, now, round_end, outcome,
-                                        ticketed=loop.id not in in_units)
+                                        decided=loop.id not in in_units)
             if summary is not None:
                 summaries.append(summary)
 
@@ -483,15 +487,16 @@ class AnalysisScheduler:
         job.finish(JobOutcome(status, error=f"{reason}, on its retry too"))
 
     def _finish_loop(self, loop: LoopConfig, now: float, round_end: float | None,
-                outcome: JobOutcome, *, ticketed: bool) -> RunSummary | None:
-        """Store the loop's run (and, if ``ticketed``, its ticket); None when it is dropped."""
+                outcome: JobOutcome, *, decided: bool) -> RunSummary | None:
+        """Store the loop's run (and, if ``decided``, its alarms and ticket); None when it is
+        dropped."""
         if round_end is not None and not self.leading:
             log.warning("leadership lost: the result of loop %s for round %.0f is left to the "
                         "new leader", loop.id, round_end)
             return None
         self.metrics.inc("loopwatch_analyses_total", status=outcome.status)
         try:
-            summary = self._store_run(loop, now, outcome, round_end, ticketed=ticketed)
+            summary = self._store_run(loop, now, outcome, round_end, decided=decided)
         except IntegrityError:
             if round_end is None or not self._round_stored(loop.id, round_end):
                 raise
@@ -511,8 +516,9 @@ class AnalysisScheduler:
             ) is not None
 
     def _store_run(self, loop: LoopConfig, now: float, outcome: JobOutcome,
-                   round_end: float | None, *, ticketed: bool) -> RunSummary:
-        """The run, its alarms and (if ``ticketed``) its ticket in one transaction."""
+                   round_end: float | None, *, decided: bool) -> RunSummary:
+        """The run with the loop's own verdict on its valve (:func:`settle_run`) and, if
+        ``decided`` (a loop in no unit), its alarms and ticket in one transaction."""
         diagnosis = outcome.result
         with self.store.session() as session:
             run = AnalysisRun(
@@ -522,38 +528,33 @@ class AnalysisScheduler:
                 round_end=round_end, scheduled_by=None if round_end is None else self.instance,
             )
             if diagnosis is not None:
-                q = diagnosis.get("quantification") or {}
                 run.usable = diagnosis["quality"]["usable"]
                 run.oscillating = diagnosis["oscillation"]["detected"]
                 run.period_s = diagnosis["oscillation"]["period_s"]
-                run.verdict = diagnosis["stiction"]["verdict"]
-                run.confidence = diagnosis["stiction"]["confidence"]
-                run.S, run.J = q.get("S"), q.get("J")
-                run.health = diagnosis["health"]
                 run.result = diagnosis
+                settle_run(run, None)
             session.add(run)
             session.flush()
             ticket_id = None
-            if diagnosis is not None:
-                update_alarms_from_analysis(
-                    session, loop.id,
-                    oscillating=bool(run.oscillating), usable=bool(run.usable),
-                    importance=loop.importance, message=self._message(diagnosis), now=now,
-                )
-                if ticketed:
-                    ticket_id = self._update_ticket(session, loop, run, now, unit_id=None)
+            if diagnosis is not None and decided:
+                ticket_id = self._decide(session, loop, run, now)
             return RunSummary(loop.id, run.id, outcome.status, run.verdict, ticket_id)
 
-    def _update_ticket(self, session: Session, loop: LoopConfig, run: AnalysisRun, now: float,
-                       unit_id: str | None) -> int | None:
-        """The ticket rule (:func:`service.tickets.update_ticket_from_analysis`) for ``run``;
-        the id of the ticket opened or updated."""
+    def _decide(self, session: Session, loop: LoopConfig, run: AnalysisRun,
+                now: float) -> int | None:
+        """The alarms and the ticket rule (:func:`service.tickets.update_ticket_from_analysis`)
+        for ``run`` with its final verdict; the id of the ticket opened or updated."""
+        assert run.result is not None
+        update_alarms_from_analysis(
+            session, loop.id, oscillating=bool(run.oscillating), usable=bool(run.usable),
+            importance=loop.importance, message=self._message(run.result), now=now,
+        )
         ticket = update_ticket_from_analysis(
             session, loop.id,
             valve_asset=loop.valve_asset or loop.id, location=loop.location or loop.unit,
             verdict=str(run.verdict), evidence=evidence_from_run(run),
             importance=loop.importance,
-            confirmations_needed=self.settings.ticket_confirmations, now=now, unit_id=unit_id,
+            confirmations_needed=self.settings.ticket_confirmations, now=now,
         )
         return None if ticket is None else ticket.id
 
@@ -561,9 +562,11 @@ class AnalysisScheduler:
                        round_end: float | None) -> list[RunSummary]:
         """Diagnose each unit of two or more loops (thesis chapter 2) on the windows ending at
         ``now``, unless this round's diagnosis is stored already, then decide the tickets of
-        the units' loops; ``summaries`` with the ticket ids filled in.
+        the units' loops; ``summaries`` with the final verdicts and ticket ids filled in.
 
-        Tickets are decided for the units that have a loop run or a diagnosis stored by
+        Each loop run of a unit gets its final verdict from the unit's latest ``ok``
+        diagnosis (:func:`service.verdicts.valve_verdict`), then its alarms and its ticket.
+        They are decided for the units that have a loop run or a diagnosis stored by
         this call (once per round, so a ticket closed since is not opened again from the
         same run): a scheduler completing a round whose unit diagnosis its predecessor
         left undone decides them on the round's stored loop runs.
@@ -580,11 +583,12 @@ class AnalysisScheduler:
         fresh = {unit for unit, loops in units.items() if any(x.id in analysed for x in loops)}
         if round_end is not None:
             fresh |= self._units_done(round_end) - done
-        tickets: dict[str, int] = {}
+        decided: dict[str, tuple[str | None, int | None]] = {}
         runs = self._runs_of_units(units, summaries, round_end)
         for unit_id, loops in units.items():
             if unit_id not in fresh:
                 continue
+            valves = {loop.id: loop.valve_asset or loop.id for loop in loops}
             for loop in loops:
                 if loop.id not in runs:
                     continue
@@ -592,13 +596,13 @@ class AnalysisScheduler:
                     run = session.get(AnalysisRun, runs[loop.id])
                     if run is None or run.result is None:
                         continue
-                    ticket_id = self._update_ticket(session, loop, run, now, unit_id=unit_id)
-                if ticket_id is not None:
-                    tickets[loop.id] = ticket_id
-                    if self.on_ticket is not None:
-                        self.on_ticket(ticket_id)
-        return [replace(s, ticket_id=tickets[s.loop_id]) if s.loop_id in tickets else s
-                for s in summaries]
+                    settle_run(run, latest_unit_decision(session, unit_id, valves))
+                    ticket_id = self._decide(session, loop, run, now)
+                    decided[loop.id] = run.verdict, ticket_id
+                if ticket_id is not None and self.on_ticket is not None:
+                    self.on_ticket(ticket_id)
+        return [replace(s, verdict=decided[s.loop_id][0], ticket_id=decided[s.loop_id][1])
+                if s.loop_id in decided else s for s in summaries]
 
     def _units_done(self, round_end: float) -> set[str]:
         """The units that have a diagnosis of the round ending at ``round_end``."""
@@ -628,7 +632,9 @@ class AnalysisScheduler:
         for unit_id, loops in units.items():
             if unit_id in done:
                 continue
-            windows = unit_windows(self.buffers, loops, self.settings.window_s, now)
+            end = self.buffers.arrived_end([loop.id for loop in loops], now,
+                                           self.settings.analysis_interval_s)
+            windows = unit_windows(self.buffers, loops, self.settings.window_s, end)
             if len(windows.signals) < 2:
                 continue
             try:
@@ -672,13 +678,19 @@ class AnalysisScheduler:
 
     @staticmethod
     def _message(diagnosis: dict[str, Any]) -> str:
-        """The alarm message of an analysis; a stiction finding names its pattern (a stuck
-        valve freezes PV, so it comes with unusable data)."""
+        """The alarm message of an analysis, with the final verdict on the valve
+        (:func:`service.verdicts.valve_verdict`); a stiction finding names its pattern (a
+        stuck valve freezes PV, so it comes with unusable data), a valve the unit's
+        diagnosis clears its reason ("cycles because FV-502 sticks")."""
         stiction = diagnosis["stiction"]
-        pattern = stiction_pattern_text(stiction["pattern"], stiction["op_travel"])
-        valve = f"valve: {stiction['verdict']}" + ("" if pattern is None else f" ({pattern})")
+        final = diagnosis.get("valve") or stiction
+        if final.get("decided_by") == "unit" and final["verdict"] != "stiction":
+            pattern = final["reason"]
+        else:
+            pattern = stiction_pattern_text(stiction["pattern"], stiction["op_travel"])
+        valve = f"valve: {final['verdict']}" + ("" if pattern is None else f" ({pattern})")
         if not diagnosis["quality"]["usable"]:
-            if stiction["verdict"] == "stiction":
+            if final["verdict"] == "stiction":
                 return f"data unusable, {valve}"
             return "data unusable: " + stiction["reason"]
         osc = diagnosis["oscillation"]

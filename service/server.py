@@ -180,14 +180,15 @@ class Service:
         self.state.store.close()
 
 
-def _register(store: Store, plant: PlantConfig, admin_key: str, now: float) -> PlantConfig:
-    """Write the plant and the bootstrap key; the plant to run, with the loops added
-    through the API (:func:`service.plant.sync_plant`).  Replicas starting together may
-    collide once."""
+def _register(store: Store, plant: PlantConfig, admin_key: str, now: float, *,
+              generated: bool) -> PlantConfig:
+    """Write the plant and the bootstrap key (``generated`` for this run, or from the
+    settings); the plant to run, with the loops added through the API
+    (:func:`service.plant.sync_plant`).  Replicas starting together may collide once."""
     def register() -> PlantConfig:
         with store.session() as session:
             running_plant = sync_plant(session, plant, now)
-            ensure_bootstrap_key(session, admin_key, now)
+            ensure_bootstrap_key(session, admin_key, now, generated=generated)
         return running_plant
 
     try:
@@ -234,7 +235,7 @@ def build_service(
     store = Store(settings.resolved_database_url)
     now = clock()
     admin_key, generated = settings.bootstrap_key()
-    plant = _register(store, plant, admin_key, now)
+    plant = _register(store, plant, admin_key, now, generated=generated)
     # only a scheduling process analyses windows: the others keep no rolling buffers (ingest
     # then leaves every sample to the store, and 10,000 loops save 2.4 GiB per process)
     schedules = role in SCHEDULING_ROLES
@@ -434,7 +435,7 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
         simulated = service.feeder.plant
         print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
               f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
-              f"{simulated.modbus_port}), the last {settings.window_s:g} s back-filled; "
+              f"{simulated.modbus_port}), {service.feeder.history_text} back-filled; "
               "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
               f"{settings.analysis_interval_s:g} s")
     uvicorn.Server(uvicorn_config(service.app, settings)).run()

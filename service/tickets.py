@@ -20,12 +20,12 @@ sticks without a sustained cycle (``stick_jump``, ``stuck``) gets a ticket too,
 whose long text names the pattern and lists the stick-jump episodes.
 
 Units.  In a unit of interacting loops one sticky valve makes its neighbours
-cycle, and their own analyses then find stiction too (thesis chapter 2).  So
-for a loop of a unit, the unit's latest ``ok`` diagnosis
-(:class:`~service.store.models.UnitAnalysisRun`) has the last word: a valve
-it clears opens no ticket, whatever the loop's own findings (they stay
-recorded in its analysis runs); a valve it names sticky, or one it has not
-decided on, follows the rule above.
+cycle, and their own analyses then find stiction too (thesis chapter 2).  The
+verdict the rule reads is the run's final one
+(:func:`service.verdicts.valve_verdict`): for a loop of a unit, the unit's
+latest ``ok`` diagnosis has the last word, so a valve it clears opens no
+ticket, whatever the loop's own findings (they stay recorded in its analysis
+runs).
 
 Lifecycle (:data:`TICKET_TRANSITIONS`)::
 
@@ -482,15 +482,14 @@ def update_ticket_from_analysis(
     importance: Importance,
     confirmations_needed: int,
     now: float,
-    unit_id: str | None = None,
 ) -> Ticket | None:
     """Open or update the valve's ticket after an analysis; the ticket, or None if untouched.
 
     Call it after the analysis run is stored.  ``evidence`` has the keys of
     :data:`EVIDENCE_KEYS` (:func:`evidence_from_run` builds it).  A loop
-    without a valve asset is ticketed under its loop id.  ``unit_id``, for a
-    loop of a unit of interacting loops, lets the unit's latest diagnosis
-    clear the valve (see the module docstring).  The ticket's
+    without a valve asset is ticketed under its loop id.  ``verdict`` is the run's
+    final one (a unit's diagnosis may have cleared the valve, see the module
+    docstring).  The ticket's
     ``malfunction_start`` is the window start of the oldest confirming run.
     Calling twice for the same run changes nothing the second time.  The
     priority (:func:`ticket_priority`) takes the stick band read off the
@@ -506,13 +505,6 @@ def update_ticket_from_analysis(
     stored = _checked_evidence(loop_id, asset, evidence, len(streak))
     if len(streak) < confirmations_needed:
         return None
-    if unit_id is not None:
-        unit_run = latest_unit_run(session, unit_id, ok_only=True)
-        if unit_run is not None and loop_id in unit_run.cleared_loops:
-            logger.info("loop %s: stiction found, but unit %s's diagnosis (run %d) clears "
-                        "valve %s and names %s: no ticket", loop_id, unit_id, unit_run.id,
-                        asset, ", ".join(unit_run.sticky_loops) or "no valve")
-            return None
     size = stored["S"] if stored["S"] is not None else stored["episode_stick_band"]
     priority = ticket_priority(S=size, amplitude_pv=stored["amplitude_pv"],
                                importance=importance)

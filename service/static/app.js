@@ -3,7 +3,8 @@
  * Pages (hash routes): #/ plant overview, #/loop/ID, #/loop/ID/model-check, #/unit/ID,
  * #/ticket/ID (printable).
  * The API key is asked for once and kept in sessionStorage (per browser tab); a link
- * ending in #key=... signs in too, and the key is removed from the address bar at once.
+ * ending in #key=... signs in too, and the key is removed from the address bar at once;
+ * #key=...&/loop/ID (or &/unit/ID, &/ticket/ID) then opens that page.
  * Plots are SVG rendered by the server (GET /api/v1/loops/ID/plots/KIND), fetched with
  * the key and placed inline, so they are part of the page's accessibility tree.
  * "Large text" (kept in localStorage) enlarges everything for a control-room wall screen.
@@ -149,7 +150,9 @@ async function plot(loopId, kind, params = {}, body = undefined) {
         "Download PNG", h("span", { class: "visually-hidden" }, ` of the ${kind} plot`))));
   } catch (error) {
     figure.classList.add("unavailable");
-    figure.append(h("p", {}, `${kind} plot not available: ${error.message}`));
+    // The server's detail is the reason alone; the plot is named here.
+    figure.append(h("p", {}, `${kind[0].toUpperCase()}${kind.slice(1).replace("-", " ")} plot `
+      + `not available: ${error.message}`));
   }
   return figure;
 }
@@ -541,7 +544,8 @@ async function renderLoop(loopId) {
   const quality = diagnosis ? diagnosis.quality.issues : [];
   const alarmsBox = h("div", {});
   const ticketsBox = h("div", {});
-  const stiction = diagnosis ? diagnosis.stiction : null;
+  // The final verdict on the valve (a unit's diagnosis may overrule the loop's own).
+  const stiction = diagnosis ? diagnosis.valve || diagnosis.stiction : null;
   const oscillation = diagnosis ? diagnosis.oscillation : null;
   main.replaceChildren(
     h("p", { class: "crumbs" }, h("a", { href: "#/" }, "Plant overview"),
@@ -556,6 +560,9 @@ async function renderLoop(loopId) {
       ["Valve verdict", verdictPill(stiction && stiction.verdict, stiction && stiction.confidence)],
       ["Stiction pattern", health.stiction_pattern || "—"],
       ["Why", stiction ? stiction.reason : "—"],
+      ...(stiction && stiction.decided_by === "unit" ? [["Decided by", `unit ${stiction.unit_id}'s `
+        + `diagnosis; this loop's own analysis: ${diagnosis.stiction.verdict.replace("_", " ")}, `
+        + "kept below as evidence"]] : []),
       ["Analysed", latest ? `${utc(latest.started_at)} (window ${utc(latest.window_start)} to `
         + `${utc(latest.window_end)})` : "not yet"],
       ["Valve", loop.valve_asset || "—"],
@@ -592,9 +599,9 @@ async function renderLoop(loopId) {
       h("button", { type: "button", onclick: () => {
         location.hash = `#/loop/${encodeURIComponent(loopId)}/model-check`;
       } }, "Check the model")),
-    h("div", { class: "grid-2" },
-      section("Alarms of this loop", "loop-alarms-title", alarmsBox),
-      section("Tickets of this loop", "loop-tickets-title", ticketsBox)));
+    // Full width: the alarm table's last column holds the operator's buttons.
+    section("Alarms of this loop", "loop-alarms-title", alarmsBox),
+    section("Tickets of this loop", "loop-tickets-title", ticketsBox));
   await showTrend();
 
   const refresh = async () => {
@@ -635,7 +642,8 @@ function stickyValvesList(diagnosis, valves) {
 function oscillationGroup(group, index, valves) {
   // One plant-wide oscillation: its loops, the surrogate nonlinearity ranking of every OP
   // and PV (thesis chapter 2, step 3) and each loop's evidence.
-  const sticky = new Set(group.sticky_valves);
+  // The API names valves by their tags: sticky_valves has the tags, sticky_loops the loops.
+  const sticky = new Set(group.sticky_loops);
   const rows = group.ranking.map((r, i) => {
     const loop = r.signal.split("_").slice(1).join("_");
     return h("tr", { "data-signal": r.signal },
@@ -716,9 +724,13 @@ function percent(fraction) {
 }
 
 function parameterText(parameters) {
+  // Parameters may nest: a valve that sticks differently opening and closing has an object
+  // of S and J for each direction.
   const entries = Object.entries(parameters || {});
   if (entries.length === 0) return "—";
-  return entries.map(([k, v]) => `${k} ${typeof v === "number" ? num(v, 3) : v}`).join(", ");
+  const value = (v) => (typeof v === "number" ? num(v, 3)
+    : v && typeof v === "object" ? `(${parameterText(v)})` : v);
+  return entries.map(([k, v]) => `${k} ${value(v)}`).join(", ");
 }
 
 function modelFacts(model) {
@@ -901,23 +913,37 @@ async function start() {
   setLargeText(localStorage.getItem(LARGE_TEXT_STORAGE) === "1");
   largeText.addEventListener("click", () =>
     setLargeText(largeText.getAttribute("aria-pressed") !== "true"));
-  const fragment = location.hash.match(/^#key=([^&]+)/);
-  if (fragment) {
-    sessionStorage.setItem(KEY_STORAGE, decodeURIComponent(fragment[1]));
-    history.replaceState(null, "", `${location.pathname}#/`);
-  }
   document.getElementById("sign-out").addEventListener("click", () => signOut("Signed out."));
   window.addEventListener("hashchange", async () => {
+    if (keyFromLink()) {  // a key link opened in this tab: sign in with it
+      await signInAndRoute();
+      return;
+    }
     if (!session.me) return;
     await route();
     // The new page gets the focus, unless the user moved it into the page while it loaded
     const main = document.getElementById("main");
     if (!main.contains(document.activeElement) || document.activeElement === main) main.focus();
   });
+  keyFromLink();
   if (!sessionStorage.getItem(KEY_STORAGE)) {
     renderSignIn("");
     return;
   }
+  await signInAndRoute();
+}
+
+/** Takes the key of a #key=KEY or #key=KEY&/PAGE link into sessionStorage and leaves
+ * #/PAGE (or #/) in the address bar; whether there was one. */
+function keyFromLink() {
+  const fragment = location.hash.match(/^#key=([^&]+)(?:&(\/.*))?$/);
+  if (!fragment) return false;
+  sessionStorage.setItem(KEY_STORAGE, decodeURIComponent(fragment[1]));
+  history.replaceState(null, "", `${location.pathname}#${fragment[2] || "/"}`);
+  return true;
+}
+
+async function signInAndRoute() {
   try {
     await signIn();
   } catch (error) {

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import uvicorn
 
@@ -362,3 +363,98 @@ def test_model_check_page_shows_the_simulation_against_the_measurement(
     shot = tmp_path_factory.mktemp("artefacts") / "model-check-FIC-1.png"
     page.screenshot(path=str(shot), full_page=True)
     print(f"model check screenshot: {shot}")
+
+
+def test_sign_in_page_has_no_sign_out_and_key_links_open_the_page_they_name(
+    running: RunningService, browser: Browser
+) -> None:
+    """Issue 19: "Sign out" is hidden until signed in; ``#key=...&/loop/ID`` (a unit, a
+    ticket) signs in and lands on that page, not on the overview."""
+    page = browser.page
+    page.goto(running.base_url + "/")
+    page.get_by_label("API key").wait_for()
+    assert page.locator("#sign-out").is_hidden()
+    assert page.get_by_role("button", name="Sign out").count() == 0
+    viewer = running.keys["viewer"]
+    ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
+    for target, heading in (("/loop/FIC-1", "FIC-1"), ("/unit/u1", "Unit 1 unit u1"),
+                            (f"/ticket/{ticket['id']}", f"Ticket #{ticket['id']}")):
+        page.goto(f"{running.base_url}/#key={viewer}&{target}")
+        page.get_by_role("heading", level=1, name=heading).wait_for()
+        assert page.url.endswith(f"/#{target}") and viewer not in page.url
+        assert page.locator("#sign-out").is_visible()
+        page.evaluate("sessionStorage.clear()")
+
+
+def test_loop_page_shows_alarm_buttons_whole_and_plot_notes_once(
+    running: RunningService, browser: Browser
+) -> None:
+    """Issue 19: the loop page's alarm card shows its Acknowledge and Shelve buttons without
+    clipping; a plot the server cannot draw says so once, with the server's reason."""
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['operator']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.goto(f"{running.base_url}/#/loop/FIC-1")
+    card = page.locator('section[aria-labelledby="loop-alarms-title"]')
+    buttons = card.get_by_role("button")
+    buttons.first.wait_for()
+    box = card.bounding_box()
+    assert box is not None
+    names = []
+    for i in range(buttons.count()):
+        button = buttons.nth(i).bounding_box()
+        assert button is not None
+        names.append(buttons.nth(i).inner_text())
+        assert box["x"] <= button["x"] and button["x"] + button["width"] <= box["x"] + box["width"]
+    assert "Shelve" in " ".join(names) or "Acknowledge" in " ".join(names)
+
+    status, _, body = running.fetch("/api/v1/loops/FIC-2/plots/nyquist", "viewer")
+    assert status == 404
+    reason = json.loads(body)["detail"]
+    page.goto(f"{running.base_url}/#/loop/FIC-2")
+    note = page.locator('figure[data-plot="nyquist"] p')
+    note.wait_for()
+    assert note.inner_text() == f"Nyquist plot not available: {reason}"
+    assert "not available" not in reason
+    # the healthy loop's Nyquist plot (404) and advice (409) are refused as they should be
+    browser.errors[:] = [e for e in browser.errors if "/api/v1/loops/FIC-2/" not in e]
+
+
+def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Browser) -> None:
+    """Issue 19: every title of the ticket's evidence plots ends inside its plot."""
+    page = browser.page
+    ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.goto(f"{running.base_url}/#/ticket/{ticket['id']}")
+    plots = page.locator(".evidence-plots svg[data-kind]")
+    plots.nth(2).wait_for()
+    assert plots.evaluate_all(TITLES_OUTSIDE) == []
+    # the longest title of the demo plant's tickets, drawn by the same renderer
+    from service import plots as rendering
+    long_title = ("AIC-502 Side-stream ethanol composition (FV-502): valve signature, 60 min "
+                  "to 2024-05-01 12:00 UTC")
+    svg = rendering.render_svg(rendering.trend_figure(
+        {"pv": (T0 + np.arange(60.0), np.sin(np.arange(60.0)))}, title=long_title))
+    page.set_content(f"<!doctype html><body>{svg}</body>")
+    assert page.locator("svg").evaluate_all(TITLES_OUTSIDE) == []
+
+
+TITLES_OUTSIDE = """svgs => svgs.flatMap(svg => {
+    const width = svg.viewBox.baseVal.width;
+    return [...svg.querySelectorAll(':scope > text, g.panel > text:first-of-type')]
+      .map(t => t.getBBox()).filter(b => b.x < 0 || b.x + b.width > width)
+      .map(b => [svg.dataset.kind, b.x, b.width, width]);
+})"""
+"""Script: the titles of the page's SVG plots that do not end inside their plot."""
+
+
+def test_nested_model_parameters_read_as_words(running: RunningService, browser: Browser) -> None:
+    """Issue 19: a valve that sticks differently opening and closing (the model check's
+    ``asymmetric_stiction`` effect) showed "opening [object Object], closing [object Object]"."""
+    page = browser.page
+    page.goto(running.base_url + "/")
+    page.get_by_label("API key").wait_for()
+    text = page.evaluate("parameterText({model: 'kano', opening: {S: 4, J: 2}, "
+                         "closing: {S: 3.5, J: 1.25}})")
+    assert text == "model kano, opening (S 4.000, J 2.000), closing (S 3.500, J 1.250)"

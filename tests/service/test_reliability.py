@@ -308,6 +308,29 @@ def test_keys_are_stored_salted_with_a_key_id_that_is_not_secret(svc):
     assert ADMIN[:6] not in dump
 
 
+def test_each_start_without_a_configured_key_leaves_one_active_generated_admin_key(tmp_path):
+    """Issue 19: a key generated for a run (no LOOPWATCH_API_KEY) revokes the keys generated
+    for earlier runs; a configured key and keys made through the API are kept."""
+    configured = sqlite_service(tmp_path)
+    TestClient(configured.app).post("/api/v1/keys", json={"name": "ops", "role": "admin"},
+                                    headers=HEADERS)
+    configured.executor.shutdown()
+    configured.state.store.close()
+    keys = []
+    for _ in range(3):
+        svc = sqlite_service(tmp_path, api_key=None)
+        assert svc.key_generated
+        keys.append(svc.admin_key)
+        with svc.state.store.session() as session:
+            active = sorted(row.name for row in session.scalars(
+                select(ApiKey).where(ApiKey.revoked_at.is_(None))))
+            assert [authenticate(session, key) is not None for key in keys] == (
+                [False] * (len(keys) - 1) + [True])
+        svc.executor.shutdown()
+        svc.state.store.close()
+        assert active == ["bootstrap", "bootstrap, this run only", "ops"]
+
+
 @pytest.fixture(params=["sqlite", "postgresql"])
 def empty_database(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:
     """The URL of an empty database (no schema) on SQLite or a real PostgreSQL."""

@@ -94,3 +94,21 @@ def test_a_new_installation_confirms_on_the_history_it_holds(make_service, confi
             assert opened[0].malfunction_start == newest - 4 * 480 - 1800
             assert opened[0].evidence["confirmations"] == 2
     assert svc.scheduler.run_due() == []  # the history is not run again
+
+
+def test_samples_not_yet_arrived_at_the_round_end_are_not_bad_data(make_service):
+    """Issue 19: a round at T0 + 2 s whose last two samples the plant has not delivered yet
+    analyses the window ending at the newest sample, with no NaN/inf finding; a silence
+    longer than the analysis interval is still a gap the data-quality screen reports."""
+    svc = make_service(window_s=1800, analysis_interval_s=60)
+    svc.state.ingest(simulated_batch())
+    (run,) = [r for r in svc.scheduler.run_once(T0 + 2) if r.loop_id == "FIC-1"]
+    late = svc.scheduler.run_once(T0 + 120)
+    with svc.state.store.session() as session:
+        stored = session.get(AnalysisRun, run.run_id)
+        assert stored.status == "ok" and stored.verdict == "stiction"
+        assert stored.result["first_sample_at"] == T0 - 1800 + 1
+        assert [i["message"] for i in stored.result["quality"]["issues"]
+                if "NaN/inf" in i["message"]] == []
+        gap = session.get(AnalysisRun, next(r.run_id for r in late if r.loop_id == "FIC-1"))
+        assert any("NaN/inf" in i["message"] for i in gap.result["quality"]["issues"])

@@ -8,7 +8,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 
-from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent, Unit, UnitAnalysisRun
+from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent
 from service.tickets import (
     MAX_TICKET_EPISODES,
     TicketNotFoundError,
@@ -82,12 +82,11 @@ def add_sticky_run_without_cycle(session, *, at, pattern="stick_jump", episodes=
 
 
 def analyse(session, run, *, loop_id="FIC-101", valve_asset="FV-101", importance="medium",
-            needed=3, unit_id=None):
+            needed=3):
     return update_ticket_from_analysis(
         session, loop_id, valve_asset=valve_asset, location="PLANT1-COL-FIC101",
         verdict=run.verdict or "undecided", evidence=evidence_from_run(run),
         importance=importance, confirmations_needed=needed, now=run.started_at + 10,
-        unit_id=unit_id,
     )
 
 
@@ -242,34 +241,6 @@ def test_a_closed_ticket_does_not_block_a_new_one(store):
         third = analyse(s, add_run(s, at=T0 + 3000), needed=1)
         assert {t.state for t in list_tickets(s)[0]} == {"done", "cancelled", "open"}
         assert list_tickets(s, state="open") == ([third], 1)
-
-
-def test_the_latest_unit_diagnosis_withholds_the_tickets_of_the_valves_it_clears(store):
-    """Thesis chapter 2: a loop that cycles with a sticky neighbour gets no ticket; the
-    valve the unit names does, and one it has not decided on follows its own findings."""
-    def unit_run(at, status, sticky, cleared):
-        return UnitAnalysisRun(
-            unit_id="column", started_at=at, window_start=at - WINDOW_S, window_end=at,
-            status=status, loops=["AIC-501", "AIC-502", "TIC-503"], incomplete_loops=[],
-            sticky_loops=sticky, cleared_loops=cleared)
-
-    with store.session() as s:
-        s.add(Unit(id="column"))
-        s.add_all([unit_run(T0, "ok", ["AIC-501"], ["AIC-502"]),  # older: not read
-                   unit_run(T0 + WINDOW_S, "ok", ["AIC-502"], ["AIC-501"]),
-                   unit_run(T0 + 2 * WINDOW_S, "failed", [], [])])  # newer, not decided
-        for loop_id in ("AIC-501", "AIC-502", "TIC-503", "FIC-101"):
-            add_loop(s, loop_id)
-
-        def decide(loop_id, unit_id="column"):
-            run = add_run(s, at=T0 + 2 * WINDOW_S, loop_id=loop_id)
-            return analyse(s, run, loop_id=loop_id, valve_asset=f"FV-{loop_id[-3:]}",
-                           needed=1, unit_id=unit_id)
-
-        assert decide("AIC-501") is None
-        assert decide("AIC-502").valve_asset == "FV-502"
-        assert decide("TIC-503").valve_asset == "FV-503"  # the unit has not decided on it
-        assert decide("AIC-501", unit_id=None).valve_asset == "FV-501"  # no unit: its own
 
 
 def test_invalid_transitions_are_refused_and_not_recorded(store):

@@ -109,8 +109,8 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
     first = svc.scheduler.run_round(FIRST_ROUND)
     second = svc.scheduler.run_round(T0)
 
-    # the loop battery blames every valve of the column, in both rounds
-    assert [s.verdict for s in first + second] == ["stiction"] * 6
+    # the unit's diagnosis has the last word: only FV-502 sticks, in both rounds
+    assert [s.verdict for s in first + second] == ["no_stiction", "stiction", "no_stiction"] * 2
     assert [s.ticket_id is not None for s in first] == [False, False, False]
     assert [(s.loop_id, s.ticket_id is not None) for s in second] == [
         ("AIC-501", False), ("AIC-502", True), ("TIC-503", False)]
@@ -124,9 +124,9 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
         latest = session.scalars(select(UnitAnalysisRun)
                                  .where(UnitAnalysisRun.round_end == T0)).one()
         assert latest.cleared_loops == ["AIC-501", "TIC-503"]
-        # the loops' own findings stay recorded
-        assert session.scalars(select(AnalysisRun.verdict).where(
-            AnalysisRun.loop_id != "AIC-502")).all() == ["stiction"] * 4
+        # the loop battery blames every valve of the column: its findings stay recorded
+        assert [r.result["stiction"]["verdict"] for r in session.scalars(select(AnalysisRun).where(
+            AnalysisRun.loop_id != "AIC-502"))] == ["stiction"] * 4
 
     stored = client.get("/api/v1/units/column/diagnosis", headers=VIEWER_HEADERS).json()
     assert (stored["source"], stored["round_end"], stored["window_end"]) == (
@@ -139,6 +139,52 @@ def test_only_the_sticky_valve_of_the_column_gets_a_ticket(make_service, batch):
     with svc.state.store.session() as session:
         assert len(session.scalars(select(UnitAnalysisRun)).all()) == 2
     assert tickets(svc) == [("FV-502", "AIC-502")]
+
+
+def test_every_page_reads_the_units_final_verdict_on_each_valve(make_service, batch):
+    """Issue 19: a valve the unit's diagnosis clears reads as cleared in the loop list, the
+    loop, its health view, its alarm, the unit page's data and the bad-actor ranking, with
+    the unit's reason; its own findings stay as evidence."""
+    svc = make_service(column_plant(unit="column"))
+    client = TestClient(svc.app)
+    svc.state.ingest(batch)
+    svc.scheduler.run_round(FIRST_ROUND)
+    svc.scheduler.run_round(T0)
+
+    def get(path):
+        response = client.get(f"/api/v1{path}", headers=VIEWER_HEADERS)
+        assert response.status_code == 200, response.text
+        return response.json()
+
+    expected = {"AIC-501": "no_stiction", "AIC-502": "stiction", "TIC-503": "no_stiction"}
+    listed = {loop["id"]: loop for loop in get("/loops")["data"]}
+    ranked = {loop["id"]: loop for loop in get("/plant/bad-actors")["data"]}
+    unit_page = {loop["id"]: loop for loop in get("/units/column")["data"]}
+    for loop_id, verdict in expected.items():
+        one = get(f"/loops/{loop_id}")
+        health = get(f"/loops/{loop_id}/health")
+        assert (listed[loop_id]["verdict"], one["verdict"], ranked[loop_id]["verdict"],
+                unit_page[loop_id]["verdict"], health["latest"]["verdict"],
+                health["diagnosis"]["valve"]["verdict"]) == (verdict,) * 6
+        assert health["diagnosis"]["stiction"]["verdict"] == "stiction"  # its own finding
+        assert ranked[loop_id]["health"] == listed[loop_id]["health"] == health["health"]
+        (alarm,) = get(f"/alarms?loop_id={loop_id}")["data"]
+        if verdict == "stiction":
+            assert alarm["message"].endswith("valve: stiction (limit cycle)")
+            assert listed[loop_id]["S"] is not None
+            assert health["stiction_pattern"] == "limit cycle"
+        else:
+            assert alarm["message"].endswith("valve: no_stiction (cycles because FV-502 sticks)")
+            assert health["diagnosis"]["valve"]["reason"] == "cycles because FV-502 sticks"
+            assert (listed[loop_id]["S"], listed[loop_id]["J"]) == (None, None)
+            assert health["stiction_pattern"] is None
+            # a cleared valve loses none of the health its cycle costs, only the stiction part
+            assert listed[loop_id]["health"] > listed["AIC-502"]["health"]
+    diagnosis = get("/units/column/diagnosis")
+    assert [(v["loop"], v["valve"]) for v in diagnosis["sticky_valves"]] == [("AIC-502", "FV-502")]
+    assert {valve for g in diagnosis["groups"] for valve in g["sticky_valves"]} == {"FV-502"}
+    assert {loop for g in diagnosis["groups"] for loop in g["sticky_loops"]} == {"AIC-502"}
+    assert [t["valve_asset"] for t in get("/tickets")["data"]] == ["FV-502"]
 
 
 def test_with_the_units_model_only_the_sticky_valve_gets_a_ticket_too(make_service, batch):
@@ -198,8 +244,15 @@ def test_a_new_leader_diagnoses_the_unit_its_predecessor_left_and_decides_the_ti
     svc.state.ingest(simulated_batch())
     with svc.state.store.session() as session:
         left = [AnalysisRun(loop_id=loop, started_at=T0, window_start=T0 - WINDOW,
-                            window_end=T0, status="ok", verdict=verdict, confidence=0.9,
-                            result={"oscillation": {}}, round_end=T0, scheduled_by="dead:1:0")
+                            window_end=T0, status="ok", usable=True, oscillating=True,
+                            verdict=verdict, confidence=0.9, round_end=T0,
+                            scheduled_by="dead:1:0", result={
+                                "quality": {"usable": True, "issues": []},
+                                "oscillation": {"detected": True, "period_s": 100.0,
+                                                "regularity": 5.0},
+                                "stiction": {"verdict": verdict, "confidence": 0.9,
+                                             "reason": "stored by the old leader",
+                                             "pattern": None, "op_travel": None}})
                 for loop, verdict in (("FIC-1", "stiction"), ("FIC-2", "no_stiction"))]
         session.add_all(left)
     assert svc.scheduler.run_round(T0) == []  # no loop is analysed again

@@ -140,8 +140,9 @@ class HealthPublic(BaseModel):
     """The latest diagnosis of a loop and the trend of its health.
 
     ``stiction_pattern`` names how the latest diagnosis's sticky valve shows
-    (:func:`service.analysis.stiction_pattern_text`; None unless it found
-    stiction); ``episodes`` are its stick-jump episodes at UNIX times
+    (:func:`service.analysis.stiction_pattern_text`; None unless its final verdict,
+    ``diagnosis["valve"]`` of :func:`service.verdicts.valve_verdict`, is stiction);
+    ``episodes`` are its stick-jump episodes at UNIX times
     (:func:`service.tickets.run_episodes`).
     """
 
@@ -479,7 +480,8 @@ def loop_health(
         latest=_run_public(latest) if latest else None,
         diagnosis=diagnosis,
         trend=[(r.started_at, r.health) for r in reversed(runs)],
-        stiction_pattern=stiction_pattern_text(stiction.get("pattern"), stiction.get("op_travel")),
+        stiction_pattern=(stiction_pattern_text(stiction.get("pattern"), stiction.get("op_travel"))
+                          if latest is not None and latest.verdict == "stiction" else None),
         episodes=[] if latest is None else run_episodes(latest),
     )
 

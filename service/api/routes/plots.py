@@ -212,7 +212,7 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
     try:
         model = identified_loop(loop.config, run.result)
     except ModelUnavailableError as exc:
-        raise HTTPException(404, f"Nyquist plot not available: {exc}") from None
+        raise HTTPException(404, str(exc)) from None
     estimate = (run.result or {})["quantification"]
     try:
         prediction = predict_limit_cycles(model.process, model.controller, model.valve,
@@ -222,7 +222,7 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
                                 hold_delay=model.hold_delay,
                                 limit_cycle=stable[0] if stable else None)
     except (ModelSpecError, ValueError) as exc:
-        raise HTTPException(404, f"Nyquist plot not available: {exc}") from None
+        raise HTTPException(404, str(exc)) from None
     return plots.nyquist_figure(
         curves, prediction=prediction,
         title=f"{_name(loop)}: Nyquist plot, identified model, "

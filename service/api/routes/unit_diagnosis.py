@@ -13,6 +13,7 @@ from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.config import LoopConfig
 from service.store.models import Loop, Unit
 from service.tickets import latest_unit_run
+from service.verdicts import named_valves
 
 # included by the loops router under /api/v1
 router = APIRouter(tags=["units"], responses=error_responses(404))
@@ -23,6 +24,8 @@ def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
                    _: Analyst) -> dict[str, Any]:
     """Which valves of the unit stick: oscillation groups, the shape decomposition, the
     surrogate ranking of every OP and PV, and the named valves with their confidence.
+    Valves are named by their tags (:func:`service.verdicts.named_valves`): each
+    group's ``sticky_valves`` lists valve tags and ``sticky_loops`` their loops.
 
     The scheduler's latest diagnosis of the unit (``source`` "scheduler", with
     its ``round_end``; 422 with the reason if it failed).  Only when none is
@@ -33,6 +36,9 @@ def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
     """
     if session.get(Unit, unit_id) is None:
         raise HTTPException(404, "Unit not found")
+    loops = [LoopConfig.model_validate(loop.config) for loop in session.scalars(
+        select(Loop).where(Loop.unit_id == unit_id).order_by(Loop.id))]
+    valves = {loop.id: loop.valve_asset or loop.id for loop in loops}
     stored = latest_unit_run(session, unit_id)
     if stored is not None:
         if stored.result is None:
@@ -40,9 +46,8 @@ def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
                                      f"attempt ended '{stored.status}': {stored.error}")
         return {"unit_id": unit_id, "source": "scheduler", "round_end": stored.round_end,
                 "window_end": stored.window_end,
-                "loops_without_complete_window": stored.incomplete_loops, **stored.result}
-    loops = [LoopConfig.model_validate(loop.config) for loop in session.scalars(
-        select(Loop).where(Loop.unit_id == unit_id).order_by(Loop.id))]
+                "loops_without_complete_window": stored.incomplete_loops,
+                **named_valves(stored.result, valves)}
     now = state.clock()
     if not loops:
         raise HTTPException(404, "Unit diagnosis not available: the unit has no loops")
@@ -57,4 +62,5 @@ def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
     except (UnitWindowsError, AnalyticsError) as exc:
         raise HTTPException(422, f"Unit diagnosis not available: {exc}") from None
     return {"unit_id": unit_id, "source": "on_demand", "round_end": None, "window_end": now,
-            "loops_without_complete_window": list(windows.incomplete), **result}
+            "loops_without_complete_window": list(windows.incomplete),
+            **named_valves(result, valves)}

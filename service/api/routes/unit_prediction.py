@@ -16,7 +16,6 @@ from fastapi import APIRouter, HTTPException
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
-from service.analysis import valve_decisions
 from service.api.deps import (
     ERROR_RESPONSES,
     Analyst,
@@ -26,7 +25,7 @@ from service.api.deps import (
 )
 from service.prediction import ModelError, predict_spec
 from service.store.models import Loop, Unit
-from service.tickets import latest_loop_run, latest_unit_run
+from service.tickets import latest_loop_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"],
                    responses={**ERROR_RESPONSES, **error_responses(404, 409)})
@@ -58,30 +57,32 @@ def _controller(loop: Loop) -> dict[str, Any]:
     return controller
 
 
-def _valve(session: Session, loop_id: str, cleared: dict[str, int]
-           ) -> tuple[dict[str, Any], str | None]:
+def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
     """The loop's valve from its latest analysis, and what is not known about it.
 
     A stiction finding gives a Choudhury valve of the estimated S and J (or He's
     fs, fd when only those were estimated); no finding gives a healthy valve,
-    and so does a valve the unit's diagnosis cleared (``cleared``: loop -> unit
-    run; its loop cycles only with a sticky neighbour, thesis chapter 2).
+    and so does a valve the unit's diagnosis cleared (the run's final verdict,
+    :func:`service.verdicts.valve_verdict`, with ``cleared_by_unit_run``: its loop
+    cycles only with a sticky neighbour, thesis chapter 2).
     """
     run = latest_loop_run(session, loop_id)
     if run is None:
         return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None},
                 f"{loop_id}: not analysed yet; its valve is taken as healthy")
     entry = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
-    if loop_id in cleared:
-        entry["cleared_by_unit_run"] = cleared[loop_id]
+    final = (run.result or {}).get("valve") or {}
+    if final.get("decided_by") == "unit" and run.verdict != "stiction":
+        entry["cleared_by_unit_run"] = final["unit_run_id"]
         return entry, None
     if run.verdict != "stiction":
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
         return entry, unknown
     estimate = (run.result or {}).get("quantification") or {}
-    if estimate.get("S") is not None:
-        entry["valve"] = {"model": "choudhury", "S": estimate["S"], "J": estimate.get("J") or 0.0}
+    size = final or estimate  # the final verdict's size, the unit's when the loop has none
+    if size.get("S") is not None:
+        entry["valve"] = {"model": "choudhury", "S": size["S"], "J": size.get("J") or 0.0}
     elif estimate.get("fs") is not None and estimate.get("fd") is not None:
         entry["valve"] = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
     else:
@@ -119,12 +120,9 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                                      "the store")
         loops.append(loop)
     controllers = [_controller(loop) for loop in loops]
-    unit_run = latest_unit_run(session, unit_id, ok_only=True)
-    cleared = ({} if unit_run is None or unit_run.result is None
-               else dict.fromkeys(valve_decisions(unit_run.result)[1], unit_run.id))
     valves, unknown = [], []
     for loop in loops:
-        entry, note = _valve(session, loop.id, cleared)
+        entry, note = _valve(session, loop.id)
         valves.append(entry)
         if note:
             unknown.append(note)
