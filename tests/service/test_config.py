@@ -36,6 +36,10 @@ def test_the_example_plant_file_is_valid():
          "loops[0].controler: Extra inputs are not permitted"),
         ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X}\n    controller: {Kc: 1}\n",
          "loops[0].controller: Value error, a PI controller needs Ti"),
+        ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X, mode: M}\n",
+         "loops[0]: Value error, a mode tag and a mode_map go together"),
+        ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X, mode: M}\n    mode_map: {1: hand}\n",
+         "loops[0].mode_map[1]: Input should be 'auto', 'cascade' or 'manual'"),
         ("loops: [\n", "not valid YAML"),
     ],
 )
