@@ -9,6 +9,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
+from sqlalchemy.orm import Session
 
 from service.analysis import stiction_pattern_text
 from service.api.deps import (
@@ -268,30 +269,39 @@ PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
 MAX_PERIOD_S = 92 * 86400.0
 
 
-def period_seconds(period: str) -> float:
-    """``"7d"`` or ``"36h"`` in seconds; at most :data:`MAX_PERIOD_S` (422 beyond).
+def period_length(period: str) -> float:
+    """``"7d"`` or ``"36h"`` (:data:`PERIOD_PATTERN`) in seconds.
 
-    >>> period_seconds("7d"), period_seconds("36h")
+    >>> period_length("7d"), period_length("36h")
     (604800.0, 129600.0)
+
+    Raises
+    ------
+    ValueError
+        Longer than :data:`MAX_PERIOD_S`.
     """
     seconds = int(period[:-1]) * (86400.0 if period[-1] == "d" else 3600.0)
     if seconds > MAX_PERIOD_S:
-        raise HTTPException(422, "period must be at most 92 days")
+        raise ValueError("period must be at most 92 days")
     return seconds
 
 
-def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
-                   bucket_s: float) -> list[BadActorPublic]:
-    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
-    runs started in ``(since, until]``, worst first: by score, then by health (loops not
-    analysed last).
+def period_seconds(period: str) -> float:
+    """:func:`period_length` for a route: 422 beyond :data:`MAX_PERIOD_S`."""
+    try:
+        return period_length(period)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
 
-    One run counts per ``bucket_s`` (the analysis window's length; buckets counted back
-    from ``until``), the latest of its bucket: runs a minute apart on hour-long windows
-    share most of their data, so they are one observation of the loop, not sixty, and a
-    week is 168 runs a loop, not 10,080.
+
+def counted_runs(session: Session, since: float, until: float, bucket_s: float
+                 ) -> dict[str, list[tuple[float, float | None, dict[str, Any] | None]]]:
+    """Each loop's runs ``(started_at, health, kpis)`` started in ``(since, until]`` that
+    count for its score, oldest first: one per ``bucket_s`` (the analysis window's length;
+    buckets counted back from ``until``), the latest of its bucket.  Runs a minute apart on
+    hour-long windows share most of their data, so they are one observation of the loop,
+    not sixty, and a week is 168 runs a loop, not 10,080.
     """
-    loops, _ = _loop_rows(session)
     # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
     # then integer division, which truncates on both.
     bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
@@ -302,15 +312,32 @@ def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
                AnalysisRun.started_at <= until)
         .group_by(AnalysisRun.loop_id, bucket)
     )
-    runs: dict[str, list[tuple[float | None, dict[str, Any] | None]]] = {}
-    for loop_id, health, kpis in session.execute(
-        select(AnalysisRun.loop_id, AnalysisRun.health, AnalysisRun.result["kpis"])
-        .where(AnalysisRun.id.in_(chosen))
+    runs: dict[str, list[tuple[float, float | None, dict[str, Any] | None]]] = {}
+    for loop_id, started_at, health, kpis in session.execute(
+        select(AnalysisRun.loop_id, AnalysisRun.started_at, AnalysisRun.health,
+               AnalysisRun.result["kpis"])
+        .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
     ):
-        runs.setdefault(loop_id, []).append((health, kpis))
+        runs.setdefault(loop_id, []).append((started_at, health, kpis))
+    return runs
+
+
+def bad_actor_rows(session: Session, since: float, until: float, period: str,
+                   bucket_s: float, runs: dict[str, list[tuple[float, float | None,
+                                                              dict[str, Any] | None]]]
+                   | None = None) -> list[BadActorPublic]:
+    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
+    runs started in ``(since, until]``, worst first: by score, then by health (loops not
+    analysed last); the runs that count are :func:`counted_runs` (given as ``runs`` when
+    the caller has them already).
+    """
+    loops, _ = _loop_rows(session)
+    if runs is None:
+        runs = counted_runs(session, since, until, bucket_s)
     ranked = []
     for loop in loops:
-        scored = score_loop(runs.get(loop.id, ()), loop.importance, period)
+        scored = score_loop([(health, kpis) for _, health, kpis in runs.get(loop.id, ())],
+                            loop.importance, period)
         ranked.append(BadActorPublic(
             **loop.model_dump(), score=scored.score, severity=scored.severity,
             bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
