@@ -21,12 +21,12 @@ from datetime import UTC, datetime
 from typing import Any
 
 from fpdf import FPDF
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.api.routes.loops import BadActorPublic, bad_actor_rows, counted_runs
 from service.bad_actors import BAD_SEVERITY, run_severity
-from service.store.models import AnalysisRun, Ticket
+from service.store.models import Ticket
 
 __all__ = ["COLUMNS", "BadActorReport", "ReportLine", "build_report", "report_csv",
            "report_pdf"]
@@ -77,14 +77,6 @@ class BadActorReport:
     lines: list[ReportLine]
 
 
-def _latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
-    latest = (select(func.max(AnalysisRun.id)).where(AnalysisRun.status == "ok")
-              .group_by(AnalysisRun.loop_id))
-    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.result["kpis"])
-                           .where(AnalysisRun.id.in_(latest)))
-    return {loop_id: kpis for loop_id, kpis in rows if kpis}
-
-
 def _open_tickets(session: Session) -> dict[str, list[str]]:
     tickets: dict[str, list[str]] = {}
     for ticket_id, loop_id, valve in session.execute(
@@ -102,8 +94,8 @@ def build_report(session: Session, *, until: float, period_s: float, period: str
     since = until - period_s
     runs = counted_runs(session, since, until, window_s)
     ranked = bad_actor_rows(session, since, until, period, window_s, runs)[:limit]
-    kpis, tickets = _latest_kpis(session), _open_tickets(session)
-    lines = [ReportLine(rank, row, kpis.get(row.id, {}), tickets.get(row.id, []),
+    tickets = _open_tickets(session)
+    lines = [ReportLine(rank, row, row.kpis or {}, tickets.get(row.id, []),
                         [(t, run_severity(health, k)) for t, health, k in runs.get(row.id, [])])
              for rank, row in enumerate(ranked, start=1)]
     return BadActorReport(period, since, until, lines)

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
 from sqlalchemy.orm import Session
 
@@ -74,6 +74,9 @@ class BadActorPublic(LoopPublic):
     bad_runs: int
     worst: str | None
     why: str
+    kpis: dict[str, Any] | None = Field(
+        default=None, description="the KPIs of the loop's latest analysis run (as "
+        "GET /loops/{id}/kpis gives them)")
 
 
 class BadActorsPublic(BaseModel):
@@ -322,6 +325,15 @@ def counted_runs(session: Session, since: float, until: float, bucket_s: float
     return runs
 
 
+def latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
+    """Each loop's KPIs of its latest successful run (loops without any left out)."""
+    latest = (select(func.max(AnalysisRun.id)).where(AnalysisRun.status == "ok")
+              .group_by(AnalysisRun.loop_id))
+    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.result["kpis"])
+                           .where(AnalysisRun.id.in_(latest)))
+    return {loop_id: kpis for loop_id, kpis in rows if kpis}
+
+
 def bad_actor_rows(session: Session, since: float, until: float, period: str,
                    bucket_s: float, runs: dict[str, list[tuple[float, float | None,
                                                               dict[str, Any] | None]]]
@@ -329,19 +341,20 @@ def bad_actor_rows(session: Session, since: float, until: float, period: str,
     """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
     runs started in ``(since, until]``, worst first: by score, then by health (loops not
     analysed last); the runs that count are :func:`counted_runs` (given as ``runs`` when
-    the caller has them already).
+    the caller has them already), each with its latest run's KPIs.
     """
     loops, _ = _loop_rows(session)
     if runs is None:
         runs = counted_runs(session, since, until, bucket_s)
     ranked = []
+    kpis = latest_kpis(session)
     for loop in loops:
         scored = score_loop([(health, kpis) for _, health, kpis in runs.get(loop.id, ())],
                             loop.importance, period)
         ranked.append(BadActorPublic(
             **loop.model_dump(), score=scored.score, severity=scored.severity,
             bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
-            worst=scored.worst, why=scored.why,
+            worst=scored.worst, why=scored.why, kpis=kpis.get(loop.id),
         ))
     ranked.sort(key=lambda r: (-r.score, r.health is None,
                                r.health if r.health is not None else 0.0, r.id))
