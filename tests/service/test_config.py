@@ -14,7 +14,8 @@ def test_the_example_plant_file_is_valid():
     assert [loop.id for loop in plant.loops] == ["FIC-101", "LIC-102"]
     assert plant.loop("LIC-102").process_type == "integrating"
     assert plant.loop("FIC-101").tags.items() == [
-        ("op", "FIC101.OP"), ("pv", "FIC101.PV"), ("sp", "FIC101.SP")]
+        ("op", "FIC101.OP"), ("pv", "FIC101.PV"), ("sp", "FIC101.SP"), ("mode", "FIC101.MODE")]
+    assert plant.loop("FIC-101").mode_map == {16.0: "manual", 8.0: "auto", 4.0: "cascade"}
 
 
 @pytest.mark.parametrize(
