@@ -134,40 +134,44 @@ def test_every_sample_arrives_over_opcua_with_its_time_stamp_and_value():
 
 def test_the_mode_tag_over_opcua_gives_the_service_factor_exactly():
     """PIC-401 goes to manual 1800 s into the run (plant time).  Served 10 x faster from
-    plant time 1750 s, its samples come through the OPC UA connector into the service's
-    buffers; the analysis of a window across the switch finds the share of its grid points
-    whose plant time lies in manual, counted here from the schedule, and OP held there."""
+    plant time 1650 s, its samples come through the OPC UA connector into the service's
+    buffers; the analysis of a window from the first samples received to 50 s of plant
+    time after the switch finds the share of its grid points whose plant time lies in
+    manual, counted here from the schedule, and OP held there."""
     speed, loop_id = 10.0, "PIC-401"
     start = time.time()
     sim = PlantSimulator(opcua_port=0, modbus_port=0, horizon_s=2400.0, speed=speed,
-                         origin=start - 1750.0 / speed)
+                         origin=start - 1650.0 / speed)
+    switch = start + 150.0 / speed  # wall time of plant time 1800 s
+    tags = [f"{loop_id}.{s}" for s in ("OP", "PV", "SP", "MODE")]
     sink = Sink()
     sim.start_in_thread()
     try:
         connector = opcua_connector(sim, sink)
         connector.start()
-        window_end = start + 11.0  # plant time 1860 s; the window: 1780 .. 1860 s
 
-        def through_window_end() -> bool:
+        def past_the_switch() -> bool:
             with sink.lock:
-                return all(any(i["timestamp"] > window_end + 0.5 for i in sink.items[tag])
-                           for tag in (f"{loop_id}.{s}" for s in ("OP", "PV", "SP", "MODE")))
+                return all(any(i["timestamp"] > switch + 5.5 for i in sink.items[tag])
+                           for tag in tags)
 
-        asyncio.run(until(through_window_end, within_s=60))
+        asyncio.run(until(past_the_switch, within_s=90))
         connector.stop()
     finally:
         sim.stop_thread()
+    window_start = max(min(i["timestamp"] for i in sink.items[tag]) for tag in tags) + 0.5
+    assert window_start < switch - 1.0, "the connector's first samples came after the switch"
     loop = parse_plant_config(sim.plant_config()).loop(loop_id)
     assert loop.tags.mode == f"{loop_id}.MODE" and loop.mode_map is not None
     buffers = LoopBuffers(parse_plant_config({"loops": [loop.model_dump()]}), horizon_s=600)
     for tag, items in sink.items.items():
         if tag.startswith(loop_id + "."):
             buffers.append(tag, [i["timestamp"] for i in items], [i["value"] for i in items])
-    window = buffers.window(loop_id, 80.0 / speed, window_end)
+    window = buffers.window(loop_id, switch + 5.0 - window_start, switch + 5.0)
     assert window.mode is not None and not np.isnan(window.mode).any()
     plant_time = np.array([sim.sample_index(loop_id, t) for t in window.t]) * 0.5
     in_manual = (plant_time >= 1800.0) & (plant_time < 4500.0)
-    assert 0.3 < in_manual.mean() < 0.9
+    assert 0.05 < in_manual.mean() < 0.95
     assert window.op is not None and np.ptp(window.op[in_manual]) == 0.0  # OP held
     result = analyse_window(loop.model_dump(mode="json"), window.ts, window.t, {
         "op": window.op, "pv": window.pv, "sp": window.sp, "mv": None, "mode": window.mode})
