@@ -495,9 +495,28 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
 
     ``oscillation`` is the oscillation part of a diagnosis
     (:meth:`analytics.diagnosis.LoopDiagnosis.to_dict`: ``detected``, ``regularity``).
+
+    With a ``mode`` signal, the samples in manual are left out of the
+    controller's figures -- error statistics, minimum-variance index,
+    set-point responses and saturation -- since in manual no controller acts
+    (Jelali 2013, sec. 7.2: assess a loop on its time in normal mode); a note
+    says how much was left out.  Valve travel and reversals count every
+    sample: the valve wears in manual too.
     """
     notes: list[str] = []
     n = max((x.size for x in (op, pv, sp) if x is not None), default=0)
+    factor = None
+    manual = np.zeros(n, dtype=bool)
+    if mode is not None and mode_mapping is not None:
+        factor = service_factor(mode, mode_mapping, ts)
+        manual = np.isin(np.asarray(mode), [raw for raw, name in mode_mapping.items()
+                                            if name == "manual"])
+        if manual.any():
+            notes.append(
+                f"in manual {100 * factor.manual:.0f} % of the window ({factor.manual_s:.0f} s): "
+                "error statistics, minimum-variance index, set-point responses and saturation "
+                "are of the samples in auto or cascade")
+            sp, pv = (None if x is None else np.where(manual, np.nan, x) for x in (sp, pv))
     error = harris = None
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
@@ -513,11 +532,8 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         notes.append("no SP or no PV: no error statistics")
     travel = reversals = sat = None
     if op is not None and np.isfinite(op).any():
-        travel, reversals, sat = valve_travel_per_day(op, ts), reversals_per_day(op, ts), \
-            saturation(op)
-    factor = None
-    if mode is not None and mode_mapping is not None:
-        factor = service_factor(mode, mode_mapping, ts)
+        travel, reversals = valve_travel_per_day(op, ts), reversals_per_day(op, ts)
+        sat = saturation(np.where(manual, np.nan, op))
     osc = None if oscillation is None else oscillation_index(
         bool(oscillation.get("detected")), oscillation.get("regularity"))
     return LoopKpis(

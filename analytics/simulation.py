@@ -212,12 +212,29 @@ class Disturbance:
 Setpoint = float | Sequence[tuple[float, float]]
 
 
+def in_stretches(t: FloatArray, stretches: Sequence[tuple[float, float]]) -> NDArray[np.bool_]:
+    """Whether each time of ``t`` lies in one of the ``(start, end)`` stretches
+    (``start <= t < end``), as :attr:`Loop.manual` lists them.
+
+    >>> in_stretches(np.arange(5.0), [(1.0, 3.0)]).tolist()
+    [False, True, True, False, False]
+    """
+    out = np.zeros(t.shape, dtype=bool)
+    for start, end in stretches:
+        out |= (t >= start) & (t < end)
+    return out
+
+
 @dataclass(frozen=True)
 class Loop:
     """One control loop: controller, valve, setpoint schedule and disturbances.
 
     ``setpoint`` is a constant or a schedule ``[(time, value), ...]`` of steps;
-    before the first step the setpoint is ``pv_bias``.
+    before the first step the setpoint is ``pv_bias``.  ``manual`` lists the
+    stretches ``(start, end)`` (s, ``start <= t < end``) the loop spends in
+    manual: OP is held at its last value and the integrator tracks it, so the
+    return to automatic is bumpless (Astrom and Hagglund 2006, *Advanced PID
+    Control*, sec. 3.5).
     """
 
     controller: PIDController
@@ -226,6 +243,7 @@ class Loop:
     pv_bias: float = 50.0
     disturbances: tuple[Disturbance, ...] = ()
     name: str = ""
+    manual: tuple[tuple[float, float], ...] = ()
 
     def setpoint_series(self, t: FloatArray) -> FloatArray:
         """Setpoint at the sample times ``t``."""
@@ -291,6 +309,7 @@ def _closed_loop(
     op_lo: FloatArray,
     op_hi: FloatArray,
     op_bias: FloatArray,
+    manual: NDArray[np.bool_],
     valve_code: NDArray[np.int64],
     valve_params: FloatArray,
     valve_state: FloatArray,
@@ -335,7 +354,10 @@ def _closed_loop(
                 )
             pv_prev[i] = pv[i, k]
             out = kp[i] * err + integral[i] + deriv[i]
-            if out > op_hi[i]:
+            if manual[i, k]:  # OP held; the integrator tracks it (bumpless transfer)
+                out = op[i, k - 1] if k > 0 else op_bias[i]
+                integral[i] = out - kp[i] * err - deriv[i]
+            elif out > op_hi[i]:
                 integral[i] = min(integral[i], op_hi[i] - kp[i] * err - deriv[i])
                 out = op_hi[i]
             elif out < op_lo[i]:
@@ -475,6 +497,7 @@ def simulate(
         np.array([ct.op_limits[0] for ct in ctrl], dtype=np.float64),
         np.array([ct.op_limits[1] for ct in ctrl], dtype=np.float64),
         np.array([ct.op_bias for ct in ctrl], dtype=np.float64),
+        np.array([in_stretches(t, loop.manual) for loop in loop_list]),
         np.array([loop.valve.code for loop in loop_list], dtype=np.int64),
         valve_params,
         valve_state,

@@ -38,7 +38,7 @@ Examples
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,6 +144,9 @@ class SyntheticCase:
         the last recorded value is held until the signal moves more than this
         away from it.  Applied after ``pv_quantum``.  MV is never altered: it
         is the true valve position.  None: not compressed.
+    manual : tuple of (start, end)
+        Stretches in manual (:attr:`analytics.simulation.Loop.manual`), in s
+        of the returned window (the warm-up is always automatic).
     """
 
     name: str
@@ -162,11 +165,13 @@ class SyntheticCase:
     pv_quantum: float | None = None
     pv_compression: float | None = None
     op_compression: float | None = None
+    manual: tuple[tuple[float, float], ...] = ()
 
     def simulate(self, warm_up: float = WARM_UP) -> SimulationResult:
         """Simulate the loop, drop the first ``warm_up`` fraction (start-up
         transient) and apply the recording effects (quantisation, compression)."""
         n_total = _total_samples(self.samples, warm_up)
+        shift = (n_total + 1 - self.samples) * self.ts  # the window's first sample (kept below)
         loop = Loop(
             self.controller,
             self.valve,
@@ -174,6 +179,7 @@ class SyntheticCase:
             pv_bias=50.0,
             disturbances=self.disturbances,
             name=self.name,
+            manual=tuple((start + shift, end + shift) for start, end in self.manual),
         )
         res = simulate(self.process, loop, dt=self.ts, duration=n_total * self.ts)
         keep = slice(res.t.size - self.samples, None)
@@ -411,7 +417,15 @@ _STICKY: tuple[tuple[str, str, float, float, str, float, str], ...] = (
 )
 
 # Healthy look-alikes: (process, cause, scenario, ts, control, noise std or None, recording)
-_HEALTHY: tuple[tuple[str, str, str, float, str, float | None, dict[str, float]], ...] = (
+class _Recording(TypedDict, total=False):
+    """The recording effects of a case (:class:`SyntheticCase`)."""
+
+    pv_quantum: float
+    pv_compression: float
+    op_compression: float
+
+
+_HEALTHY: tuple[tuple[str, str, str, float, str, float | None, _Recording], ...] = (
     ("flow", "setpoint_steps", "sp-steps", 1.0, "pi", None, {}),
     ("flow", "setpoint_steps", "sp-ramp", 2.0, "pi", None, {}),
     ("flow", "load_steps", "load-steps", 1.0, "pi", None, {}),

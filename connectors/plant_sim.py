@@ -22,7 +22,7 @@ of serving unless given earlier: the plant has then been running since, and
 ingest batches, for a back-fill that the served samples continue without a
 seam.
 
-OP, PV, SP and MV of every loop are served
+OP, PV, SP, MV and MODE of every loop are served
 
 * over OPC UA (asyncua), one Double variable per tag with node id
   ``ns=2;s=<loop>.<SIGNAL>``, every sample written with its source time
@@ -30,8 +30,13 @@ OP, PV, SP and MV of every loop are served
 * over Modbus TCP (:class:`connectors.modbus_server.ModbusRegisterServer`),
   one float32 in two holding registers per tag, holding the latest sample.
 
-The plant configuration it writes watches OP, PV and SP of every loop; MV
+The plant configuration it writes watches OP, PV, SP and MODE of every loop; MV
 (the valve position, which few plants measure) is served but not watched.
+MODE is the controller's mode as Foundation Fieldbus function blocks report
+it (MODE_BLK.Actual, :data:`MODE_VALUES`: 16 manual, 8 auto); one loop,
+PIC-401, is put in manual by its operator for a stretch of each run
+(:attr:`PlantLoop.manual`): OP is held there, and the service factor of its
+windows shows it.
 
 :meth:`PlantSimulator.set_bad` turns a tag into a failed measurement (OPC
 UA status BadSensorFailure, Modbus NaN) for fault tests.
@@ -55,7 +60,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Collection, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC
 from functools import cached_property
 from typing import Any, Literal
@@ -65,7 +70,7 @@ from asyncua import Server, ua
 
 from analytics.lti import TransferFunction
 from analytics.scenarios import COLUMN_PROCESS, column3x3
-from analytics.simulation import PIDController, SimulationResult
+from analytics.simulation import PIDController, SimulationResult, in_stretches
 from analytics.synthetic_cases import SyntheticCase, synthetic_library
 from connectors.base import ThreadedRunner
 from connectors.modbus import REGISTER_COUNT, WordOrder
@@ -86,20 +91,27 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SIGNALS = ("OP", "PV", "SP", "MV")
+SIGNALS = ("OP", "PV", "SP", "MV", "MODE")
 """The signals served for every loop; tag ``<loop id>.<signal>``."""
 
-WATCHED_SIGNALS = ("OP", "PV", "SP")
+WATCHED_SIGNALS = ("OP", "PV", "SP", "MODE")
 """The signals :meth:`PlantSimulator.plant_config` has the service watch (not MV: a sticky
 valve's position is held between slips, which data-quality screening takes for a
 compressed archive, and few plants measure it)."""
+
+MODE_VALUES = {16.0: "manual", 8.0: "auto", 4.0: "cascade"}
+"""The raw MODE values and what they mean: the mode bits of a Foundation Fieldbus
+function block's MODE_BLK (FF-891 Function Block Application Process part 2; Man 0x10,
+Auto 0x08, Cas 0x04), the plant file's ``mode_map``."""
+MANUAL, AUTO = 16.0, 8.0
 
 NAMESPACE_URI = "urn:loopwatch:plant-sim"
 NAMESPACE_INDEX = 2
 """The index a fresh asyncua server gives the first namespace registered."""
 
 MODBUS_LOOP_STRIDE = 10
-"""Registers reserved per loop: loop ``n`` starts at ``10 n`` (OP, PV, SP, MV at +0, +2, +4, +6)."""
+"""Registers reserved per loop: loop ``n`` starts at ``10 n`` (OP, PV, SP, MV, MODE at +0, +2,
++4, +6, +8)."""
 
 DEFAULT_MODBUS_LOOPS = ("FIC-105", "LIC-301")
 """Loops that :meth:`PlantSimulator.plant_config` reads over Modbus -- one sticky, one
@@ -112,7 +124,9 @@ class PlantLoop:
 
     ``source`` is the name of an :mod:`analytics.synthetic_cases` case, or
     ``"column:<i>"`` for loop ``i`` (0-based) of the 3x3 column.  ``unit`` is
-    None for a loop that interacts with no other.
+    None for a loop that interacts with no other.  ``manual`` lists the
+    stretches ``(start, end)`` of plant time (s from the start of each run)
+    the loop spends in manual (single loops only).
     """
 
     id: str
@@ -125,6 +139,7 @@ class PlantLoop:
     ranges: tuple[tuple[str, tuple[float, float]], ...] = (
         ("op", (0.0, 100.0)), ("pv", (0.0, 100.0)),
     )
+    manual: tuple[tuple[float, float], ...] = ()
 
 
 SINGLE_LOOPS = (
@@ -138,7 +153,7 @@ SINGLE_LOOPS = (
     PlantLoop("FIC-105", "Steam flow", None, "flow-he-S8-J4-ts1", "FV-105", "critical",
               "sticky valve (He fs=6 %, fd=2 %): alarm and ticket"),
     PlantLoop("PIC-401", "Header pressure", None, "flow-noise-ts0.5", "PV-401", "low",
-              "healthy"),
+              "healthy; in manual from 30 to 75 min of each run", manual=((1800.0, 4500.0),)),
 )
 """The single loops (the demo's catalogue): case names of :mod:`analytics.synthetic_cases`."""
 
@@ -234,8 +249,11 @@ def _models() -> dict[str, _LoopModel]:
     return models
 
 
-def _signals(result: SimulationResult, i: int) -> dict[str, np.ndarray]:
-    return {"OP": result.op[i], "PV": result.pv[i], "SP": result.sp[i], "MV": result.mv[i]}
+def _signals(result: SimulationResult, i: int, manual: tuple[tuple[float, float], ...] = ()
+             ) -> dict[str, np.ndarray]:
+    in_manual = in_stretches(result.t, manual)
+    return {"OP": result.op[i], "PV": result.pv[i], "SP": result.sp[i], "MV": result.mv[i],
+            "MODE": np.where(in_manual, MANUAL, AUTO)}
 
 
 def _simulate(horizon_s: float) -> dict[str, dict[str, np.ndarray]]:
@@ -243,8 +261,8 @@ def _simulate(horizon_s: float) -> dict[str, dict[str, np.ndarray]]:
     values: dict[str, dict[str, np.ndarray]] = {}
     for loop in SINGLE_LOOPS:
         ts = _case(loop.source, 100).ts
-        result = _case(loop.source, max(int(horizon_s / ts), 2)).simulate()
-        values[loop.id] = _signals(result, 0)
+        case = replace(_case(loop.source, max(int(horizon_s / ts), 2)), manual=loop.manual)
+        values[loop.id] = _signals(case.simulate(), 0, loop.manual)
     result = column3x3(sticky=(2,), duration=horizon_s).run()
     for loop in COLUMN_LOOPS:
         values[loop.id] = _signals(result, _column_index(loop))
@@ -406,6 +424,7 @@ class PlantSimulator:
             loops.append({
                 "id": loop.id, "name": loop.name, "unit": loop.unit,
                 "tags": {s.lower(): f"{loop.id}.{s}" for s in WATCHED_SIGNALS},
+                "mode_map": {f"{raw:g}": name for raw, name in MODE_VALUES.items()},
                 "ranges": {signal: list(span) for signal, span in loop.ranges},
                 "ts": model.ts / self.speed,
                 "process_type": model.process_type,

@@ -140,7 +140,10 @@ def analyse_window(
     ts, t : float, ndarray
         Sampling interval and sample times (s).
     signals : dict
-        ``op``, ``pv``, ``sp``, ``mv`` arrays (NaN where missing) or None.
+        ``op``, ``pv``, ``sp``, ``mv`` arrays (NaN where missing) or None, and
+        optionally ``mode``, the raw values of the loop's mode tag (its
+        ``mode_map`` names them): the KPIs then give the service factor and
+        leave the time in manual out of the controller's figures.
 
     Returns
     -------
@@ -158,7 +161,8 @@ def analyse_window(
     }
     if "pv" in ranges:
         ranges.setdefault("sp", ranges["pv"])  # the set point is in PV units
-    scaled = {name: to_percent_of_span(x, ranges.get(name)) for name, x in signals.items()}
+    scaled = {name: to_percent_of_span(x, ranges.get(name)) for name, x in signals.items()
+              if name != "mode"}
     diagnosis = diagnose_loop(
         ts=ts, t=t, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
         mv=scaled.get("mv"), process_type=loop.get("process_type"),
@@ -175,6 +179,9 @@ def analyse_window(
     diagnosis["kpis"] = loop_kpis(
         ts, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
         dead_time=dead_time_samples({**loop, "ts": ts}), pv_limits=pv_limits,
+        mode=signals.get("mode"),
+        mode_mapping=None if loop.get("mode_map") is None else {
+            float(raw): name for raw, name in loop["mode_map"].items()},
         oscillation=diagnosis["oscillation"] if diagnosis["quality"]["usable"] else None,
     ).to_dict()
     return diagnosis

@@ -35,6 +35,7 @@ __all__ = [
     "SCORED_KPIS",
     "LoopScore",
     "run_components",
+    "run_severity",
     "score_loop",
     "scored_kpis",
 ]
@@ -109,6 +110,15 @@ def run_components(health: float | None, kpis: dict[str, Any] | None) -> dict[st
     if health is not None:
         out["diagnosis"] = 1.0 - float(health) / 100.0
     return out
+
+
+def run_severity(health: float | None, kpis: dict[str, Any] | None) -> float:
+    """A run's severity: its worst component (:func:`run_components`), 0 without any.
+
+    >>> run_severity(90.0, {"oscillation_index": 0.4}), run_severity(None, None)
+    (0.4, 0.0)
+    """
+    return max(run_components(health, kpis).values(), default=0.0)
 
 
 @dataclass(frozen=True)

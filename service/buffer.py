@@ -164,8 +164,9 @@ class RingBuffer:
 class LoopWindowData:
     """One loop's signals on a common uniform grid; NaN where a tag had no good sample.
 
-    ``t`` holds the grid times (UNIX s, spaced ``ts``); ``op``, ``pv``, ``sp``
-    and ``mv`` are None for signals the loop does not have.
+    ``t`` holds the grid times (UNIX s, spaced ``ts``); ``op``, ``pv``, ``sp``,
+    ``mv`` and ``mode`` (the controller's raw mode values) are None for
+    signals the loop does not have.
     """
 
     t: FloatArray
@@ -174,10 +175,12 @@ class LoopWindowData:
     sp: FloatArray | None
     mv: FloatArray | None
     ts: float
+    mode: FloatArray | None = None
 
     @property
     def signals(self) -> dict[str, FloatArray]:
-        """The signals the loop has, by name (for ``analytics.quality.assess_quality``)."""
+        """The measured signals the loop has, by name, not its mode (for
+        ``analytics.quality.assess_quality``)."""
         named = {"op": self.op, "pv": self.pv, "sp": self.sp, "mv": self.mv}
         return {name: x for name, x in named.items() if x is not None}
 
@@ -186,6 +189,19 @@ def _whole_steps(x: float, ts: float) -> int:
     """``floor(x / ts)``, counting an ``x`` a rounding error below a multiple of ts as on it."""
     k = round(x / ts)
     return k if k * ts <= x or math.isclose(k * ts, x, rel_tol=1e-12, abs_tol=1e-9) else k - 1
+
+
+def _held_good(times: FloatArray, values: FloatArray, grid: FloatArray, ts: float) -> FloatArray:
+    """Each grid point's latest good sample stamped up to ``ts / 2`` after it, else NaN.
+
+    For a state such as the controller's mode, which holds until the next
+    value (many historians and DCSs report it only when it changes).
+    """
+    good = ~np.isnan(values)
+    times, values = times[good], values[good]
+    latest = np.searchsorted(times, grid + ts / 2, side="right") - 1
+    return np.where(latest >= 0, values[np.clip(latest, 0, None)], np.nan) if times.size \
+        else np.full(grid.size, np.nan)
 
 
 def _nearest_good(times: FloatArray, values: FloatArray, grid: FloatArray, ts: float) -> FloatArray:
@@ -358,8 +374,10 @@ class LoopBuffers:
                 signal: _nearest_good(
                     *self._buffers[tag].between(grid[0] - ts / 2, grid[-1] + ts / 2), grid, ts
                 )
-                for signal, tag in loop.tags.items()
+                for signal, tag in loop.tags.items() if signal != "mode"
             }
+            mode = None if loop.tags.mode is None else _held_good(
+                *self._buffers[loop.tags.mode].between(-math.inf, grid[-1] + ts / 2), grid, ts)
         return LoopWindowData(
             t=grid,
             op=signals.get("op"),
@@ -367,6 +385,7 @@ class LoopBuffers:
             sp=signals.get("sp"),
             mv=signals.get("mv"),
             ts=ts,
+            mode=mode,
         )
 
     def memory_bytes(self, loop_id: str) -> int:

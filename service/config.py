@@ -9,7 +9,8 @@ The plant file lists units and loops::
       - id: FIC-101
         name: Reflux flow
         unit: column
-        tags: {op: FIC101.OP, pv: FIC101.PV, sp: FIC101.SP}
+        tags: {op: FIC101.OP, pv: FIC101.PV, sp: FIC101.SP, mode: FIC101.MODE}
+        mode_map: {16: manual, 8: auto, 4: cascade}
         ranges: {op: [0, 100], pv: [0, 40]}
         ts: 1.0
         controller: {type: PI, Kc: 0.5, Ti: 8, action: reverse}
@@ -47,6 +48,7 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
+from analytics.kpi import Mode
 from service.prediction import ModelError, check_matrix
 
 __all__ = [
@@ -94,6 +96,9 @@ class TagsConfig(_Strict):
     pv: str | None = None
     sp: str | None = None
     mv: str | None = None
+    mode: str | None = Field(
+        default=None, description="the controller's mode (raw values as the DCS reports "
+        "them; the loop's mode_map names them)")
 
     @model_validator(mode="after")
     def _op_or_pv(self) -> TagsConfig:
@@ -103,7 +108,8 @@ class TagsConfig(_Strict):
 
     def items(self) -> list[tuple[str, str]]:
         """(signal, tag) pairs of the tags that are set."""
-        return [(s, t) for s in ("op", "pv", "sp", "mv") if (t := getattr(self, s)) is not None]
+        return [(s, t) for s in ("op", "pv", "sp", "mv", "mode")
+                if (t := getattr(self, s)) is not None]
 
 
 class LoopConfig(_Strict):
@@ -123,6 +129,10 @@ class LoopConfig(_Strict):
     pv_limits: tuple[float, float] | None = Field(
         default=None, description="PV's operating limits (PV units): the KPIs count the "
         "time within them")
+    mode_map: dict[float, Mode] | None = Field(
+        default=None, description="raw value of the mode tag -> auto, cascade or manual "
+        "(e.g. Foundation Fieldbus MODE_BLK: 16 manual, 8 auto, 4 cascade); other values "
+        "count as unknown")
     valve_asset: str | None = None
     location: str | None = None
     importance: Importance = "medium"
@@ -145,6 +155,13 @@ class LoopConfig(_Strict):
         if limits is not None and not limits[1] > limits[0]:
             raise ValueError(f"pv_limits must have high > low, got [{limits[0]}, {limits[1]}]")
         return limits
+
+    @model_validator(mode="after")
+    def _mode_tag_and_map(self) -> LoopConfig:
+        if (self.tags.mode is None) != (self.mode_map is None):
+            raise ValueError("a mode tag and a mode_map go together (the map names the "
+                             "tag's raw values auto, cascade or manual)")
+        return self
 
 
 class UnitProcessConfig(_Strict):

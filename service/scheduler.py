@@ -358,7 +358,7 @@ class AnalysisScheduler:
         if window.t.size == 0 or all(x is None or not np.isfinite(x).any()
                                      for x in signals.values()):
             return None
-        return loop.model_dump(mode="json"), window.ts, window.t, signals
+        return loop.model_dump(mode="json"), window.ts, window.t, {**signals, "mode": window.mode}
 
     def _units(self) -> dict[str, list[LoopConfig]]:
         """The plant's units of two or more loops, each with its loops in plant order."""

@@ -21,6 +21,7 @@ from fastapi.testclient import TestClient
 
 from connectors.modbus import ModbusConnector
 from connectors.opcua import OpcUaConnector
+from connectors.plant_sim import WATCHED_SIGNALS
 from service.config import Settings
 from service.connector_setup import build_connectors
 from service.server import Service, build_service, running
@@ -80,7 +81,22 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
         column = client.get("/api/v1/units/column/diagnosis", headers=HEADERS).json()
         prediction = client.get("/api/v1/units/column/prediction", headers=HEADERS)
         ticketed = tickets()
+        pic_kpis = client.get("/api/v1/loops/PIC-401/kpis", headers=HEADERS).json()["data"]
     assert plant.origin is not None
+    # PIC-401 is in manual from 30 to 75 min of plant time: each run's service factor is
+    # the share of its window's grid in that stretch (to a grid point: the stored window
+    # end is the round's time, the grid ends at the last sample before it)
+    ts = plant.sample_interval("PIC-401")
+    in_manual = []
+    for point in pic_kpis:
+        grid = (np.floor(point["window_end"] / ts) - np.arange(int(3600 / ts))) * ts
+        plant_s = (grid - plant.origin) * plant.speed
+        share = np.mean((plant_s >= 1800) & (plant_s < 4500))
+        factor = point["kpis"]["service_factor"]
+        assert abs(factor["manual"] - share) <= 1.5 * ts / 3600, (point, share)
+        in_manual.append(factor["manual"])
+    assert max(in_manual) > 0.2 and any("in manual" in note for point in pic_kpis
+                                        for note in point["kpis"]["notes"])
     # OPC UA delivers every sample; Modbus is polled twice per sampling interval, so only
     # a poll loop held up for a whole interval (a loaded CI machine) leaves a point empty
     assert over_opcua.pv is not None and not np.isnan(over_opcua.pv).any()
@@ -128,7 +144,8 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     for counters in (opcua_counters, modbus_counters):
         assert counters.samples == counters.delivered, counters
     live_samples = opcua_counters.delivered + modbus_counters.delivered
-    per_second = sum(3 / plant.sample_interval(loop.id) for loop in plant.loops)
+    per_second = sum(len(WATCHED_SIGNALS) / plant.sample_interval(loop.id)
+                     for loop in plant.loops)
     backfilled_s = (books.received - live_samples) / per_second
     # two hours (the windows of the ticket rule's two confirmations), and the seconds up to
     # the live samples

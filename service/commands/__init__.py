@@ -22,7 +22,7 @@ class CliError(Exception):
 
 
 COMMAND_MODULES: tuple[str, ...] = (
-    "predict", "compensate", "plant_sim", "unit_analyze", "model_check"
+    "predict", "compensate", "plant_sim", "unit_analyze", "model_check", "report"
 )
 """Modules (under ``service.commands``) whose ``register`` adds a subcommand."""
 

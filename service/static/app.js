@@ -157,14 +157,19 @@ async function plot(loopId, kind, params = {}, body = undefined) {
   return figure;
 }
 
+/** Fetch a file with the session's key (a plain link would not send it) and save it. */
+async function saveFile(url, filename, options = {}) {
+  const blob = await (await request(url, options)).blob();
+  const link = h("a", { href: URL.createObjectURL(blob), download: filename });
+  link.click();
+  setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+}
+
 async function downloadPng(event, svgUrl, loopId, kind, method, body) {
   event.preventDefault();
   const url = svgUrl + (svgUrl.includes("?") ? "&" : "?") + "format=png";
   try {
-    const blob = await (await request(url, { method, body })).blob();
-    const link = h("a", { href: URL.createObjectURL(blob), download: `${loopId}-${kind}.png` });
-    link.click();
-    setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+    await saveFile(url, `${loopId}-${kind}.png`, { method, body });
   } catch (error) {
     announce(`PNG not available: ${error.message}`);
   }
@@ -337,6 +342,65 @@ function scoreCell(badActor) {
     num(badActor.score, 0), h("div", { class: "sub" }, badActor.why));
 }
 
+function percent0(fraction) {
+  return fraction === null || fraction === undefined ? "—" : `${num(100 * fraction, 0)} %`;
+}
+
+/** The KPI columns of the overview, from each loop's latest run (GET /plant/bad-actors):
+ * key, header, value, text, explanation, and whether a larger value is worse. */
+const KPI_COLUMNS = [
+  ["osc", "Osc. index", (k) => k.oscillation_index, (v) => num(v, 2),
+    "oscillation index: 0 none, 1 a strongly regular cycle", true],
+  ["harris", "Harris index", (k) => k.harris && k.harris.ratio, (v) => num(v, 2),
+    "minimum variance / mean square error: 1 at minimum-variance control, towards 0 worse",
+    false],
+  ["error", "Error SD (%)", (k) => k.error && k.error.std, (v) => num(v, 2),
+    "standard deviation of SP - PV, % of span", true],
+  ["travel", "Travel (%/day)", (k) => k.travel_per_day, (v) => num(v, 0),
+    "valve travel beyond noise, % of span per day", true],
+  ["reversals", "Reversals /day", (k) => k.reversals_per_day, (v) => num(v, 0),
+    "direction changes of the valve per day", true],
+  ["saturation", "OP saturated", (k) => k.saturation, percent0,
+    "share of time OP sat at a limit", true],
+  ["service", "Auto / cascade", (k) => k.service_factor && k.service_factor.normal, percent0,
+    "service factor: share of time in normal mode (needs a mode tag)", false],
+];
+
+/** Sortable columns of the overview besides the KPIs: key -> [value, larger is worse]. */
+const OVERVIEW_SORTS = {
+  health: [(l) => l.health, false],
+  score: [(l, b) => b && b.runs ? b.score : null, true],
+  ...Object.fromEntries(KPI_COLUMNS.map(([key, , value, , , worse]) =>
+    [key, [(l, b) => (b && b.kpis ? value(b.kpis) ?? null : null), worse]])),
+};
+
+/** Loops sorted by one overview column, worst first (dir 1) or best first (dir -1); loops
+ * without the figure last either way, then by health. */
+function sortLoops(loops, scores, key, dir) {
+  const [value, worse] = OVERVIEW_SORTS[key];
+  const ranked = rankByHealth(loops);
+  const order = new Map(ranked.map((l, i) => [l.id, i]));
+  return ranked.sort((a, b) => {
+    const x = value(a, scores.get(a.id));
+    const y = value(b, scores.get(b.id));
+    if ((x === null || x === undefined) !== (y === null || y === undefined)) {
+      return (x === null || x === undefined) ? 1 : -1;
+    }
+    if (x === null || x === undefined || x === y) return order.get(a.id) - order.get(b.id);
+    return (worse ? y - x : x - y) * dir;
+  });
+}
+
+async function downloadReport(format) {
+  try {
+    await saveFile(`/api/v1/reports/bad-actors?period=7d&format=${format}&limit=50`,
+      `bad-actors-7d.${format}`);
+    announce(`Bad-actor report (${format.toUpperCase()}) downloaded.`);
+  } catch (error) {
+    announce(`Report not available: ${error.message}`);
+  }
+}
+
 function oscillationText(loop) {
   if (loop.oscillating === null || loop.oscillating === undefined) return "—";
   return loop.oscillating ? `yes, ${num(loop.period_s, 0)} s` : "no";
@@ -363,6 +427,7 @@ async function renderOverview(params) {
   stateFilter.addEventListener("change", applyFilters);
 
   const loopsBox = h("div", { id: "loops" });
+  const sort = { key: "health", dir: 1 };  // worst health first, the ranking of the API
   const alarmsBox = h("div", { id: "alarms" });
   const ticketsBox = h("div", { id: "tickets" });
   main.replaceChildren(
@@ -372,7 +437,14 @@ async function renderOverview(params) {
       params.get("unit") ? h("a", { href: `#/unit/${encodeURIComponent(params.get("unit"))}` },
         "Unit page: the loops side by side and the sticky valves") : null,
       h("label", { for: "state-filter" }, "State"), stateFilter),
-    section("Loops ranked by health (bad actors first)", "loops-title", loopsBox),
+    section("Loops ranked by health (bad actors first)", "loops-title",
+      h("p", { class: "inline-form" }, "Bad-actor report of the last 7 days, for the weekly "
+        + "meeting: ",
+      h("button", { type: "button", id: "report-pdf", onclick: () => downloadReport("pdf") },
+        "Download PDF"), " ",
+      h("button", { type: "button", id: "report-csv", onclick: () => downloadReport("csv") },
+        "Download CSV")),
+      loopsBox),
     section("Active alarms", "alarms-title", alarmsBox),
     section("Open tickets", "tickets-title", ticketsBox));
 
@@ -385,22 +457,52 @@ async function renderOverview(params) {
       api(`/loops?${query}`), api(`/alarms${alarmQuery}`), openTickets(),
       api("/plant/bad-actors?limit=1000&period=7d")]);
     const unitLoops = new Set(loops.data.map((l) => l.id));
-    // The KPI-based bad-actor score over the week (GET /plant/bad-actors), with its why.
+    // The KPI-based bad-actor score over the week (GET /plant/bad-actors), with its why,
+    // and the latest run's KPIs.
     const scores = new Map(badActors.data.map((b) => [b.id, b]));
-    const rows = rankByHealth(loops.data).map((l, i) => h("tr", { "data-loop-id": l.id },
-      h("td", {}, i + 1),
-      h("th", { scope: "row" }, loopLink(l.id), h("div", { class: "sub" }, l.name)),
-      h("td", {}, l.unit ? h("a", { href: `#/unit/${encodeURIComponent(l.unit)}` }, l.unit) : "—"),
-      healthCell(l.health),
-      scoreCell(scores.get(l.id)),
-      h("td", {}, oscillationText(l)),
-      h("td", {}, verdictPill(l.verdict, l.confidence)),
-      h("td", {}, l.S === null ? "—" : `${num(l.S)} / ${num(l.J)}`),
-      h("td", {}, l.active_alarms)));
-    loopsBox.replaceChildren(table("Loops ranked by health",
-      ["Rank", "Loop", "Unit", "Health", "Bad-actor score (7 d)", "Oscillation", "Valve verdict",
-        "S / J (%)", "Alarms"],
-      rows, "No loops match the filters."));
+    const drawLoops = () => {
+      const sorted = sortLoops(loops.data, scores, sort.key, sort.dir);
+      const rows = sorted.map((l, i) => {
+        const kpis = (scores.get(l.id) || {}).kpis || null;
+        return h("tr", { "data-loop-id": l.id },
+          h("td", {}, i + 1),
+          h("th", { scope: "row" }, loopLink(l.id), h("div", { class: "sub" }, l.name)),
+          h("td", {}, l.unit ? h("a", { href: `#/unit/${encodeURIComponent(l.unit)}` }, l.unit)
+            : "—"),
+          healthCell(l.health),
+          scoreCell(scores.get(l.id)),
+          KPI_COLUMNS.map(([key, , value, text]) => {
+            const v = kpis ? value(kpis) : null;
+            return h("td", { "data-kpi": key, "data-value": v ?? "" }, text(v));
+          }),
+          h("td", {}, oscillationText(l)),
+          h("td", {}, verdictPill(l.verdict, l.confidence)),
+          h("td", {}, l.S === null ? "—" : `${num(l.S)} / ${num(l.J)}`),
+          h("td", {}, l.active_alarms));
+      });
+      const sortable = (key, label, title) => h("th", { scope: "col", title,
+        "aria-sort": sort.key !== key ? "none" : (sort.dir === 1) === OVERVIEW_SORTS[key][1]
+          ? "descending" : "ascending" },
+      h("button", { type: "button", class: "sort", "data-sort": key, onclick: () => {
+        sort.dir = sort.key === key ? -sort.dir : 1;
+        sort.key = key;
+        drawLoops();
+      } }, label));
+      const plain = (label) => h("th", { scope: "col" }, label);
+      loopsBox.replaceChildren(rows.length === 0
+        ? h("p", { class: "empty" }, "No loops match the filters.")
+        : h("div", { class: "table-scroll" }, h("table", { id: "loops-table" },
+          h("caption", { class: "visually-hidden" },
+            "Loops with their latest KPIs; the column headers sort (worst first, again: "
+            + "best first)"),
+          h("thead", {}, h("tr", {}, plain("Rank"), plain("Loop"), plain("Unit"),
+            sortable("health", "Health"), sortable("score", "Bad-actor score (7 d)"),
+            KPI_COLUMNS.map(([key, label, , , title]) => sortable(key, label, title)),
+            plain("Oscillation"), plain("Valve verdict"), plain("S / J (%)"),
+            plain("Alarms"))),
+          h("tbody", {}, rows))));
+    };
+    drawLoops();
     alarmsBox.replaceChildren(alarmsTable(alarms.data, refresh));
     ticketsBox.replaceChildren(ticketsTable(params.get("unit")
       ? tickets.filter((t) => unitLoops.has(t.loop_id)) : tickets));
@@ -410,6 +512,76 @@ async function renderOverview(params) {
 }
 
 /* ------------------------------------------------------------------ loop page */
+
+const KPI_PERIODS = [[86400, "1 day"], [7 * 86400, "1 week"], [30 * 86400, "30 days"],
+  [91 * 86400, "13 weeks"]];
+
+/** The KPIs the loop page draws over time: header, value of one run's KPIs (or health). */
+const KPI_TRENDS = [
+  ["Health (0..100)", (p) => p.health],
+  ...KPI_COLUMNS.map(([, label, value]) => [label, (p) => (p.kpis ? value(p.kpis) : null)]),
+];
+
+const SVG_NS = "http://www.w3.org/2000/svg";
+
+function svg(tag, attrs, ...children) {
+  const el = document.createElementNS(SVG_NS, tag);
+  for (const [name, value] of Object.entries(attrs || {})) el.setAttribute(name, String(value));
+  for (const child of children) {
+    el.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return el;
+}
+
+/** One KPI over the runs as a small line chart (runs without the figure left out). */
+function kpiChart(label, points, since, until) {
+  const w = 280, hgt = 90, pad = 4;
+  const data = points.filter(([, v]) => v !== null && v !== undefined && Number.isFinite(v));
+  const figure = h("figure", { class: "kpi-chart", "data-kpi-trend": label });
+  const caption = h("figcaption", {}, label);
+  if (data.length === 0) {
+    figure.append(caption, h("p", { class: "empty" }, "not computed in this period"));
+    return figure;
+  }
+  const values = data.map(([, v]) => v);
+  const low = Math.min(...values), high = Math.max(...values);
+  const span = high - low || 1, tspan = until - since || 1;
+  const xy = data.map(([t, v]) => [pad + (w - 2 * pad) * (t - since) / tspan,
+    hgt - pad - (hgt - 2 * pad) * (v - low) / span]);
+  const last = values[values.length - 1];
+  caption.append(h("span", { class: "sub" },
+    ` latest ${num(last, 2)}, range ${num(low, 2)} .. ${num(high, 2)}`));
+  figure.append(caption, svg("svg", { viewBox: `0 0 ${w} ${hgt}`, width: w, height: hgt,
+    role: "img", "aria-label": `${label} over the period: ${data.length} runs, latest `
+      + `${num(last, 2)}, lowest ${num(low, 2)}, highest ${num(high, 2)}` },
+  svg("rect", { x: 0.5, y: 0.5, width: w - 1, height: hgt - 1, class: "frame" }),
+  data.length === 1 ? svg("circle", { cx: xy[0][0], cy: xy[0][1], r: 2.5, class: "line" })
+    : svg("polyline", { points: xy.map((p) => p.join(",")).join(" "), class: "line" })));
+  return figure;
+}
+
+/** The KPI history of a loop (GET /loops/{id}/kpis) over days to weeks. */
+async function kpiTrendSection(path, end) {
+  const box = h("div", { class: "kpi-grid", id: "kpi-trend" });
+  const choice = h("select", { id: "kpi-period" }, KPI_PERIODS.map(([seconds, label]) =>
+    h("option", { value: seconds, selected: seconds === 7 * 86400 }, label)));
+  const show = async () => {
+    const until = end ?? Date.now() / 1000;
+    const since = until - Number(choice.value);
+    const history = await api(`${path}/kpis?since=${since}&until=${until}&limit=500`);
+    const note = history.total > history.count
+      ? ` (every ${Math.ceil(history.total / history.count)}th of ${history.total} runs)` : "";
+    box.replaceChildren(h("p", { class: "help" },
+      `${history.count} analysis runs${note}, ${utc(since)} to ${utc(until)}.`),
+    ...KPI_TRENDS.map(([label, value]) => kpiChart(label,
+      history.data.map((p) => [p.started_at, value(p)]), since, until)));
+  };
+  choice.addEventListener("change", show);
+  await show();
+  return section("KPI trend", "kpi-trend-title",
+    h("div", { class: "inline-form" }, h("label", { for: "kpi-period" },
+      "Period ending at the latest analysis"), choice), box);
+}
 
 function definitionList(pairs) {
   return h("dl", { class: "facts" }, pairs.flatMap(([term, value]) =>
@@ -572,6 +744,7 @@ async function renderLoop(loopId) {
       h("div", { class: "inline-form" }, h("label", { for: "trend-window" },
         "Window ending at the latest analysis"), windowChoice),
       trendBox, valuesBox),
+    await kpiTrendSection(path, windowEnd),
     h("div", { class: "grid-2" },
       section("Valve signature", "signature-title", await plot(loopId, "signature"),
         h("p", { class: "help" }, "Dots: the samples of the analysed window. Pink: the fitted "

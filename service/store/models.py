@@ -56,12 +56,12 @@ class Loop(Base):
 
 
 class Tag(Base):
-    """A measured signal of a loop (OP, PV, SP or MV)."""
+    """A measured signal of a loop (OP, PV, SP, MV or the controller's mode)."""
 
     __tablename__ = "tags"
     name: Mapped[str] = mapped_column(String(200), primary_key=True)
     loop_id: Mapped[str] = mapped_column(ForeignKey("loops.id", ondelete="CASCADE"), index=True)
-    signal: Mapped[str] = mapped_column(String(2))
+    signal: Mapped[str] = mapped_column(String(8))
     loop: Mapped[Loop] = relationship(back_populates="tags")
 
 

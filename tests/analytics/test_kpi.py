@@ -286,3 +286,30 @@ def test_loop_kpis_together_and_json_ready():
     assert "dead time unknown" in unknown.notes[0]
     nothing = loop_kpis(1.0, op=np.full(10, np.nan)).to_dict()
     assert nothing["travel_per_day"] is None and nothing["error"] is None
+
+
+def test_controller_figures_leave_the_time_in_manual_out_and_say_so():
+    """Half an hour of a one-hour window in manual (FF MODE_BLK values: 16 manual, 8 auto):
+    the error statistics and saturation are those of the automatic samples alone, computed
+    here directly; the valve travel counts every sample."""
+    rng = np.random.default_rng(11)
+    n = 3600
+    manual = np.zeros(n, dtype=bool)
+    manual[1000:2800] = True
+    sp = np.full(n, 50.0)
+    pv = sp + np.where(manual, 8.0, 0.0) + rng.normal(scale=0.5, size=n)  # drifts in manual
+    op = np.where(manual, 100.0, 40.0 + rng.normal(scale=0.1, size=n))  # held at the limit
+    mode = np.where(manual, 16.0, 8.0)
+    k = loop_kpis(1.0, op=op, pv=pv, sp=sp, dead_time=2, mode=mode,
+                  mode_mapping={16.0: "manual", 8.0: "auto", 4.0: "cascade"})
+    auto_error = (sp - pv)[~manual]
+    assert k.service_factor.manual == 0.5 and k.service_factor.manual_s == 1800.0
+    assert k.error.mean == pytest.approx(auto_error.mean(), rel=1e-12)
+    assert k.error.std == pytest.approx(auto_error.std(), rel=1e-12)
+    assert k.error.iae == pytest.approx(np.abs(auto_error).sum(), rel=1e-12)
+    assert k.saturation == 0.0  # OP at 100 % only while in manual
+    assert k.harris.ratio == pytest.approx(1.0, abs=0.06)  # white error when in auto
+    assert k.travel_per_day == valve_travel_per_day(op, 1.0)
+    assert any("in manual 50 % of the window (1800 s)" in note for note in k.notes)
+    whole = loop_kpis(1.0, op=op, pv=pv, sp=sp, dead_time=2)
+    assert whole.saturation == 0.5 and whole.error.std > 3.0  # what manual would have done

@@ -264,3 +264,21 @@ class TestModelSpec:
             simulate([[None]], loop, dt=1.0, duration=10.0)
         with pytest.raises(ModelSpecError, match="op_bias=150"):
             PIDController.ideal(1.0, op_bias=150.0)
+
+
+def test_manual_holds_op_and_the_return_to_automatic_is_bumpless():
+    """In manual OP holds its last value; back in automatic the integrator has tracked it,
+    so OP moves on from the held value by the PI law's increment alone (Astrom and
+    Hagglund 2006, sec. 3.5): ``kp (e_k - e_{k-1}) + ki dt e_k``."""
+    g = TransferFunction.fopdt(K=1.0, tau=20.0, theta=2.0)
+    pid = PIDController.ideal(Kc=0.8, Ti=15.0)
+    loop = Loop(pid, setpoint=[(10.0, 55.0)], manual=((100.0, 200.0),),
+                disturbances=(Disturbance("step", 3.0, time=150.0),))
+    res = simulate(g, loop, dt=1.0, duration=400.0)
+    op, e = res.op[0], res.sp[0] - res.pv[0]
+    np.testing.assert_array_equal(op[100:200], op[99])
+    assert abs(e[199]) > 1.0  # the load came while in manual
+    k = 200
+    assert op[k] == pytest.approx(op[k - 1] + pid.kp * (e[k] - e[k - 1]) + pid.ki * e[k],
+                                  rel=1e-12)
+    assert abs(e[-1]) < 0.05  # automatic again removes the load's offset

@@ -24,6 +24,8 @@ from analytics.synthetic_cases import synthetic_library
 from connectors.modbus import ModbusConnectorConfig, decode
 from connectors.opcua import OpcUaConnector, OpcUaEndpointConfig
 from connectors.plant_sim import COLUMN_LOOPS, SIGNALS, SINGLE_LOOPS, PlantSimulator
+from service.analysis import analyse_window
+from service.buffer import LoopBuffers
 from service.commands import CliError
 from service.commands.plant_sim import register
 from service.config import load_plant_config, parse_plant_config
@@ -128,6 +130,55 @@ def test_every_sample_arrives_over_opcua_with_its_time_stamp_and_value():
         # one sample per interval, none missing, from the first to the last received
         assert numbers == list(range(numbers[0], numbers[0] + len(numbers))), tag
         assert len(numbers) >= 2.5 / interval, tag
+
+
+def test_the_mode_tag_over_opcua_gives_the_service_factor_exactly():
+    """PIC-401 goes to manual 1800 s into the run (plant time).  Served 10 x faster from
+    plant time 1650 s, its samples come through the OPC UA connector into the service's
+    buffers; the analysis of a window from the first samples received to 50 s of plant
+    time after the switch finds the share of its grid points whose plant time lies in
+    manual, counted here from the schedule, and OP held there."""
+    speed, loop_id = 10.0, "PIC-401"
+    start = time.time()
+    sim = PlantSimulator(opcua_port=0, modbus_port=0, horizon_s=2400.0, speed=speed,
+                         origin=start - 1650.0 / speed)
+    switch = start + 150.0 / speed  # wall time of plant time 1800 s
+    tags = [f"{loop_id}.{s}" for s in ("OP", "PV", "SP", "MODE")]
+    sink = Sink()
+    sim.start_in_thread()
+    try:
+        connector = opcua_connector(sim, sink)
+        connector.start()
+
+        def past_the_switch() -> bool:
+            with sink.lock:
+                return all(any(i["timestamp"] > switch + 5.5 for i in sink.items[tag])
+                           for tag in tags)
+
+        asyncio.run(until(past_the_switch, within_s=90))
+        connector.stop()
+    finally:
+        sim.stop_thread()
+    window_start = max(min(i["timestamp"] for i in sink.items[tag]) for tag in tags) + 0.5
+    assert window_start < switch - 1.0, "the connector's first samples came after the switch"
+    loop = parse_plant_config(sim.plant_config()).loop(loop_id)
+    assert loop.tags.mode == f"{loop_id}.MODE" and loop.mode_map is not None
+    buffers = LoopBuffers(parse_plant_config({"loops": [loop.model_dump()]}), horizon_s=600)
+    for tag, items in sink.items.items():
+        if tag.startswith(loop_id + "."):
+            buffers.append(tag, [i["timestamp"] for i in items], [i["value"] for i in items])
+    window = buffers.window(loop_id, switch + 5.0 - window_start, switch + 5.0)
+    assert window.mode is not None and not np.isnan(window.mode).any()
+    plant_time = np.array([sim.sample_index(loop_id, t) for t in window.t]) * 0.5
+    in_manual = (plant_time >= 1800.0) & (plant_time < 4500.0)
+    assert 0.05 < in_manual.mean() < 0.95
+    assert window.op is not None and np.ptp(window.op[in_manual]) == 0.0  # OP held
+    result = analyse_window(loop.model_dump(mode="json"), window.ts, window.t, {
+        "op": window.op, "pv": window.pv, "sp": window.sp, "mv": None, "mode": window.mode})
+    factor = result["kpis"]["service_factor"]
+    assert factor["manual"] == np.count_nonzero(in_manual) / window.t.size
+    assert factor["normal"] == np.count_nonzero(~in_manual) / window.t.size
+    assert any("in manual" in note for note in result["kpis"]["notes"])
 
 
 def test_modbus_registers_hold_the_latest_sample_and_bad_tags_go_bad_on_both():
@@ -245,7 +296,7 @@ def test_the_plant_configuration_is_one_the_service_and_the_connectors_accept():
     modbus_tags = {tag.tag for tag in modbus.tags()}
     loop_tags = {tag for loop in plant_config.loops for _, tag in loop.tags.items()}
     assert not opcua_tags & modbus_tags and opcua_tags | modbus_tags == loop_tags
-    assert {t.split(".")[1] for t in loop_tags} == {"OP", "PV", "SP"}  # MV is not watched
+    assert {t.split(".")[1] for t in loop_tags} == {"OP", "PV", "SP", "MODE"}  # not MV
     assert {t.split(".")[0] for t in modbus_tags} == {"FIC-105", "LIC-301"}
     assert modbus.poll_interval_s == pytest.approx(0.05)  # twice per sampling interval
     assert [u.id for u in plant_config.units] == ["column"]  # the single loops interact not
@@ -284,7 +335,7 @@ def test_the_column_process_matrix_is_thesis_eq_2_10_in_percent_of_span_and_plan
 def test_the_address_map_gives_every_tag_its_own_node_and_registers():
     sim = plant()
     rows = sim.address_map()
-    assert [r.tag for r in rows] == sim.tags and len(rows) == 4 * 9
+    assert [r.tag for r in rows] == sim.tags and len(rows) == 5 * 9
     assert len({r.node_id for r in rows}) == len(rows)
     registers = [reg for r in rows for reg in (r.modbus_address, r.modbus_address + 1)]
     assert len(set(registers)) == len(registers)

@@ -33,9 +33,14 @@ from typing import Any
 import numpy as np
 import pytest
 import uvicorn
+from pypdf import PdfReader
+from sqlalchemy import delete, select
 
+from analytics.synthetic_cases import synthetic_library
+from service.analysis import analyse_window
 from service.config import Settings
 from service.server import Service, build_service
+from service.store.models import AnalysisRun
 from tests.servers import free_port, require
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
@@ -458,3 +463,107 @@ def test_nested_model_parameters_read_as_words(running: RunningService, browser:
     text = page.evaluate("parameterText({model: 'kano', opening: {S: 4, J: 2}, "
                          "closing: {S: 3.5, J: 1.25}})")
     assert text == "model kano, opening (S 4.000, J 2.000), closing (S 3.500, J 1.250)"
+
+
+DAY = 86400.0
+
+
+def test_kpi_columns_sort_the_report_downloads_and_the_loop_page_draws_the_kpi_trend(
+    running: RunningService, browser: Browser, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """FIC-1 gets five earlier days of analysed hours, healthy, then its valve sticking
+    more day by day (Kano S = 2, 4, 8, 8 %; real analyses of simulated windows), below its
+    latest run.  The overview shows each loop's latest KPIs as the API gives them and sorts
+    by them; the report downloads as a PDF whose text names both loops; FIC-1's page draws
+    a week of its KPIs, one point per run, and a day of them."""
+
+    service = running.service
+    cases = {c.name: c for c in synthetic_library(3600)}
+    loop = service.state.registry.plant.loop("FIC-1").model_dump(mode="json")
+    days = ["flow-noise-ts1", "flow-kano-S2-J1-ts1", "flow-kano-S4-J2-ts1",
+            "flow-kano-S8-J4-ts1", "flow-kano-S8-J4-ts1"]
+    added = []
+    with service.state.store.session() as session:
+        latest = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "FIC-1")
+                                 .order_by(AnalysisRun.id.desc())).first()
+        assert latest is not None
+        for back, name in zip(range(5, 0, -1), days, strict=True):
+            end = T0 - back * DAY
+            sim = cases[name].simulate()
+            result = analyse_window(loop, 1.0, end - 3600 + 1 + np.arange(3600.0), {
+                "op": sim.op[0], "pv": sim.pv[0], "sp": sim.sp[0], "mv": None})
+            run = AnalysisRun(
+                loop_id="FIC-1", started_at=end, finished_at=end, window_start=end - 3600,
+                window_end=end, status="ok", usable=result["quality"]["usable"],
+                oscillating=result["oscillation"]["detected"], health=result["health"],
+                verdict=result["stiction"]["verdict"], result=result)
+            session.add(run)
+            added.append(run)
+        newest = AnalysisRun(**{c.name: getattr(latest, c.name)
+                                for c in AnalysisRun.__table__.columns if c.name != "id"})
+        session.add(newest)  # the latest run stays the latest (the highest id)
+        added.append(newest)
+    try:
+        check_kpi_views(running, browser, tmp_path_factory)
+    finally:
+        with service.state.store.session() as session:
+            session.execute(delete(AnalysisRun).where(
+                AnalysisRun.id.in_([run.id for run in added])))
+
+
+def check_kpi_views(running: RunningService, browser: Browser,
+                    tmp_path_factory: pytest.TempPathFactory) -> None:
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    rows = page.locator("#loops tbody tr")
+    rows.first.wait_for()
+    ranked = {b["id"]: b for b in running.call(
+        "GET", "/api/v1/plant/bad-actors?period=7d&limit=1000", "viewer")["data"]}
+    travel = {loop_id: b["kpis"]["travel_per_day"] for loop_id, b in ranked.items()}
+    for loop_id, b in ranked.items():
+        row = page.locator(f'#loops tr[data-loop-id="{loop_id}"]')
+        cell = row.locator('td[data-kpi="travel"]')
+        assert float(cell.get_attribute("data-value") or "nan") == travel[loop_id]
+        harris = row.locator('td[data-kpi="harris"]')
+        assert harris.inner_text() == "—"  # no dead time configured: no Harris index
+        sf = row.locator('td[data-kpi="service"]')
+        assert sf.inner_text() == "—"  # no mode tag
+        assert row.locator('td[data-kpi="osc"]').inner_text() == \
+            f"{b['kpis']['oscillation_index']:.2f}"
+    order = "rows => rows.map(r => r.dataset.loopId)"
+    header = page.locator('th:has(button[data-sort="travel"])')
+    header.get_by_role("button").click()
+    assert header.get_attribute("aria-sort") == "descending"
+    assert rows.evaluate_all(order) == sorted(travel, key=lambda i: -travel[i])
+    header.get_by_role("button").click()
+    assert header.get_attribute("aria-sort") == "ascending"
+    assert rows.evaluate_all(order) == sorted(travel, key=lambda i: travel[i])
+
+    with page.expect_download() as download:
+        page.get_by_role("button", name="Download PDF").click()
+    saved = tmp_path_factory.mktemp("report") / "report.pdf"
+    download.value.save_as(saved)
+    assert download.value.suggested_filename == "bad-actors-7d.pdf"
+    text = PdfReader(saved).pages[0].extract_text()
+    assert "Bad-actor report" in text and "FIC-1" in text and "FIC-2" in text
+
+    page.goto(f"{running.base_url}/#/loop/FIC-1")
+    chart = page.locator('figure[data-kpi-trend="Travel (%/day)"]')
+    chart.locator("polyline").wait_for()
+    history = running.call("GET", f"/api/v1/loops/FIC-1/kpis?since={T0 - 7 * DAY}&until={T0}",
+                           "viewer")["data"]
+    assert len(history) >= 7  # five earlier days and the runs at T0
+    points = (chart.locator("polyline").get_attribute("points") or "").split()
+    assert len(points) == len(history)
+    xs = [float(p.split(",")[0]) for p in points]
+    assert xs == sorted(xs) and xs[0] < 0.35 * xs[-1]  # spread over the week
+    label = chart.locator("svg").get_attribute("aria-label") or ""
+    assert f"latest {history[-1]['kpis']['travel_per_day']:.2f}" in label
+    page.get_by_role("combobox", name="Period ending at the latest analysis").select_option(
+        label="1 day")
+    page.wait_for_function(
+        "() => document.querySelector('#kpi-trend .help').textContent.startsWith("
+        f"'{sum(1 for p in history if p['started_at'] >= T0 - DAY)} analysis runs')")
+    shot = tmp_path_factory.mktemp("artefacts") / "dashboard-kpi-trend.png"
+    page.screenshot(path=str(shot), full_page=True)
+    print(f"KPI trend screenshot: {shot}")

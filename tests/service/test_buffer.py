@@ -244,3 +244,26 @@ def test_memory_per_loop_and_loops_changed_at_run_time() -> None:
     assert isinstance(window, LoopWindowData) and window.op is None
     assert_same(window.pv, np.array([7.0]))  # the kept tag kept its samples
     assert window.mv is not None and np.isnan(window.mv).all()
+
+
+def test_a_mode_reported_only_when_it_changes_holds_until_the_next_value(store: Store) -> None:
+    """The mode tag of a DCS that reports changes only: each grid point takes the latest
+    value (bad values skipped), before the first value none; the stored tag's signal is
+    ``mode`` (migration 0005 widened the column)."""
+    plant = PlantConfig.model_validate({"loops": [
+        {"id": "FIC-101", "tags": {"pv": "FIC101.PV", "mode": "FIC101.MODE"},
+         "mode_map": {16: "manual", 8: "auto"}, "ts": 1.0}]})
+    buffers = LoopBuffers(plant, horizon_s=HORIZON)
+    buffers.append("FIC101.PV", NOW - 9 + np.arange(10.0), np.arange(10.0))
+    buffers.append("FIC101.MODE", [NOW - 7.2, NOW - 4.0, NOW - 2.0, NOW - 1.4],
+                   [8.0, 16.0, 3.0, 8.0], good=[True, True, False, True])
+    window = buffers.window("FIC-101", 10.0, NOW)
+    assert_same(window.mode, np.array([np.nan, np.nan, 8, 8, 8, 16, 16, 16, 8, 8]))
+    assert set(window.signals) == {"pv"}  # the measured signals only
+    with store.session() as session:
+        sync_plant(session, plant, NOW)
+        ingest_batch(session, [{"tag": "FIC101.MODE", "items": [
+            {"timestamp": NOW, "value": 16, "good": True}]}], known_tags=buffers.tags, now=NOW)
+    with store.session() as session:
+        assert LoopBuffers.from_store(session, plant.loops, since=NOW - 60, now=NOW).window(
+            "FIC-101", 5.0, NOW).mode[-1] == 16.0

@@ -14,7 +14,8 @@ def test_the_example_plant_file_is_valid():
     assert [loop.id for loop in plant.loops] == ["FIC-101", "LIC-102"]
     assert plant.loop("LIC-102").process_type == "integrating"
     assert plant.loop("FIC-101").tags.items() == [
-        ("op", "FIC101.OP"), ("pv", "FIC101.PV"), ("sp", "FIC101.SP")]
+        ("op", "FIC101.OP"), ("pv", "FIC101.PV"), ("sp", "FIC101.SP"), ("mode", "FIC101.MODE")]
+    assert plant.loop("FIC-101").mode_map == {16.0: "manual", 8.0: "auto", 4.0: "cascade"}
 
 
 @pytest.mark.parametrize(
@@ -36,6 +37,10 @@ def test_the_example_plant_file_is_valid():
          "loops[0].controler: Extra inputs are not permitted"),
         ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X}\n    controller: {Kc: 1}\n",
          "loops[0].controller: Value error, a PI controller needs Ti"),
+        ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X, mode: M}\n",
+         "loops[0]: Value error, a mode tag and a mode_map go together"),
+        ("loops:\n  - id: A\n    ts: 1\n    tags: {op: X, mode: M}\n    mode_map: {1: hand}\n",
+         "loops[0].mode_map[1]: Input should be 'auto', 'cascade' or 'manual'"),
         ("loops: [\n", "not valid YAML"),
     ],
 )

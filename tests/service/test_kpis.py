@@ -13,10 +13,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from pypdf import PdfReader
 
 from analytics.kpi import oscillation_index
 from analytics.synthetic_cases import synthetic_library
 from service.analysis import analyse_window
+from service.cli import main
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
@@ -201,11 +203,7 @@ def test_bad_actor_period_is_bounded(client):
 def test_bad_actor_report_csv(service, client, clock):
     viewer = key(client, "viewer")
     degrading_days(service, clock)
-    with service.state.store.session() as session:  # an open ticket on FIC-2's valve
-        session.add(Ticket(valve_asset="FV-2", loop_id="FIC-2", state="open", priority=2,
-                           title="FV-2 sticks", description="", location=None,
-                           malfunction_start=clock.now, evidence={}, created_at=clock.now,
-                           updated_at=clock.now))
+    open_ticket(service, clock)
     response = client.get("/api/v1/reports/bad-actors", headers=viewer,
                           params={"period": "7d", "format": "csv"})
     assert response.status_code == 200, response.text
@@ -224,10 +222,71 @@ def test_bad_actor_report_csv(service, client, clock):
     assert float(rows[0]["travel_per_day"]) == pytest.approx(latest["travel_per_day"],
                                                              rel=1e-3)
     assert rows[1]["harris_ratio"] != "" and rows[0]["harris_ratio"] == ""  # FIC-1 has theta
-    for other in ("pdf", "xls"):  # CSV only so far; the schema says so
-        refused = client.get("/api/v1/reports/bad-actors", headers=viewer,
-                             params={"format": other})
-        assert refused.status_code == 422 and refused.json()["detail"][0]["loc"][-1] == "format"
+    refused = client.get("/api/v1/reports/bad-actors", headers=viewer, params={"format": "xls"})
+    assert refused.status_code == 422 and refused.json()["detail"][0]["loc"][-1] == "format"
+
+
+def open_ticket(service, clock) -> None:
+    with service.state.store.session() as session:  # an open ticket on FIC-2's valve
+        session.add(Ticket(valve_asset="FV-2", loop_id="FIC-2", state="open", priority=2,
+                           title="FV-2 sticks", description="", location=None,
+                           malfunction_start=clock.now, evidence={}, created_at=clock.now,
+                           updated_at=clock.now))
+
+
+def test_bad_actor_report_pdf_reads_back_as_the_ranking(service, client, clock):
+    """The PDF's text, read back with pypdf, holds the ranking in order with each loop's
+    score, KPIs, why, diagnosis and open tickets; FIC-2's sparkline is drawn (a path of
+    one point per day of the week)."""
+    viewer = key(client, "viewer")
+    degrading_days(service, clock)
+    open_ticket(service, clock)
+    response = client.get("/api/v1/reports/bad-actors", headers=viewer,
+                          params={"period": "7d", "format": "pdf"})
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/pdf"
+    assert 'filename="bad-actors-7d.pdf"' in response.headers["content-disposition"]
+    document = PdfReader(io.BytesIO(response.content))
+    text = "\n".join(page.extract_text() for page in document.pages)
+    ranking = client.get("/api/v1/plant/bad-actors", headers=viewer,
+                         params={"period": "7d"}).json()["data"]
+    latest = client.get("/api/v1/loops/FIC-2/kpis", headers=viewer).json()["data"][-1]["kpis"]
+    assert "Bad-actor report: the worst loops over 7d" in text
+    assert text.index("FIC-2") < text.index("FIC-1")
+    assert "1 FIC-2" in " ".join(text.split())
+    assert f"{ranking[0]['score']:.1f}" in text and ranking[0]["why"] in " ".join(text.split())
+    assert f"{latest['oscillation_index']:.2g}" in text
+    assert f"{latest['travel_per_day']:.4g}" in text
+    fic2 = text.split("FIC-1")[0]
+    assert ranking[0]["verdict"] in fic2 and "oscillating" in fic2
+    assert "FV-2" in fic2  # FIC-2's open ticket, on its row
+    content = document.pages[0].get_contents().get_data().decode("latin-1")
+    assert content.count(" l\n") >= 6  # the week's seven points joined by six lines
+
+
+def test_loopwatch_report_writes_the_same_report_from_the_store(service, client, clock, store,
+                                                              tmp_path, monkeypatch, capsys):
+    """``loopwatch report`` reads the store the service writes (its URL from the
+    environment) and writes the route's CSV, and a PDF whose text holds the ranking."""
+    viewer = key(client, "viewer")
+    degrading_days(service, clock)
+    open_ticket(service, clock)
+    monkeypatch.setenv("LOOPWATCH_DATABASE_URL", store.url)
+    monkeypatch.setenv("LOOPWATCH_WINDOW_S", "3600")
+    until = ["--until", str(clock.now)]
+    assert main(["report", "--since", "7d", "--out", str(tmp_path / "w.csv"), *until]) == 0
+    route = client.get("/api/v1/reports/bad-actors", headers=viewer,
+                       params={"period": "7d", "limit": 20}).text
+    assert (tmp_path / "w.csv").read_text() == route
+    assert main(["report", "--since", "7d", "--out", str(tmp_path / "w.pdf"), *until]) == 0
+    text = PdfReader(tmp_path / "w.pdf").pages[0].extract_text()
+    assert text.index("FIC-2") < text.index("FIC-1") and "FV-2" in text
+    assert "w.pdf: 2 loops over 7d" in capsys.readouterr().out
+    for argv, message in ((["--out", "w.txt"], "must end in .pdf or .csv"),
+                          (["--since", "93d", "--out", "w.pdf"], "at most 92 days"),
+                          (["--since", "7w", "--out", "w.pdf"], "a period such as 7d")):
+        assert main(["report", *argv]) == 2
+        assert message in capsys.readouterr().err
 
 
 def test_runs_a_minute_apart_count_once_per_window(service, client):

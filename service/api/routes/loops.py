@@ -7,8 +7,9 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
+from sqlalchemy.orm import Session
 
 from service.analysis import stiction_pattern_text
 from service.api.deps import (
@@ -74,6 +75,9 @@ class BadActorPublic(LoopPublic):
     bad_runs: int
     worst: str | None
     why: str
+    kpis: dict[str, Any] | None = Field(
+        default=None, description="the KPIs of the loop's latest analysis run (as "
+        "GET /loops/{id}/kpis gives them)")
 
 
 class BadActorsPublic(BaseModel):
@@ -307,33 +311,40 @@ PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
 MAX_PERIOD_S = 92 * 86400.0
 
 
-def period_seconds(period: str) -> float:
-    """``"7d"`` or ``"36h"`` in seconds; at most :data:`MAX_PERIOD_S` (422 beyond).
+def period_length(period: str) -> float:
+    """``"7d"`` or ``"36h"`` (:data:`PERIOD_PATTERN`) in seconds.
 
-    >>> period_seconds("7d"), period_seconds("36h")
+    >>> period_length("7d"), period_length("36h")
     (604800.0, 129600.0)
+
+    Raises
+    ------
+    ValueError
+        Longer than :data:`MAX_PERIOD_S`.
     """
     seconds = int(period[:-1]) * (86400.0 if period[-1] == "d" else 3600.0)
     if seconds > MAX_PERIOD_S:
-        raise HTTPException(422, "period must be at most 92 days")
+        raise ValueError("period must be at most 92 days")
     return seconds
 
 
-def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
-                   bucket_s: float, loops: list[LoopPublic] | None = None
-                   ) -> list[BadActorPublic]:
-    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
-    runs started in ``(since, until]``, worst first: by score, then by health (loops not
-    analysed last).
+def period_seconds(period: str) -> float:
+    """:func:`period_length` for a route: 422 beyond :data:`MAX_PERIOD_S`."""
+    try:
+        return period_length(period)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
 
-    One run counts per ``bucket_s`` (the analysis window's length; buckets counted back
-    from ``until``), the latest of its bucket: runs a minute apart on hour-long windows
-    share most of their data, so they are one observation of the loop, not sixty, and a
-    week is 168 runs a loop, not 10,080.  ``loops``: every loop with its latest state
-    (:func:`loop_states`; read here when not given).
+
+def counted_runs(session: Session, since: float, until: float, bucket_s: float
+                 ) -> dict[str, list[tuple[float, float | None, dict[str, Any] | None]]]:
+    """Each loop's runs ``(started_at, health, kpis)`` started in ``(since, until]`` that
+    count for its score, oldest first: one per ``bucket_s`` (the analysis window's length;
+    buckets counted back from ``until``), the latest of its bucket.  Runs a minute apart on
+    hour-long windows share most of their data, so they are one observation of the loop,
+    not sixty, and a week is 168 runs a loop, not 10,080.  ``kpis`` holds only the KPIs
+    the score reads (:func:`service.bad_actors.scored_kpis`).
     """
-    if loops is None:
-        loops = _loop_rows(session, trusted=True)[0]
     # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
     # then integer division, which truncates on both.
     bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
@@ -346,20 +357,49 @@ def bad_actor_rows(session: SessionDep, since: float, until: float, period: str,
     )
     # only the KPIs the score reads, extracted by the database: parsing every run's
     # diagnosis here cost more than the rest of the ranking
-    runs: dict[str, list[tuple[float | None, dict[str, Any] | None]]] = {}
-    for loop_id, health, *values in session.execute(
-        select(AnalysisRun.loop_id, AnalysisRun.health,
+    runs: dict[str, list[tuple[float, float | None, dict[str, Any] | None]]] = {}
+    for loop_id, started_at, health, *values in session.execute(
+        select(AnalysisRun.loop_id, AnalysisRun.started_at, AnalysisRun.health,
                *(AnalysisRun.result[("kpis", *path)].as_float() for path in SCORED_KPIS))
-        .where(AnalysisRun.id.in_(chosen))
+        .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
     ):
-        runs.setdefault(loop_id, []).append((health, scored_kpis(values)))
+        runs.setdefault(loop_id, []).append((started_at, health, scored_kpis(values)))
+    return runs
+
+
+def latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
+    """Each loop's KPIs of its latest successful run (loops without any left out)."""
+    latest = (select(func.max(AnalysisRun.id)).where(AnalysisRun.status == "ok")
+              .group_by(AnalysisRun.loop_id))
+    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.result["kpis"])
+                           .where(AnalysisRun.id.in_(latest)))
+    return {loop_id: kpis for loop_id, kpis in rows if kpis}
+
+
+def bad_actor_rows(session: Session, since: float, until: float, period: str,
+                   bucket_s: float, runs: dict[str, list[tuple[float, float | None,
+                                                              dict[str, Any] | None]]]
+                   | None = None, loops: list[LoopPublic] | None = None
+                   ) -> list[BadActorPublic]:
+    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
+    runs started in ``(since, until]``, worst first: by score, then by health (loops not
+    analysed last); the runs that count are :func:`counted_runs` (given as ``runs`` when
+    the caller has them already), each with its latest run's KPIs.  ``loops``: every loop
+    with its latest state (:func:`loop_states`; read here when not given).
+    """
+    if loops is None:
+        loops = _loop_rows(session, trusted=True)[0]
+    if runs is None:
+        runs = counted_runs(session, since, until, bucket_s)
+    kpis = latest_kpis(session)
     ranked = []
     for loop in loops:
-        scored = score_loop(runs.get(loop.id, ()), loop.importance, period)
+        scored = score_loop([(health, k) for _, health, k in runs.get(loop.id, ())],
+                            loop.importance, period)
         ranked.append(BadActorPublic.model_construct(
             **loop.__dict__, score=scored.score, severity=scored.severity,
             bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
-            worst=scored.worst, why=scored.why,
+            worst=scored.worst, why=scored.why, kpis=kpis.get(loop.id),
         ))
     ranked.sort(key=lambda r: (-r.score, r.health is None,
                                r.health if r.health is not None else 0.0, r.id))
@@ -385,7 +425,8 @@ def bad_actors(
     def rank() -> tuple[float, list[BadActorPublic]]:
         until = state.clock()
         return until, bad_actor_rows(session, until - seconds, until, period,
-                                     state.settings.window_s, loop_states(session, state))
+                                     state.settings.window_s,
+                                     loops=loop_states(session, state))
 
     def recent(answer: tuple[float, list[BadActorPublic]]) -> bool:
         return abs(state.clock() - answer[0]) <= state.settings.read_cache_s
