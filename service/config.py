@@ -1,6 +1,7 @@
 """The plant configuration file (YAML) and the service settings (environment).
 
-The plant file lists units and loops::
+The plant file lists units and loops (and, for a PI Web API historian, the
+loop tag of each PI point)::
 
     units:
       - id: column
@@ -16,6 +17,8 @@ The plant file lists units and loops::
         process_type: self-regulating
         valve_asset: FV-101
         importance: high
+    pi_points:
+      '\\\\PISRV01\\FIC101.PV': FIC101.PV
 
 Signals are converted to % of span with ``ranges`` before analysis, so S and J
 come out in % of valve travel.  A unit may carry its process matrix
@@ -188,6 +191,10 @@ class PlantConfig(_Strict):
     units: list[UnitConfig] = Field(default_factory=list)
     loops: list[LoopConfig] = Field(default_factory=list)
     connectors: dict[str, Any] = Field(default_factory=dict)
+    pi_points: dict[str, str] = Field(
+        default_factory=dict,
+        description="PI point or AF attribute, by the Path or Name a PI Web API answer gives "
+                    "it, -> the loop tag its values are stored as (POST /api/v1/ingest)")
 
     @model_validator(mode="after")
     def _consistent(self) -> PlantConfig:
@@ -196,6 +203,11 @@ class PlantConfig(_Strict):
         _no_duplicates([loop.id for loop in self.loops], "loops")
         tags = [tag for loop in self.loops for _, tag in loop.tags.items()]
         _no_duplicates(tags, "tags (a tag belongs to one loop)")
+        for point, tag in self.pi_points.items():
+            if tag not in tags:
+                raise ValueError(
+                    f"pi_points[{point!r}]: {tag!r} is not a tag of any loop; map the PI point "
+                    "to one of the loops' tags")
         for i, loop in enumerate(self.loops):
             if loop.unit is not None and loop.unit not in unit_ids:
                 raise ValueError(

@@ -254,7 +254,8 @@ class AppState:
         """:meth:`ingest` of a request body, parsed in the same slot
         (:func:`service.ingest.parse_batch`: refused in bounded time)."""
         with self._ingest_slots:
-            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples))
+            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples,
+                                            pi_points=self.registry.plant.pi_points))
 
     def _ingest(self, items: list[TagItems]) -> IngestReport:
         samples = sum(len(entry.items) for entry in items)
