@@ -28,8 +28,7 @@ from analytics.errors import AnalyticsError
 from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, UnitModel, diagnose_unit
 from analytics.plantwide.unit import MODEL_NOTE
 from analytics.simulation import ClosedLoopModel
-from service.commands import CliError, read_json_file
-from service.loop_csv import LoopCsvError, read_loop_csv
+from service.commands import CliError, read_json_file, read_loop_file
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
 
@@ -89,10 +88,7 @@ def _read_loop(
     path: Path, loop: str, args: argparse.Namespace
 ) -> tuple[float, FloatArray, FloatArray]:
     """Sampling interval, OP and PV of ``loop``; missing values are refused."""
-    try:
-        data = read_loop_csv(path, ts=args.ts, time=args.time, op=f"op_{loop}", pv=f"pv_{loop}")
-    except LoopCsvError as exc:
-        raise CliError(f"loop {loop}: {exc}") from None
+    data = read_loop_file(args, context=f"loop {loop}: ", op=f"op_{loop}", pv=f"pv_{loop}")
     assert data.op is not None and data.pv is not None  # both columns were named
     for role, values in (("op", data.op), ("pv", data.pv)):
         missing = np.flatnonzero(~np.isfinite(values))
