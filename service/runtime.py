@@ -40,7 +40,7 @@ from service.ingest import (
     ingest_csv,
     parse_batch,
 )
-from service.metrics import Metrics
+from service.metrics import Metrics, ServiceCollector
 from service.plant import PlantRegistry
 from service.security import ConcurrencyLimiter, RateLimiter
 from service.spool import (
@@ -134,6 +134,7 @@ class AppState:
         return LoopBuffers.from_store(session, loops, since=now - window_s, now=now)
 
     def __post_init__(self) -> None:
+        self.metrics.register(ServiceCollector(self.store, lambda: self.sources, self.clock))
         self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)
         self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,

@@ -135,6 +135,12 @@ class AnalysisJob:
     finish: Callable[[JobOutcome], None]
     lost_tries: int = 0
     deadline: float = math.inf
+    submitted: float = math.inf  # time.monotonic() of the last submission
+
+    @property
+    def kind(self) -> str:
+        """``loop`` or ``unit``: the first word of the label (the metrics' label)."""
+        return self.label.split(" ", 1)[0]
 
 
 def grid_rounds(last: float | None, now: float, interval_s: float) -> list[float]:
@@ -400,6 +406,7 @@ class AnalysisScheduler:
         again: list[AnalysisJob] = []  # retried or restarted: submitted before new jobs
         in_flight: dict[Future[dict[str, Any]], AnalysisJob] = {}
         drawing = True
+        began = time.monotonic()
         while True:
             if self._stop.is_set() or (scheduled and not self.leading):
                 drawing = False  # stopping or deposed: the next leader completes the round
@@ -409,7 +416,11 @@ class AnalysisScheduler:
                 if job is None:
                     drawing = False
                     break
-                job.deadline = time.monotonic() + self.settings.analysis_timeout_s
+                job.submitted = time.monotonic()
+                job.deadline = job.submitted + self.settings.analysis_timeout_s
+                if not job.lost_tries:
+                    self.metrics.observe("loopwatch_analysis_queue_seconds",
+                                         job.submitted - began, kind=job.kind)
                 in_flight[self.executor.submit(job.fn, *job.args)] = job
             if not in_flight:
                 return
@@ -438,9 +449,9 @@ class AnalysisScheduler:
                 self._lose(job, "timeout", "analysis took longer than "
                                            f"{self.settings.analysis_timeout_s:g} s", again)
 
-    @staticmethod
-    def _collect(future: Future[dict[str, Any]], job: AnalysisJob) -> AnalysisJob | None:
-        """Pass a finished job's outcome on; the job back if its worker process died."""
+    def _collect(self, future: Future[dict[str, Any]], job: AnalysisJob) -> AnalysisJob | None:
+        """Pass a finished job's outcome on (its duration to the histogram); the job back if
+        its worker process died."""
         try:
             result = future.result(timeout=0)
         except BrokenExecutor:
@@ -448,9 +459,12 @@ class AnalysisScheduler:
         except Exception as exc:  # a failing analysis must not stop the others
             error = f"{type(exc).__name__}: {exc}"
             log.warning("analysis of %s failed: %s", job.label, error)
-            job.finish(JobOutcome("failed", error=error))
+            outcome = JobOutcome("failed", error=error)
         else:
-            job.finish(JobOutcome("ok", result))
+            outcome = JobOutcome("ok", result)
+        self.metrics.observe("loopwatch_analysis_duration_seconds",
+                             time.monotonic() - job.submitted, kind=job.kind)
+        job.finish(outcome)
         return None
 
     def _take_unfinished(self, in_flight: dict[Future[dict[str, Any]], AnalysisJob]
