@@ -63,7 +63,8 @@ def test_the_scrape_parses_with_help_counters_and_histograms(service, tmp_path):
         family = families[f"loopwatch_connector_{name}"]
         assert family.type == "counter" and family.samples[0].name.endswith("_total")
     assert families["loopwatch_samples_stored"].type == "counter"
-    assert families["loopwatch_samples_stored"].samples[0].value == 6 * 3600  # OP, PV, SP of two loops
+    stored = families["loopwatch_samples_stored"].samples[0].value
+    assert stored == 6 * 3600  # OP, PV and SP of two loops
     assert families["loopwatch_analyses"].samples[0].labels == {"status": "ok"}
     assert families["loopwatch_loops"].type == "gauge"
     assert families["loopwatch_loops"].samples[0].value == 2
