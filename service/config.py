@@ -29,6 +29,7 @@ the reason.
 
 from __future__ import annotations
 
+import base64
 import json
 import re
 import secrets
@@ -326,7 +327,15 @@ class Settings(BaseSettings):
     )
     workers: int = Field(default=2, ge=1, description="analysis process-pool size")
     analysis_timeout_s: float = Field(default=60.0, gt=0)
-    webhook_url: str | None = None
+    webhook_url: str | None = Field(
+        default=None, description="where ticket and alarm events are POSTed (Standard Webhooks)")
+    webhook_secret: SecretStr | None = Field(
+        default=None, description="the webhook's signing secret: whsec_ and base64 key bytes")
+    smtp_host: str | None = Field(default=None, description="SMTP server for e-mail events")
+    smtp_port: int = Field(default=25, gt=0, lt=65536)
+    email_from: str = "loopwatch@localhost"
+    email_to: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
+        default_factory=list, description="recipients of e-mail events (comma-separated)")
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, lt=65536)
     cors_origins: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
@@ -411,6 +420,27 @@ class Settings(BaseSettings):
                     "(no path, no trailing slash)"
                 )
         return origins
+
+    @model_validator(mode="after")
+    def _notification_channels(self) -> Settings:
+        if self.webhook_url is not None:
+            if not self.webhook_url.startswith(("http://", "https://")):
+                raise ValueError(f"LOOPWATCH_WEBHOOK_URL must start with http:// or https://, "
+                                 f"got {self.webhook_url!r}")
+            secret = "" if self.webhook_secret is None else self.webhook_secret.get_secret_value()
+            try:
+                valid = secret.startswith("whsec_") and len(
+                    base64.b64decode(secret[6:], validate=True)) >= 16
+            except ValueError:
+                valid = False
+            if not valid:
+                raise ValueError(
+                    "LOOPWATCH_WEBHOOK_URL needs LOOPWATCH_WEBHOOK_SECRET: whsec_ and the "
+                    "base64 of at least 16 random bytes (the receiver checks the signature "
+                    "with it)")
+        if self.smtp_host is not None and not self.email_to:
+            raise ValueError("LOOPWATCH_SMTP_HOST needs LOOPWATCH_EMAIL_TO (the recipients)")
+        return self
 
     @model_validator(mode="after")
     def _no_unsafe_defaults(self) -> Settings:

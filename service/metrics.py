@@ -21,7 +21,7 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 
 from service.spool import is_store_outage
-from service.store.models import Alarm, Loop, Ticket
+from service.store.models import Alarm, Loop, Notification, Ticket
 
 if TYPE_CHECKING:
     from service.runtime import WatchedSource
@@ -114,7 +114,9 @@ class ServiceCollector(Collector):
 
     Gauges: loops, active alarms, open tickets, and per connector whether data
     comes now and its pending samples; counters (``_total``): per connector its
-    outages, their length, and its samples made, bad, delivered and given up.
+    outages, their length, and its samples made, bad, delivered and given up;
+    per notification channel the events delivered and failed (counters) and
+    pending (gauge), from the outbox.
     """
 
     def __init__(self, store: Store, sources: Callable[[], Sequence[WatchedSource]],
@@ -145,8 +147,24 @@ class ServiceCollector(Collector):
             }
             values = {name: float(session.scalar(query) or 0)
                       for name, (text, query) in counts.items()}
+            outbox = session.execute(
+                select(Notification.channel, Notification.state, func.count())
+                .group_by(Notification.channel, Notification.state)).all()
         for name, (text, _) in counts.items():
             yield GaugeMetricFamily(name, text, value=values[name])
+        finished = CounterMetricFamily(
+            "loopwatch_notifications", "Ticket and alarm events delivered or given up, by "
+            "channel", labels=["channel", "state"])
+        pending = GaugeMetricFamily("loopwatch_notifications_pending",
+                                    "Events waiting in the outbox, by channel",
+                                    labels=["channel"])
+        for channel, state, count in outbox:
+            if state == "pending":
+                pending.add_metric([channel], float(count))
+            else:
+                finished.add_metric([channel, state], float(count))
+        yield finished
+        yield pending
 
     def _connectors(self) -> Iterator[Metric]:
         now = self.clock()

@@ -56,7 +56,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.alarms import expire_shelves, update_alarms_from_analysis
+from service.alarms import alarm_payload, expire_shelves, update_alarms_from_analysis
 from service.analysis import (
     UnitWindows,
     UnitWindowsError,
@@ -73,10 +73,11 @@ from service.executors import end_executor, executor_slots, kills_workers
 from service.ingest import purge_samples
 from service.leader import Election, instance_name
 from service.metrics import Metrics
+from service.notifications import Outbox
 from service.plant import PlantRegistry
 from service.store.db import Store
 from service.store.models import AnalysisRun, IngestLog, Sample, UnitAnalysisRun
-from service.tickets import evidence_from_run, update_ticket_from_analysis
+from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
 
 __all__ = ["MAX_TRIES", "SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
 
@@ -176,7 +177,7 @@ class AnalysisScheduler:
         executor_factory: Callable[[], Executor],
         metrics: Metrics,
         clock: Callable[[], float] = time.time,
-        on_ticket: Callable[[int], None] | None = None,
+        outbox: Outbox | None = None,
         election: Election | None = None,
         instance: str | None = None,
     ) -> None:
@@ -188,7 +189,7 @@ class AnalysisScheduler:
         self.executor = executor_factory()
         self.metrics = metrics
         self.clock = clock
-        self.on_ticket = on_ticket
+        self.outbox = outbox
         self.election = election
         self.instance = instance or instance_name()
         self._stop = threading.Event()
@@ -513,8 +514,6 @@ class AnalysisScheduler:
             log.warning("loop %s, round %.0f: another scheduler stored its run first; "
                         "this result is dropped", loop.id, round_end)
             return None
-        if summary.ticket_id is not None and self.on_ticket is not None:
-            self.on_ticket(summary.ticket_id)
         return summary
 
     def _round_stored(self, loop_id: str, round_end: float) -> bool:
@@ -549,11 +548,14 @@ class AnalysisScheduler:
             session.flush()
             ticket_id = None
             if diagnosis is not None:
-                update_alarms_from_analysis(
+                changed = update_alarms_from_analysis(
                     session, loop.id,
                     oscillating=bool(run.oscillating), usable=bool(run.usable),
                     importance=loop.importance, message=self._message(diagnosis), now=now,
                 )
+                if self.outbox is not None:
+                    for alarm in changed:
+                        self.outbox.add(session, "alarm.changed", alarm_payload(alarm), now)
                 if ticketed:
                     ticket_id = self._update_ticket(session, loop, run, now, unit_id=None)
             return RunSummary(loop.id, run.id, outcome.status, run.verdict, ticket_id)
@@ -561,7 +563,7 @@ class AnalysisScheduler:
     def _update_ticket(self, session: Session, loop: LoopConfig, run: AnalysisRun, now: float,
                        unit_id: str | None) -> int | None:
         """The ticket rule (:func:`service.tickets.update_ticket_from_analysis`) for ``run``;
-        the id of the ticket opened or updated."""
+        the id of the ticket opened or updated (its event goes into the outbox)."""
         ticket = update_ticket_from_analysis(
             session, loop.id,
             valve_asset=loop.valve_asset or loop.id, location=loop.location or loop.unit,
@@ -569,7 +571,12 @@ class AnalysisScheduler:
             importance=loop.importance,
             confirmations_needed=self.settings.ticket_confirmations, now=now, unit_id=unit_id,
         )
-        return None if ticket is None else ticket.id
+        if ticket is None:
+            return None
+        if self.outbox is not None:
+            session.flush()
+            self.outbox.add(session, "ticket.changed", ticket_payload(ticket), now)
+        return ticket.id
 
     def _analyse_units(self, summaries: list[RunSummary], now: float,
                        round_end: float | None) -> list[RunSummary]:
@@ -609,8 +616,6 @@ class AnalysisScheduler:
                     ticket_id = self._update_ticket(session, loop, run, now, unit_id=unit_id)
                 if ticket_id is not None:
                     tickets[loop.id] = ticket_id
-                    if self.on_ticket is not None:
-                        self.on_ticket(ticket_id)
         return [replace(s, ticket_id=tickets[s.loop_id]) if s.loop_id in tickets else s
                 for s in summaries]
 

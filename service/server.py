@@ -51,11 +51,17 @@ from service.demo import DemoFeeder, demo_plant_config
 from service.executors import make_executor
 from service.leader import make_election
 from service.metrics import Metrics
+from service.notifications import (
+    Channel,
+    EmailChannel,
+    Outbox,
+    OutboxDispatcher,
+    WebhookChannel,
+)
 from service.plant import PlantRegistry, sync_plant
 from service.runtime import AppState, WatchedSource
 from service.scheduler import AnalysisScheduler
 from service.store.db import Store
-from service.tickets import TicketWebhook, get_ticket
 
 __all__ = [
     "INGEST_ROLES",
@@ -144,7 +150,7 @@ class Service:
     scheduler: AnalysisScheduler | None
     executor: Executor | None
     feeder: DemoFeeder | None
-    webhook: TicketWebhook | None
+    notifications: OutboxDispatcher | None
     admin_key: str
     key_generated: bool
     app: FastAPI
@@ -161,6 +167,8 @@ class Service:
             self.feeder.close_seam(self.state.ingest)
         if self.scheduler is not None:
             self.scheduler.start()
+        if self.notifications is not None:
+            self.notifications.start()
 
     def stop(self) -> None:
         """Stop reading and analysing; release the leadership, the pool and the database."""
@@ -170,12 +178,24 @@ class Service:
             self.feeder.stop()
         if self.scheduler is not None:
             self.scheduler.stop()
-        if self.webhook is not None:
-            self.webhook.close()
+        if self.notifications is not None:
+            self.notifications.stop()
         if self.scheduler is not None:
             self.scheduler.executor.shutdown(wait=False, cancel_futures=True)
         self.state.close_analyses()
         self.state.store.close()
+
+
+def notification_channels(settings: Settings) -> dict[str, Channel]:
+    """The notification channels the settings configure (webhook, e-mail), by name."""
+    channels: dict[str, Channel] = {}
+    if settings.webhook_url is not None and settings.webhook_secret is not None:
+        channels["webhook"] = WebhookChannel(settings.webhook_url,
+                                             settings.webhook_secret.get_secret_value())
+    if settings.smtp_host is not None:
+        channels["email"] = EmailChannel(settings.smtp_host, settings.smtp_port,
+                                         settings.email_from, settings.email_to)
+    return channels
 
 
 def _register(store: Store, plant: PlantConfig, admin_key: str, now: float) -> PlantConfig:
@@ -241,12 +261,8 @@ def build_service(
     metrics = Metrics()
     state = AppState(settings=settings, registry=PlantRegistry(plant), store=store,
                      buffers=buffers, metrics=metrics, clock=clock)
-    webhook = TicketWebhook(settings.webhook_url) if settings.webhook_url else None
-
-    def post_ticket(ticket_id: int) -> None:
-        assert webhook is not None
-        with store.session() as session:
-            webhook.send(get_ticket(session, ticket_id))
+    channels = notification_channels(settings)
+    dispatcher = OutboxDispatcher(store, channels, clock=time.time) if channels else None
 
     scheduler = None
     if schedules:
@@ -256,7 +272,7 @@ def build_service(
             executor_factory=executor_factory or (
                 lambda: given if given is not None else make_executor(settings)),
             metrics=metrics, clock=clock,
-            on_ticket=post_ticket if webhook is not None else None,
+            outbox=Outbox(list(channels)) if channels else None,
             election=make_election(store, lease_s=settings.leader_lease_s),
         )
         executor = scheduler.executor
@@ -269,7 +285,7 @@ def build_service(
         else:
             connectors = connector_factory(plant, owns, state.ingest)
     state.sources = list(connectors)
-    return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
+    return Service(state, scheduler, executor, feeder, dispatcher, admin_key, generated,
                    create_app(state), role=role, connectors=connectors)
 
 

@@ -36,22 +36,15 @@ Every change is a :class:`~service.store.models.TicketEvent` with its actor.
 Invalid transitions raise :class:`TicketStateError` (HTTP 409 at the API edge).
 
 Priority, 1 (very high) .. 4 (low) as in SAP PM, see :func:`ticket_priority`.
-CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets can be
-posted to a URL by :class:`TicketWebhook`.
+CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets are
+notified by webhook and e-mail through the outbox (:mod:`service.notifications`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import queue
 import textwrap
-import threading
-import time
-import urllib.error
-import urllib.request
-import uuid
 from datetime import UTC, datetime
 from typing import Any, Literal, get_args
 
@@ -76,7 +69,6 @@ __all__ = [
     "TicketNotFoundError",
     "TicketState",
     "TicketStateError",
-    "TicketWebhook",
     "change_ticket_state",
     "check_transition",
     "evidence_from_run",
@@ -684,7 +676,8 @@ def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
 
 
 def ticket_payload(ticket: Ticket) -> dict[str, Any]:
-    """What the webhook posts: the ticket, its latest change and its CMMS mapping."""
+    """What a notification of a ticket's change carries: the ticket, its latest change and
+    its CMMS mapping."""
     last = ticket.events[-1] if ticket.events else None
     change = None if last is None else {
         "at": last.at, "from_state": last.from_state, "to_state": last.to_state,
@@ -695,102 +688,3 @@ def ticket_payload(ticket: Ticket) -> dict[str, Any]:
         "change": change,
         "cmms": to_cmms_notification(ticket),
     }
-
-
-class TicketWebhook:
-    """Posts new and changed tickets as JSON to ``url`` from a background thread.
-
-    :meth:`send` only queues the payload, so the analysis never waits.  A
-    delivery is tried ``1 + retries`` times, waiting ``backoff_s``, then
-    twice as long, and so on between attempts; every attempt carries the same
-    ``Idempotency-Key`` header so a receiver can drop repeats.  Failures are
-    logged and counted in :attr:`failed`, never raised.  :meth:`close` (or
-    leaving the ``with`` block) delivers what is queued, then stops.
-
-    Attributes
-    ----------
-    delivered : int
-        Payloads the receiver accepted (2xx).
-    failed : int
-        Payloads given up after the last retry, or sent after :meth:`close`.
-    """
-
-    def __init__(
-        self, url: str, *, retries: int = 3, backoff_s: float = 1.0, timeout_s: float = 10.0
-    ) -> None:
-        if not url.startswith(("http://", "https://")):
-            raise ValueError(f"webhook URL must start with http:// or https://, got {url!r}")
-        if retries < 0 or backoff_s < 0 or timeout_s <= 0:
-            raise ValueError(
-                "webhook needs retries >= 0, backoff_s >= 0 and timeout_s > 0, got "
-                f"retries={retries}, backoff_s={backoff_s}, timeout_s={timeout_s}"
-            )
-        self.url = url
-        self.retries = retries
-        self.backoff_s = backoff_s
-        self.timeout_s = timeout_s
-        self.delivered = 0
-        self.failed = 0
-        self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="ticket-webhook", daemon=True)
-        self._thread.start()
-
-    def __enter__(self) -> TicketWebhook:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-    def send(self, ticket: Ticket) -> None:
-        """Queue the ticket for posting (reads the ticket now, posts later)."""
-        if self._closed:
-            self.failed += 1
-            logger.warning("ticket webhook closed: ticket %s not sent to %s", ticket.id, self.url)
-            return
-        body = json.dumps(ticket_payload(ticket)).encode()
-        self._queue.put((uuid.uuid4().hex, body))
-
-    def close(self, timeout_s: float | None = None) -> None:
-        """Deliver what is queued (waiting up to ``timeout_s``), then stop the thread."""
-        if not self._closed:
-            self._closed = True
-            self._queue.put(None)
-        self._thread.join(timeout_s)
-
-    def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
-            self._deliver(*item)
-
-    def _deliver(self, key: str, body: bytes) -> None:
-        attempts = 1 + self.retries
-        error: Exception | None = None
-        for attempt in range(1, attempts + 1):
-            try:
-                self._post(key, body)
-            except Exception as exc:  # any failure is logged, never raised into the caller
-                error = exc
-                logger.info("ticket webhook: attempt %d/%d to %s failed: %s",
-                            attempt, attempts, self.url, exc)
-            else:
-                self.delivered += 1
-                return
-            if attempt < attempts:
-                time.sleep(self.backoff_s * 2 ** (attempt - 1))
-        self.failed += 1
-        logger.warning("ticket webhook: delivery to %s failed after %d attempts: %s",
-                       self.url, attempts, error)
-
-    def _post(self, key: str, body: bytes) -> None:
-        request = urllib.request.Request(
-            self.url,
-            data=body,
-            headers={"Content-Type": "application/json", "Idempotency-Key": key},
-            method="POST",
-        )
-        try:
-            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
-                response.read()
-        except urllib.error.HTTPError as exc:
-            exc.close()
-            raise
