@@ -164,6 +164,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         serve(args.config, host=args.host, port=args.port, role=args.role)
+    except KeyboardInterrupt:  # Ctrl+C: uvicorn has shut down cleanly, then re-raised it
+        print("loopwatch: stopped", file=sys.stderr)
     except (ConfigError, ExecutorError) as exc:
         raise CliError(str(exc)) from None
     except ValidationError as exc:

@@ -337,6 +337,9 @@ class Settings(BaseSettings):
     email_to: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
         default_factory=list, description="recipients of e-mail events (comma-separated)")
     host: str = "127.0.0.1"
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="console log lines: text, or JSON objects with the "
+                                    "request id (for a log collector)")
     port: int = Field(default=8000, ge=0, lt=65536)
     cors_origins: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
         default_factory=list,

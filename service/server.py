@@ -28,6 +28,8 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
+import socket
+import sys
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
@@ -45,11 +47,12 @@ from connectors.base import SampleSink
 from service.api.app import create_app
 from service.auth import ensure_bootstrap_key
 from service.buffer import LoopBuffers
-from service.config import PlantConfig, Settings, load_plant_config
+from service.config import ConfigError, PlantConfig, Settings, load_plant_config
 from service.connector_setup import build_connectors
 from service.demo import DemoFeeder, demo_plant_config
 from service.executors import make_executor
 from service.leader import make_election
+from service.logs import configure_logging
 from service.metrics import Metrics
 from service.notifications import (
     Channel,
@@ -351,6 +354,7 @@ def uvicorn_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
         limit_concurrency=settings.max_connections,
         h11_max_incomplete_event_size=MAX_HEADER_BYTES,
         proxy_headers=True, forwarded_allow_ips=settings.forwarded_allow_ips,
+        log_config=None,  # uvicorn's records go to the handler of service.logs
     )
 
 
@@ -377,19 +381,16 @@ subscription publish and every standard node it skips); their warnings show."""
 def serve(config: Path | None, *, host: str | None = None, port: int | None = None,
           role: str | None = None) -> None:
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
-    for library in QUIET_LIBRARIES:  # they log every publish and node at INFO
-        logging.getLogger(library).setLevel(logging.WARNING)
     plant = load_plant_config(config) if config is not None else None
     settings = Settings()
+    configure_logging(settings.log_format, QUIET_LIBRARIES)
     updates: dict[str, Any] = {
         k: v for k, v in (("host", host), ("port", port), ("role", role)) if v is not None
     }
     if plant is None:
         updates |= {k: v for k, v in DEMO_SETTINGS.items() if k not in settings.model_fields_set}
     settings = settings.model_copy(update=updates)
+    check_port_free(settings.host, settings.port)  # before the plant starts and back-fills
     service = build_service(settings, plant, connector_factory=build_connectors)
 
     @asynccontextmanager
@@ -398,18 +399,58 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
             yield
 
     service.app.router.lifespan_context = lifespan
-    url = f"http://{settings.host}:{settings.port}"
-    print(f"loopwatch: role {settings.role}; dashboard at {url}/  (API schema at "
-          f"{url}/openapi.json, with a key)")
-    if service.key_generated:
-        print(f"loopwatch: admin API key for this run: {service.admin_key}")
-        print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
-        print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
-    if service.feeder is not None:
-        simulated = service.feeder.plant
-        print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
-              f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
-              f"{simulated.modbus_port}), the last {settings.window_s:g} s back-filled; "
-              "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
-              f"{settings.analysis_interval_s:g} s")
-    uvicorn.Server(uvicorn_config(service.app, settings)).run()
+
+    def announce() -> None:
+        url = f"http://{settings.host}:{settings.port}"
+        print(f"loopwatch: listening; role {settings.role}; dashboard at {url}/  (API docs "
+              f"at {url}/docs, with a key)")
+        if service.key_generated:
+            print(f"loopwatch: admin API key for this run: {service.admin_key}")
+            print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
+            print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
+        if service.feeder is not None:
+            simulated = service.feeder.plant
+            print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
+                  f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
+                  f"{simulated.modbus_port}), the last {settings.window_s:g} s back-filled; "
+                  "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
+                  f"{settings.analysis_interval_s:g} s")
+        sys.stdout.flush()
+
+    AnnouncingServer(uvicorn_config(service.app, settings), announce).run()
+
+
+class AnnouncingServer(uvicorn.Server):
+    """A uvicorn server that calls ``announce`` once it listens (so the URL and the key
+    printed are those of a server that answers)."""
+
+    def __init__(self, config: uvicorn.Config, announce: Callable[[], None]) -> None:
+        super().__init__(config)
+        self.announce = announce
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        """Start listening, then announce (unless the start failed)."""
+        await super().startup(sockets)
+        if not self.should_exit:
+            self.announce()
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse to start when ``host:port`` is taken (port 0: any free port, never taken).
+
+    Raises
+    ------
+    ConfigError
+        The port is in use, with how to choose another.
+    """
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot listen on {host}:{port}: {exc.strerror} (another loopwatch or "
+                f"another server has it); choose another port with --port P or "
+                f"LOOPWATCH_PORT=P, e.g. --port {port + 1}") from None

@@ -17,6 +17,7 @@ from service.api.deps import (
     require,
     row_id,
 )
+from service.logs import audit
 from service.store.models import Ticket
 from service.tickets import (
     TICKET_STATES,
@@ -132,7 +133,9 @@ def update(ticket_id: TicketId, body: TicketUpdate, session: SessionDep, state: 
            key: Maintenance) -> TicketDetail:
     """Move the ticket along open -> acknowledged -> scheduled -> done (or cancelled)."""
     _get(session, ticket_id)
-    ticket = change_ticket_state(session, ticket_id, body.state,
-                                 actor=f"{key.name} ({key.role})", now=state.clock(),
+    actor = f"{key.name} ({key.role})"
+    ticket = change_ticket_state(session, ticket_id, body.state, actor=actor, now=state.clock(),
                                  note=body.note)
+    audit(actor, "ticket state change", f"ticket {ticket.id} ({ticket.valve_asset})",
+          to_state=body.state, note=body.note)
     return _detail(ticket)
