@@ -19,10 +19,16 @@ loop tag of each PI point)::
         importance: high
     pi_points:
       '\\\\PISRV01\\FIC101.PV': FIC101.PV
+    cmms:
+      sap_pm: {planning_plant: "1000", work_center: INST-01}
+      maximo: {siteid: BEDFORD, orgid: EAGLENA}
 
 Signals are converted to % of span with ``ranges`` before analysis, so S and J
 come out in % of valve travel.  A unit may carry its process matrix
-(:class:`UnitProcessConfig`) for the limit-cycle prediction of its loops.  An
+(:class:`UnitProcessConfig`) for the limit-cycle prediction of its loops.  The
+CMMS fields of tickets (:class:`CmmsConfig`: SAP PM planning plant, work centre
+and catalogue codes; Maximo site and organisation) are set for the plant, a
+unit or a loop; the most specific wins, field by field.  An
 invalid file is refused at start with the key path (``loops[2].tags.pv``) and
 the reason.
 """
@@ -110,6 +116,93 @@ class TagsConfig(_Strict):
         return [(s, t) for s in ("op", "pv", "sp", "mv") if (t := getattr(self, s)) is not None]
 
 
+def _code(value: str | None, what: str, pattern: str, form: str) -> str | None:
+    """``value`` if it is a valid CMMS code (``pattern``), else an error saying the form."""
+    if value is not None and not re.fullmatch(pattern, value):
+        raise ValueError(f"{what} must be {form}, got {value!r}")
+    return value
+
+
+class SapPmConfig(_Strict):
+    """SAP PM fields of the M2 notifications of a loop's tickets (BAPI_ALM_NOTIF_CREATE)."""
+
+    planning_plant: str | None = Field(default=None, description="IWERK: maintenance "
+                                       "planning plant, 4 letters or digits")
+    work_center: str | None = Field(default=None, description="ARBPL: main work centre, "
+                                    "1-8 characters")
+    code_group: str | None = Field(default=None, description="coding code group (QMGRP)")
+    coding: str | None = Field(default=None, description="coding code (QMCOD)")
+    damage_code_group: str | None = None
+    damage_code: str | None = None
+    cause_code_group: str | None = None
+    cause_code: str | None = None
+    object_part_code_group: str | None = None
+    object_part_code: str | None = None
+
+    @field_validator("planning_plant")
+    @classmethod
+    def _plant(cls, value: str | None) -> str | None:
+        return _code(value, "SAP planning plant (IWERK)", r"[A-Z0-9]{4}",
+                     "4 upper-case letters or digits, e.g. '1000'")
+
+    @field_validator("work_center")
+    @classmethod
+    def _work_center(cls, value: str | None) -> str | None:
+        return _code(value, "SAP work centre (ARBPL)", r"[A-Z0-9_/-]{1,8}",
+                     "1-8 upper-case letters, digits, _ / or -")
+
+    @field_validator("code_group", "damage_code_group", "cause_code_group",
+                     "object_part_code_group")
+    @classmethod
+    def _group(cls, value: str | None) -> str | None:
+        return _code(value, "an SAP catalogue code group", r"[A-Z0-9_-]{1,8}",
+                     "1-8 upper-case letters, digits, _ or -")
+
+    @field_validator("coding", "damage_code", "cause_code", "object_part_code")
+    @classmethod
+    def _catalogue_code(cls, value: str | None) -> str | None:
+        return _code(value, "an SAP catalogue code", r"[A-Z0-9_-]{1,4}",
+                     "1-4 upper-case letters, digits, _ or -")
+
+    @model_validator(mode="after")
+    def _codes_with_groups(self) -> SapPmConfig:
+        for kind in ("", "damage_", "cause_", "object_part_"):
+            group, code = f"{kind}code_group", ("coding" if not kind else f"{kind}code")
+            if (getattr(self, group) is None) != (getattr(self, code) is None):
+                raise ValueError(f"{group} and {code} go together: a catalogue code is "
+                                 "read within its code group")
+        return self
+
+
+class MaximoConfig(_Strict):
+    """Maximo fields of the work orders of a loop's tickets (``mxwo``)."""
+
+    siteid: str | None = Field(default=None, description="SITEID, 1-8 characters")
+    orgid: str | None = Field(default=None, description="ORGID, 1-8 characters")
+
+    @field_validator("siteid", "orgid")
+    @classmethod
+    def _maximo_id(cls, value: str | None) -> str | None:
+        return _code(value, "a Maximo site or organisation id", r"[A-Z0-9_-]{1,8}",
+                     "1-8 upper-case letters, digits, _ or -")
+
+
+class CmmsConfig(_Strict):
+    """CMMS fields of tickets, for the plant, a unit or a loop (the most specific wins,
+    field by field)."""
+
+    sap_pm: SapPmConfig = Field(default_factory=SapPmConfig)
+    maximo: MaximoConfig = Field(default_factory=MaximoConfig)
+
+    def over(self, base: CmmsConfig) -> CmmsConfig:
+        """These settings, with ``base``'s where these leave a field unset."""
+        mine = self.model_dump(exclude_none=True)
+        merged = base.model_dump(exclude_none=True)
+        for system, fields in mine.items():
+            merged.setdefault(system, {}).update(fields)
+        return CmmsConfig.model_validate(merged)
+
+
 class LoopConfig(_Strict):
     """One control loop."""
 
@@ -130,6 +223,8 @@ class LoopConfig(_Strict):
     valve_asset: str | None = None
     location: str | None = None
     importance: Importance = "medium"
+    cmms: CmmsConfig | None = Field(default=None, description="CMMS fields of its tickets "
+                                    "(over its unit's and the plant's)")
 
     @field_validator("ranges")
     @classmethod
@@ -184,6 +279,8 @@ class UnitConfig(_Strict):
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
     name: str = ""
     process: UnitProcessConfig | None = None
+    cmms: CmmsConfig | None = Field(default=None, description="CMMS fields of the tickets of "
+                                    "its loops (over the plant's)")
 
 
 class PlantConfig(_Strict):
@@ -192,6 +289,9 @@ class PlantConfig(_Strict):
     units: list[UnitConfig] = Field(default_factory=list)
     loops: list[LoopConfig] = Field(default_factory=list)
     connectors: dict[str, Any] = Field(default_factory=dict)
+    cmms: CmmsConfig = Field(default_factory=CmmsConfig,
+                             description="CMMS fields of every ticket, unless a unit or loop "
+                                         "sets them")
     pi_points: dict[str, str] = Field(
         default_factory=dict,
         description="PI point or AF attribute, by the Path or Name a PI Web API answer gives "
@@ -223,6 +323,19 @@ class PlantConfig(_Strict):
                         f"{unit.id!r}"
                     )
         return self
+
+    def cmms_of(self, loop_id: str) -> CmmsConfig:
+        """The CMMS fields of the tickets of loop ``loop_id``: the loop's over its unit's
+        over the plant's (the plant's for a loop no longer configured)."""
+        cmms = self.cmms
+        loop = next((x for x in self.loops if x.id == loop_id), None)
+        if loop is None:
+            return cmms
+        unit = next((u for u in self.units if u.id == loop.unit), None)
+        for level in (unit.cmms if unit is not None else None, loop.cmms):
+            if level is not None:
+                cmms = level.over(cmms)
+        return cmms
 
     def loop(self, loop_id: str) -> LoopConfig:
         """The loop with id ``loop_id`` (KeyError if absent)."""

@@ -575,7 +575,8 @@ class AnalysisScheduler:
             return None
         if self.outbox is not None:
             session.flush()
-            self.outbox.add(session, "ticket.changed", ticket_payload(ticket), now)
+            self.outbox.add(session, "ticket.changed",
+                            ticket_payload(ticket, self.registry.plant.cmms_of(loop.id)), now)
         return ticket.id
 
     def _analyse_units(self, summaries: list[RunSummary], now: float,

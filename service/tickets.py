@@ -54,7 +54,7 @@ from sqlalchemy.orm import Session, selectinload
 from analytics.diagnosis import PATTERNS
 from analytics.valves import sj_to_fsfd
 from service.analysis import stiction_pattern_text
-from service.config import Importance
+from service.config import CmmsConfig, Importance
 from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
 
 __all__ = [
@@ -601,7 +601,7 @@ def get_ticket(session: Session, ticket_id: int) -> Ticket:
     return ticket
 
 
-def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
+def to_cmms_notification(ticket: Ticket, cmms: CmmsConfig | None = None) -> dict[str, Any]:
     """The ticket as a SAP PM M2 notification and as a Maximo work order.
 
     ``sap_pm``: the header fields of ``BAPI_ALM_NOTIF_CREATE`` (NOTIFHEADER)
@@ -619,6 +619,14 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
     (corrective), ``status`` "WAPPR", ``reportdate`` (ISO 8601), and
     ``externalrefid``/``sourcesysid`` identifying the ticket here.  A work
     order has no malfunction-start field: the long text carries it.
+
+    ``cmms`` (the plant file's settings of the ticket's loop,
+    :meth:`service.config.PlantConfig.cmms_of`) adds what is set of:
+    ``PLANPLANT``, ``WORK_CNTR`` and the coding ``CODE_GROUP``/``CODING`` to the
+    SAP header, the damage (``D_CODEGRP``/``D_CODE``) and object part
+    (``DL_CODEGRP``/``DL_CODE``) codes as ``ITEM``, the cause codes
+    (``CAUSE_CODEGRP``/``CAUSE_CODE``) as ``CAUSE``; ``siteid`` and ``orgid`` to
+    the Maximo work order.
     """
     start = _utc(ticket.malfunction_start)
     long_text = (
@@ -629,7 +637,7 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
         for paragraph in long_text.split("\n")
         for line in textwrap.wrap(paragraph, LONG_TEXT_LINE_CHARS)
     ]
-    return {
+    notification: dict[str, Any] = {
         "sap_pm": {
             "NOTIF_TYPE": "M2",
             "SHORT_TEXT": _short_text(ticket.title),
@@ -654,6 +662,28 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
             "sourcesysid": "LOOPWATCH",
         },
     }
+    if cmms is not None:
+        _add_settings(notification, cmms)
+    return notification
+
+
+SAP_HEADER_FIELDS = {"planning_plant": "PLANPLANT", "work_center": "WORK_CNTR",
+                     "code_group": "CODE_GROUP", "coding": "CODING"}
+SAP_ITEM_FIELDS = {"damage_code_group": "D_CODEGRP", "damage_code": "D_CODE",
+                   "object_part_code_group": "DL_CODEGRP", "object_part_code": "DL_CODE"}
+SAP_CAUSE_FIELDS = {"cause_code_group": "CAUSE_CODEGRP", "cause_code": "CAUSE_CODE"}
+"""Plant-file SAP PM settings -> BAPI_ALM_NOTIF_CREATE fields (header, item, cause)."""
+
+
+def _add_settings(notification: dict[str, Any], cmms: CmmsConfig) -> None:
+    """Add the fields ``cmms`` sets to ``notification``."""
+    sap = cmms.sap_pm.model_dump(exclude_none=True)
+    header = {SAP_HEADER_FIELDS[k]: v for k, v in sap.items() if k in SAP_HEADER_FIELDS}
+    item = {SAP_ITEM_FIELDS[k]: v for k, v in sap.items() if k in SAP_ITEM_FIELDS}
+    cause = {SAP_CAUSE_FIELDS[k]: v for k, v in sap.items() if k in SAP_CAUSE_FIELDS}
+    notification["sap_pm"] |= header | ({"ITEM": item} if item else {}) | (
+        {"CAUSE": cause} if cause else {})
+    notification["maximo"] |= cmms.maximo.model_dump(exclude_none=True)
 
 
 def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
@@ -675,7 +705,7 @@ def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
     }
 
 
-def ticket_payload(ticket: Ticket) -> dict[str, Any]:
+def ticket_payload(ticket: Ticket, cmms: CmmsConfig | None = None) -> dict[str, Any]:
     """What a notification of a ticket's change carries: the ticket, its latest change and
     its CMMS mapping."""
     last = ticket.events[-1] if ticket.events else None
@@ -686,5 +716,5 @@ def ticket_payload(ticket: Ticket) -> dict[str, Any]:
     return {
         "ticket": ticket_to_dict(ticket),
         "change": change,
-        "cmms": to_cmms_notification(ticket),
+        "cmms": to_cmms_notification(ticket, cmms),
     }

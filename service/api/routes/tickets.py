@@ -123,9 +123,12 @@ def detail(ticket_id: TicketId, session: SessionDep, _: Reader) -> TicketDetail:
 
 
 @router.get("/{ticket_id}/cmms")
-def cmms(ticket_id: TicketId, session: SessionDep, _: Reader) -> dict[str, Any]:
-    """The ticket as a SAP PM M2 notification and a Maximo work order."""
-    return to_cmms_notification(_get(session, ticket_id))
+def cmms(ticket_id: TicketId, session: SessionDep, state: StateDep,
+         _: Reader) -> dict[str, Any]:
+    """The ticket as a SAP PM M2 notification and a Maximo work order, with the CMMS fields
+    the plant file sets for its loop (or unit, or the plant)."""
+    ticket = _get(session, ticket_id)
+    return to_cmms_notification(ticket, state.registry.plant.cmms_of(ticket.loop_id))
 
 
 @router.patch("/{ticket_id}", response_model=TicketDetail)
