@@ -14,9 +14,10 @@ import json
 import sys
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from service.loop_csv import LoopCsvError, LoopData, read_loop_csv
+if TYPE_CHECKING:
+    from service.loop_csv import LoopData
 
 __all__ = ["COMMAND_MODULES", "CliError", "command_modules", "read_json_file", "read_loop_file"]
 
@@ -58,6 +59,9 @@ def read_loop_file(args: argparse.Namespace, *, min_samples: int = 2, context: s
     CliError
         The file cannot be read as loop data (the message, after ``context``).
     """
+    # imported here: a command such as plant-sim loads nothing else of the service
+    from service.loop_csv import LoopCsvError, read_loop_csv
+
     names = {name: getattr(args, name, None) for name in ("time", "op", "pv", "sp", "mv")}
     try:
         data = read_loop_csv(args.file, ts=args.ts, min_samples=min_samples,

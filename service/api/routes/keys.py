@@ -65,7 +65,7 @@ def create(body: KeyCreate, session: SessionDep, state: StateDep, admin: Admin) 
     """Create a key; store the returned ``key`` now, it cannot be shown again."""
     key, row = create_key(session, body.name, body.role, state.clock())
     session.flush()
-    audit(f"{admin.name} ({admin.role})", "created API key", f"{row.key_id} ({row.name})",
+    audit(admin.actor, "created API key", f"{row.key_id} ({row.name})",
           role=row.role)
     return KeyCreated(**_public(row).model_dump(), key=key)
 
@@ -88,6 +88,6 @@ def revoke(key_id: Annotated[int, row_id("the key's row id (`id`)")], session: S
         raise HTTPException(409, str(exc)) from None
     except AuthError:
         raise HTTPException(404, "API key not found") from None
-    audit(f"{admin.name} ({admin.role})", "revoked API key", f"{row.key_id} ({row.name})",
+    audit(admin.actor, "revoked API key", f"{row.key_id} ({row.name})",
           role=row.role)
     return _public(row)

@@ -379,7 +379,7 @@ def put_loop(
         raise HTTPException(409, str(exc)) from None
     session.flush()
     state.buffers.add_loop(loop)
-    audit(f"{admin.name} ({admin.role})", "added loop" if created else "changed loop", loop_id,
+    audit(admin.actor, "added loop" if created else "changed loop", loop_id,
           config=loop.model_dump(mode="json", exclude_defaults=True))
     return get_loop(loop_id, session, admin)
 

@@ -136,7 +136,7 @@ def update(ticket_id: TicketId, body: TicketUpdate, session: SessionDep, state: 
            key: Maintenance) -> TicketDetail:
     """Move the ticket along open -> acknowledged -> scheduled -> done (or cancelled)."""
     _get(session, ticket_id)
-    actor = f"{key.name} ({key.role})"
+    actor = key.actor
     ticket = change_ticket_state(session, ticket_id, body.state, actor=actor, now=state.clock(),
                                  note=body.note)
     audit(actor, "ticket state change", f"ticket {ticket.id} ({ticket.valve_asset})",
