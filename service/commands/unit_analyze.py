@@ -15,7 +15,6 @@ cycle (:func:`analytics.plantwide.locate_sticky_valves`).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -28,7 +27,9 @@ from analytics.errors import AnalyticsError
 from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, UnitModel, diagnose_unit
 from analytics.plantwide.unit import MODEL_NOTE
 from analytics.simulation import ClosedLoopModel
+from connectors.base import read_csv_rows
 from service.commands import CliError, read_json_file, read_loop_file
+from service.loop_csv import LoopCsvError
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
 
@@ -58,13 +59,11 @@ def register(commands: Any) -> None:
 
 
 def _header(path: Path) -> list[str]:
+    """The column names, read as the loops' data will be (commas or semicolons, a BOM)."""
     try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            return next(csv.reader(handle), [])
-    except FileNotFoundError:
-        raise CliError(f"{path}: no such file") from None
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise CliError(f"{path}: not a readable CSV file ({exc})") from None
+        return read_csv_rows(path, LoopCsvError)[0]
+    except LoopCsvError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _loop_names(path: Path, wanted: str | None) -> list[str]:
