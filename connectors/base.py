@@ -22,9 +22,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
+import io
 import logging
 import math
 import random
+import re
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -375,12 +377,19 @@ MISSING = frozenset({"", "nan", "NaN", "NAN", "null", "NULL", "NA"})
 """Cell texts that mean "no value": read as NaN and sent as bad samples."""
 
 
+DECIMAL_COMMA = re.compile(r"[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?")
+"""A number written with a decimal comma (``12,5``, ``-0,25E3``)."""
+
+
 def read_csv_rows(
     path: Path, error: type[ValueError]
 ) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """The header and the data rows of a CSV file, each row with its row number.
 
-    The header is row 1; blank rows are skipped.
+    The header is row 1; blank rows are skipped; a byte-order mark is dropped.
+    A file whose header has more semicolons than commas is read as
+    semicolon-separated, and its numbers with a decimal comma (``12,5``) are
+    given a decimal point, as spreadsheets in most of Europe write them.
 
     Raises
     ------
@@ -389,8 +398,11 @@ def read_csv_rows(
         or (with the row) a row whose length differs from the header's.
     """
     try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            table = list(csv.reader(handle))
+        text = path.read_text(encoding="utf-8-sig")
+        first = text.split("\n", 1)[0]
+        semicolons = first.count(";") > first.count(",")
+        table = list(csv.reader(io.StringIO(text, newline=""),
+                                delimiter=";" if semicolons else ","))
     except FileNotFoundError:
         raise error(f"{path}: no such file") from None
     except UnicodeDecodeError as exc:
@@ -406,6 +418,9 @@ def read_csv_rows(
     for number, row in body:
         if len(row) != len(header):
             raise error(f"{path}, row {number}: {len(row)} cells, the header has {len(header)}")
+    if semicolons:
+        body = [(number, [cell.replace(",", ".") if DECIMAL_COMMA.fullmatch(cell.strip())
+                          else cell for cell in row]) for number, row in body]
     return header, body
 
 

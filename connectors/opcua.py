@@ -21,14 +21,26 @@ connection; when the transport is lost, a request fails, or the watchdog
 finds the subscription stale (no data and no keep-alive within
 ``watchdog_s``), the connection is dropped and made again after a capped
 exponential backoff, and the subscription is created anew.  The time the
-data was missing is recorded as an :class:`~connectors.base.Outage`, so analyses know
-the window is broken.
+connection was down is recorded as an :class:`~connectors.base.Outage`.  After
+a reconnect, the samples missed since the last one of each node (at most
+``backfill_max_s`` back) are read with HistoryRead (``read_raw_history``) from
+the nodes whose access level allows it, so the buffers have no hole where the
+server keeps history; samples the new subscription has already delivered are
+not sent twice.
+
+With a security policy (Basic256Sha256, Aes128Sha256RsaOaep or
+Aes256Sha256RsaPss) the server's certificate is validated against the trust
+store in ``trusted_certificates`` (asyncua's ``CertificateValidator`` and
+``TrustStore``: validity, application URI, key usage, trust); a server whose
+certificate is not trusted is refused with an error that names the
+certificate and the directory to copy it into.
 
 References
 ----------
 OPC Foundation, *OPC 10000-4 Unified Architecture Part 4: Services*, 5.12
-(MonitoredItem services, DataChangeFilter) and 5.13 (Subscription services,
-keep-alive and lifetime counts).
+(MonitoredItem services, DataChangeFilter), 5.13 (Subscription services,
+keep-alive and lifetime counts) and 5.10.3 (HistoryRead); OPC 10000-3, 5.6.2
+(AccessLevel: HistoryRead bit); OPC 10000-7 (security policies).
 """
 
 from __future__ import annotations
@@ -41,14 +53,26 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any, Literal
 
 from asyncua import Client, ua
 from asyncua.common.subscription import DataChangeEvent, StatusChangeEvent, Subscription
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua.crypto.security_policies import (
+    SecurityPolicy,
+    SecurityPolicyAes128Sha256RsaOaep,
+    SecurityPolicyAes256Sha256RsaPss,
+    SecurityPolicyBasic256Sha256,
+)
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from asyncua.server.internal_session import ServiceError
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes
 from pydantic import (
     BaseModel,
     ConfigDict,
+    DirectoryPath,
     Field,
     FilePath,
     SecretStr,
@@ -74,6 +98,13 @@ MONITORED_ITEMS_PER_CALL = 1000
 DISCONNECT_TIMEOUT_S = 2.0
 """How long a clean disconnect may take before the connection is simply dropped."""
 
+SECURITY_POLICIES: dict[str, type[SecurityPolicy]] = {
+    "Basic256Sha256": SecurityPolicyBasic256Sha256,
+    "Aes128Sha256RsaOaep": SecurityPolicyAes128Sha256RsaOaep,
+    "Aes256Sha256RsaPss": SecurityPolicyAes256Sha256RsaPss,
+}
+"""The security policies a connector may use, by their names in the configuration."""
+
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -98,11 +129,14 @@ class OpcUaNodeConfig(_Strict):
 class OpcUaEndpointConfig(_Strict):
     """One OPC UA endpoint: how to connect, how to subscribe, and which nodes.
 
-    ``security_policy: Basic256Sha256`` needs ``security_mode`` Sign or
-    SignAndEncrypt and the client's ``certificate`` and ``private_key`` (PEM
-    or DER); without ``server_certificate`` the server's certificate is taken
-    from its endpoint list, unchecked.  The server sends a keep-alive three
-    times per ``watchdog_s`` when it has no data.
+    A ``security_policy`` (one of :data:`SECURITY_POLICIES`) needs
+    ``security_mode`` Sign or SignAndEncrypt, the client's ``certificate`` and
+    ``private_key`` (PEM or DER), and a way to trust the server: the directory
+    ``trusted_certificates`` (the server certificates, or their CAs, that are
+    trusted; the server's certificate is validated against it), or the pinned
+    ``server_certificate`` itself (then only that certificate is accepted), or
+    both.  The server sends a keep-alive three times per ``watchdog_s`` when
+    it has no data.
 
     Examples
     --------
@@ -114,11 +148,14 @@ class OpcUaEndpointConfig(_Strict):
     """
 
     url: str = Field(pattern=r"^opc\.tcp://", description="opc.tcp://host:port[/path]")
-    security_policy: Literal["none", "Basic256Sha256"] = "none"
+    security_policy: Literal["none", "Basic256Sha256", "Aes128Sha256RsaOaep",
+                             "Aes256Sha256RsaPss"] = "none"
     security_mode: Literal["None", "Sign", "SignAndEncrypt"] = "None"
     certificate: FilePath | None = None
     private_key: FilePath | None = None
     server_certificate: FilePath | None = None
+    trusted_certificates: DirectoryPath | None = Field(
+        default=None, description="directory of trusted server (or CA) certificates, DER or PEM")
     application_uri: str = Field(
         default="urn:loopwatch:connector",
         description="the client's application URI; must match the certificate's SAN URI",
@@ -132,12 +169,17 @@ class OpcUaEndpointConfig(_Strict):
     watchdog_s: float = Field(default=30.0, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0)
     request_timeout_s: float = Field(default=10.0, gt=0)
+    backfill_max_s: float = Field(
+        default=86400.0, ge=0,
+        description="after a reconnect, missed samples up to this far back are read with "
+                    "HistoryRead where the server keeps history, s (0: never)")
 
     @model_validator(mode="after")
     def _consistent(self) -> OpcUaEndpointConfig:
         if self.security_policy == "none" and self.security_mode != "None":
             raise ValueError(
-                f"security_mode {self.security_mode} needs security_policy Basic256Sha256"
+                f"security_mode {self.security_mode} needs a security_policy "
+                f"({', '.join(SECURITY_POLICIES)})"
             )
         if self.security_policy != "none":
             if self.security_mode == "None":
@@ -149,6 +191,12 @@ class OpcUaEndpointConfig(_Strict):
             if missing:
                 raise ValueError(
                     f"security_policy {self.security_policy} needs {' and '.join(missing)}"
+                )
+            if self.trusted_certificates is None and self.server_certificate is None:
+                raise ValueError(
+                    f"security_policy {self.security_policy} needs trusted_certificates (a "
+                    "directory of the server certificates to trust) or the server's own "
+                    "server_certificate: the server's certificate is never taken unchecked"
                 )
         if (self.username is None) != (self.password is None):
             raise ValueError("username and password go together: give both or neither")
@@ -190,11 +238,14 @@ class OpcUaCounters(DeliveryCounters):
         Times the watchdog found the subscription stale.
     sink_failures : int
         Flushes the sink refused (their samples are kept and sent again).
+    backfilled : int
+        Samples read with HistoryRead after reconnects (also counted in ``samples``).
     """
 
     reconnects: int = 0
     watchdog_timeouts: int = 0
     sink_failures: int = 0
+    backfilled: int = 0
 
 
 class _SessionEndedError(Exception):
@@ -239,6 +290,12 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
         self._failed_nodes: dict[str, str] = {}
         self._pending: dict[str, list[dict[str, Any]]] = {}
         self._warned_tags: set[str] = set()
+        self._latest: dict[str, float] = {}  # tag -> time of its latest sample
+        # stamps given in this session while back-filling, per tag, to send each sample once;
+        # a tag's are dropped at its first live sample newer than the back-fill
+        self._recent: dict[str, set[float]] = {}
+        self._backfilling = False
+        self._backfilled_to = math.inf
 
     @property
     def connected(self) -> bool:
@@ -309,10 +366,12 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
         client = Client(config.url, timeout=config.request_timeout_s,
                         watchdog_intervall=max(1.0, config.watchdog_s / 3.0))
         client.application_uri = config.application_uri
-        if config.security_policy == "Basic256Sha256":
+        if config.security_policy != "none":
             assert config.certificate is not None and config.private_key is not None
+            if config.trusted_certificates is not None:
+                client.certificate_validator = await self._validator(config.trusted_certificates)
             await client.set_security(
-                SecurityPolicyBasic256Sha256,
+                SECURITY_POLICIES[config.security_policy],
                 certificate=str(config.certificate),
                 private_key=str(config.private_key),
                 server_certificate=(
@@ -326,8 +385,36 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
         await client.connect(auto_reconnect=False)
         return client
 
+    async def _validator(self, trusted: Path) -> Callable[
+            [x509.Certificate, ua.ApplicationDescription], Any]:
+        """asyncua's certificate validator over the trust store ``trusted``, whose refusal
+        names the server's certificate and where to put it to trust it."""
+        store = TrustStore([trusted], [])
+        await store.load()
+        validator = CertificateValidator(
+            CertificateValidatorOptions.TRUSTED_VALIDATION
+            | CertificateValidatorOptions.PEER_SERVER, store)
+
+        async def validate(certificate: x509.Certificate,
+                           server: ua.ApplicationDescription) -> None:
+            try:
+                await validator.validate(certificate, server)
+            except ServiceError as exc:
+                status = ua.status_codes.get_name_and_doc(exc.code)[0]
+                raise _SessionEndedError(
+                    f"{status}: the server certificate {certificate.subject.rfc4514_string()} "
+                    f"(application {server.ApplicationUri}, SHA-256 "
+                    f"{certificate.fingerprint(hashes.SHA256()).hex(':')}, valid until "
+                    f"{certificate.not_valid_after_utc:%Y-%m-%d}) is refused; if it is the "
+                    f"right server, copy its certificate into {trusted} to trust it"
+                ) from None
+
+        return validate
+
     async def _session(self) -> None:
-        """One connection: subscribe, then consume until it ends, which it does by raising."""
+        """One connection: subscribe, back-fill what was missed, then consume until it
+        ends, which it does by raising."""
+        missed_since = dict(self._latest) if self._sessions else {}
         client = await self._connect()
         ended: asyncio.Future[str] = asyncio.get_running_loop().create_future()
 
@@ -343,12 +430,17 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
         consumer: asyncio.Task[None] | None = None
         watchdog: asyncio.Task[None] | None = None
         try:
+            self._recent, self._backfilling = {}, bool(missed_since)
             subscription = await self._subscribe(client)
             self._session_up()
             consumer = asyncio.create_task(self._consume(subscription, end), name="opcua-consume")
             watchdog = asyncio.create_task(self._watch(subscription, end), name="opcua-watchdog")
+            if missed_since and self.config.backfill_max_s > 0:
+                self._backfilled_to = await self._backfill(client, missed_since)
+            self._backfilling = False
             raise _SessionEndedError(await ended)
         finally:
+            self._recent, self._backfilling, self._backfilled_to = {}, False, math.inf
             if watchdog is not None:
                 watchdog.cancel()
             if subscription is not None:
@@ -391,6 +483,45 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
                     )
         self._failed_nodes = failed
         return subscription
+
+    async def _backfill(self, client: Client, since: dict[str, float]) -> float:
+        """Read the samples each node had after ``since[tag]`` (and at most
+        ``backfill_max_s`` ago) from the server's history, where its access level
+        allows HistoryRead; samples this session has delivered already are skipped.
+        The end of the span read (UNIX s).
+
+        A node whose history cannot be read is logged and left with its hole.
+        """
+        end = datetime.now(UTC)
+        nodes = {node.tag: client.get_node(node.node_id) for node in self.config.nodes
+                 if node.tag in since and node.tag not in self._failed_nodes}
+        levels = await client.read_attributes(list(nodes.values()),
+                                              ua.AttributeIds.UserAccessLevel)
+        earliest = end.timestamp() - self.config.backfill_max_s
+        read = 0
+        for (tag, node), level in zip(nodes.items(), levels, strict=True):
+            access = level.Value.Value if level.Value is not None else None
+            if not isinstance(access, int) or not ua.ua_binary.test_bit(
+                    access, ua.AccessLevel.HistoryRead):
+                continue
+            start = max(since[tag], earliest)
+            try:
+                history = await node.read_raw_history(
+                    datetime.fromtimestamp(start, UTC), end, return_bounds=False)
+            except (ua.UaError, OSError) as exc:
+                log.warning("opcua %s: the history of %s could not be read after the "
+                            "reconnect (%s): its gap stays", self.config.url, tag, exc)
+                continue
+            for data_value in history:
+                timestamp, value = self._sample(tag, data_value)
+                if timestamp > start and self._add(tag, timestamp, value):
+                    read += 1
+        with self._counters.lock:
+            self._counters.backfilled += read
+        if read:
+            log.info("opcua %s: %d missed samples read from the server's history",
+                     self.config.url, read)
+        return end.timestamp()
 
     def _monitor_request(self, handle: int, node: OpcUaNodeConfig) -> ua.MonitoredItemCreateRequest:
         parameters = ua.MonitoringParameters(
@@ -443,11 +574,24 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
                         self.config.url, tag, value)
         return timestamp, None
 
-    def _add(self, tag: str, timestamp: float, value: float | None) -> None:
+    def _add(self, tag: str, timestamp: float, value: float | None) -> bool:
+        """Queue one sample for the sink; False (and nothing queued) if it is one the
+        subscription and the back-fill of this session both gave."""
+        recent = self._recent.setdefault(tag, set()) if self._backfilling \
+            else self._recent.get(tag)
+        if recent is not None:
+            if timestamp in recent:
+                return False
+            if self._backfilling:
+                recent.add(timestamp)
+            elif timestamp > self._backfilled_to:
+                del self._recent[tag]
         self._pending.setdefault(tag, []).append(item(timestamp, value))
+        self._latest[tag] = max(timestamp, self._latest.get(tag, timestamp))
         with self._counters.lock:
             self._counters.samples += 1
             self._counters.bad += value is None
+        return True
 
     async def _watch(self, subscription: Subscription, end: Callable[[str], None]) -> None:
         """End the session when neither data nor a keep-alive came for ``watchdog_s``."""

@@ -1,6 +1,8 @@
 """Replaying a historian CSV export into the service, at a chosen speed.
 
-The export has a header row, one row per time and one column per signal.
+The export has a header row, one row per time and one column per signal,
+separated by commas, or by semicolons with decimal commas
+(:func:`connectors.base.read_csv_rows`); a byte-order mark is ignored.
 Time is either one column (``time``, ``t``, ``t_s`` or ``timestamp``, or the
 one named: UNIX seconds or ISO 8601) or a ``date`` column beside a ``time``
 column (``2024-11-27`` and ``23:59:00``, as the plant exports in
@@ -11,10 +13,13 @@ the given time zone (UTC unless told otherwise).  Rows may come in any order
 A row that is ``d`` seconds after the first is sent ``d / speed`` seconds
 after the replay started, stamped with that moment (``timestamps="now"``:
 the file's spacing divided by ``speed``, never in the future) or with its
-own time (``timestamps="original"``).  Empty cells and ``nan`` are sent as
-bad samples; any other cell that is not a number, a time that cannot be
+own time (``timestamps="original"``).  Empty cells, ``nan`` and ``NULL``
+are sent as bad samples; any other cell that is not a number, a time that cannot be
 read, or two rows with the same time refuse the file with its row (the line
 in the file, the header being row 1) and column.
+
+:func:`read_historian_export` is also how ``loopwatch analyze`` and
+``loopwatch model-check`` read a loop's file (``service.loop_csv``).
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -69,16 +74,24 @@ class HistorianExport:
     Attributes
     ----------
     times : ndarray
-        UNIX seconds, strictly increasing.
+        UNIX seconds, strictly increasing (from 0 at the interval given when
+        the file has no time column).
     values : dict
-        column -> values (NaN where the cell was empty or ``nan``).
+        column as asked for -> values (NaN where the cell was empty or ``nan``).
     rows : ndarray
         The file row of each time (the header is row 1).
+    columns : dict
+        column as asked for -> its name in the header.
+    time_columns : tuple of str
+        The header names the time was read from: one, ``date`` and ``time``,
+        or none (rows at the given interval).
     """
 
     times: NDArray[np.float64]
     values: dict[str, NDArray[np.float64]]
     rows: NDArray[np.int64]
+    columns: dict[str, str]
+    time_columns: tuple[str, ...]
 
 
 def _zone(name: str) -> ZoneInfo:
@@ -89,54 +102,26 @@ def _zone(name: str) -> ZoneInfo:
 
 
 def _time_columns(
-    header: list[str], time_column: str | None, date_column: str | None, path: Path
-) -> tuple[int | None, int]:
-    """(date column or None, time column) indices."""
+    header: list[str], time_column: str | None, date_column: str | None, path: Path,
+    error: type[ValueError],
+) -> tuple[int | None, int | None]:
+    """(date column or None, time column or None when the file has none) indices."""
     lowered = [h.strip().lower() for h in header]
     if date_column is None and time_column is None and "date" in lowered and "time" in lowered:
         date_column, time_column = "date", "time"
     if time_column is None:
         found = [name for name in TIME_NAMES if name in lowered]
         if not found:
-            raise ReplayError(
-                f"{path}: no time column ({', '.join(TIME_NAMES)}, or date and time); "
-                f"name it with time_column; the header has {', '.join(header)}"
-            )
+            return None, None
         time_column = found[0]
-    date_index = (
-        None if date_column is None else column_index(header, date_column, path, ReplayError)
-    )
-    return date_index, column_index(header, time_column, path, ReplayError)
+    date_index = None if date_column is None else column_index(header, date_column, path, error)
+    return date_index, column_index(header, time_column, path, error)
 
 
-def read_historian_export(
-    path: str | Path,
-    columns: list[str],
-    *,
-    time_column: str | None = None,
-    date_column: str | None = None,
-    timezone: str = "UTC",
-) -> HistorianExport:
-    """Read ``columns`` of a historian export, sorted by time (see the module docstring).
-
-    Raises
-    ------
-    ReplayError
-        Missing file or column, a cell that is not a number or a time (with
-        its row and column), a row of the wrong length, two rows with the
-        same time, or no data rows.
-    """
-    path = Path(path)
-    try:
-        zone = _zone(timezone)
-    except ValueError as exc:
-        raise ReplayError(f"{path}: {exc}") from None
-    header, body = read_csv_rows(path, ReplayError)
-    date_index, time_index = _time_columns(header, time_column, date_column, path)
-    value_index = {name: column_index(header, name, path, ReplayError) for name in columns}
-    clash = [name for name, i in value_index.items() if i in (date_index, time_index)]
-    if clash:
-        raise ReplayError(f"{path}: column {clash[0]!r} holds the time, it cannot be replayed")
+def _read_times(path: Path, header: list[str], body: list[tuple[int, list[str]]],
+                date_index: int | None, time_index: int, zone: ZoneInfo,
+                error: type[ValueError]) -> NDArray[np.float64]:
+    """The UNIX time of every row, from a time column or a date and a time column."""
     times = np.empty(len(body))
     for k, (number, row) in enumerate(body):
         text = row[time_index].strip()
@@ -148,27 +133,90 @@ def read_historian_export(
             where = f"column {header[time_index]!r}" if date_index is None else (
                 f"columns {header[date_index]!r} and {header[time_index]!r}"
             )
-            raise ReplayError(
+            raise error(
                 f"{path}, row {number}, {where}: {text!r} is neither UNIX seconds "
                 "nor an ISO 8601 time"
             ) from None
         if not math.isfinite(times[k]):
-            raise ReplayError(f"{path}, row {number}, column {header[time_index]!r}: "
-                              f"{text!r} is not a finite time")
-    values = number_columns(path, header, body, value_index, ReplayError)
+            raise error(f"{path}, row {number}, column {header[time_index]!r}: "
+                        f"{text!r} is not a finite time")
+    return times
+
+
+def read_historian_export(
+    path: str | Path,
+    columns: Sequence[str],
+    *,
+    optional: Sequence[str] = (),
+    time_column: str | None = None,
+    date_column: str | None = None,
+    timezone: str = "UTC",
+    interval: float | None = None,
+    error: type[ValueError] = ReplayError,
+) -> HistorianExport:
+    """Read ``columns`` of a historian export, sorted by time (see the module docstring).
+
+    Parameters
+    ----------
+    columns : sequence of str
+        Columns to read, by header name (case-insensitive).
+    optional : sequence of str
+        Columns read when the header has them.
+    time_column, date_column : str, optional
+        The time column (default: the first of :data:`TIME_NAMES`) and a
+        date column beside it (default: ``date`` when there is a ``time``).
+    interval : float, optional
+        For a file without a time column: the seconds between rows (which
+        then keep the file's order, from 0).  Without it such a file is refused.
+    error : ValueError subclass
+        What is raised.
+
+    Raises
+    ------
+    error
+        Missing file or column, a cell that is not a number or a time (with
+        its row and column), a row of the wrong length, two rows with the
+        same time, no time column and no ``interval``, or no data rows.
+    """
+    path = Path(path)
+    try:
+        zone = _zone(timezone)
+    except ValueError as exc:
+        raise error(f"{path}: {exc}") from None
+    header, body = read_csv_rows(path, error)
+    date_index, time_index = _time_columns(header, time_column, date_column, path, error)
+    lowered = [h.strip().lower() for h in header]
+    value_index = {name: column_index(header, name, path, error) for name in columns} | {
+        name: lowered.index(name.strip().lower()) for name in optional
+        if name.strip().lower() in lowered}
+    clash = [name for name, i in value_index.items() if i in (date_index, time_index)]
+    if clash:
+        raise error(f"{path}: column {clash[0]!r} holds the time, it cannot be read as a signal")
+    values = number_columns(path, header, body, value_index, error)
+    numbers = np.array([number for number, _ in body], dtype=np.int64)
+    found = {name: header[i] for name, i in value_index.items()}
+    if time_index is None:
+        if interval is None:
+            raise error(
+                f"{path}: no time column ({', '.join(TIME_NAMES)}, or date and time) in the "
+                f"header ({', '.join(header)}); name it (time_column; --time on the command "
+                "line) or give the sampling interval (--ts)")
+        return HistorianExport(times=np.arange(len(body), dtype=np.float64) * interval,
+                               values=values, rows=numbers, columns=found, time_columns=())
+    times = _read_times(path, header, body, date_index, time_index, zone, error)
     order = np.argsort(times, kind="stable")
     times = times[order]
-    rows = np.array([number for number, _ in body], dtype=np.int64)[order]
+    rows = numbers[order]
     same = np.flatnonzero(np.diff(times) == 0)
     if same.size:
         k = int(same[0])
-        raise ReplayError(
+        raise error(
             f"{path}, rows {rows[k]} and {rows[k + 1]}: the same time "
             f"{datetime.fromtimestamp(times[k], zone).isoformat()}; remove the duplicate"
         )
-    return HistorianExport(
-        times=times, values={name: v[order] for name, v in values.items()}, rows=rows
-    )
+    used = tuple(header[i] for i in (date_index, time_index) if i is not None)
+    return HistorianExport(times=times, values={name: v[order] for name, v in values.items()},
+                           rows=rows, columns=found, time_columns=used)
 
 
 class ReplayConnectorConfig(BaseModel):

@@ -38,7 +38,7 @@ with its actor, time, from/to state and note.  Invalid transitions raise
 
 from __future__ import annotations
 
-from typing import Literal, cast, get_args
+from typing import Any, Literal, cast, get_args
 
 from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session, selectinload
@@ -58,6 +58,7 @@ __all__ = [
     "AlarmState",
     "AlarmStateError",
     "acknowledge",
+    "alarm_payload",
     "alarm_priority",
     "expire_shelves",
     "get_alarm",
@@ -209,6 +210,19 @@ def _apply(alarm: Alarm, event: AlarmEventName, *, actor: str, now: float, note:
     alarm.updated_at = now
     if state != "shelved":
         alarm.shelved_until = None
+
+
+def alarm_payload(alarm: Alarm) -> dict[str, Any]:
+    """What a notification of an alarm's change carries: the alarm and its latest transition."""
+    last = alarm.events[-1] if alarm.events else None
+    return {
+        "alarm": {name: getattr(alarm, name) for name in (
+            "id", "loop_id", "kind", "priority", "state", "condition_active", "message",
+            "raised_at", "updated_at")},
+        "change": None if last is None else {
+            "at": last.at, "event": last.event, "from_state": last.from_state,
+            "to_state": last.to_state, "actor": last.actor, "note": last.note},
+    }
 
 
 def _expire_if_due(alarm: Alarm, now: float) -> None:

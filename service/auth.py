@@ -214,6 +214,11 @@ class Principal:
         """What the key's role may do."""
         return PERMISSIONS.get(cast(Role, self.role), frozenset())
 
+    @property
+    def actor(self) -> str:
+        """Who acted, as histories and audit records name the key: ``name (role)``."""
+        return f"{self.name} ({self.role})"
+
 
 class KeyVerifier:
     """Authenticates keys against the store, riding out short store outages.

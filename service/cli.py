@@ -36,8 +36,7 @@ from analytics.oscillation import detect_oscillations
 from analytics.quality import QualityLimits
 from analytics.scenarios import SCENARIOS, build_scenario
 from analytics.simulation import ClosedLoopModel, SimulationResult
-from service.commands import CliError, command_modules, read_json_file
-from service.loop_csv import LoopCsvError, read_loop_csv
+from service.commands import CliError, command_modules, read_json_file, read_loop_file
 
 
 def _load_model(source: str) -> ClosedLoopModel:
@@ -140,13 +139,7 @@ def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
-    try:
-        data = read_loop_csv(
-            args.file, ts=args.ts, time=args.time, op=args.op, pv=args.pv, sp=args.sp,
-            mv=args.mv, min_samples=QualityLimits().min_samples,
-        )
-    except LoopCsvError as exc:
-        raise CliError(str(exc)) from None
+    data = read_loop_file(args, min_samples=QualityLimits().min_samples)
     process_type = None if args.process_type == "auto" else args.process_type
     try:
         diagnosis = diagnose_loop(
@@ -171,6 +164,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         serve(args.config, host=args.host, port=args.port, role=args.role)
+    except KeyboardInterrupt:  # Ctrl+C: uvicorn has shut down cleanly, then re-raised it
+        print("loopwatch: stopped", file=sys.stderr)
     except (ConfigError, ExecutorError) as exc:
         raise CliError(str(exc)) from None
     except ValidationError as exc:

@@ -1,6 +1,7 @@
 """The plant configuration file (YAML) and the service settings (environment).
 
-The plant file lists units and loops::
+The plant file lists units and loops (and, for a PI Web API historian, the
+loop tag of each PI point)::
 
     units:
       - id: column
@@ -17,16 +18,25 @@ The plant file lists units and loops::
         process_type: self-regulating
         valve_asset: FV-101
         importance: high
+    pi_points:
+      '\\\\PISRV01\\FIC101.PV': FIC101.PV
+    cmms:
+      sap_pm: {planning_plant: "1000", work_center: INST-01}
+      maximo: {siteid: BEDFORD, orgid: EAGLENA}
 
 Signals are converted to % of span with ``ranges`` before analysis, so S and J
 come out in % of valve travel.  A unit may carry its process matrix
-(:class:`UnitProcessConfig`) for the limit-cycle prediction of its loops.  An
+(:class:`UnitProcessConfig`) for the limit-cycle prediction of its loops.  The
+CMMS fields of tickets (:class:`CmmsConfig`: SAP PM planning plant, work centre
+and catalogue codes; Maximo site and organisation) are set for the plant, a
+unit or a loop; the most specific wins, field by field.  An
 invalid file is refused at start with the key path (``loops[2].tags.pv``) and
 the reason.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import re
 import secrets
@@ -112,6 +122,93 @@ class TagsConfig(_Strict):
                 if (t := getattr(self, s)) is not None]
 
 
+def _code(value: str | None, what: str, pattern: str, form: str) -> str | None:
+    """``value`` if it is a valid CMMS code (``pattern``), else an error saying the form."""
+    if value is not None and not re.fullmatch(pattern, value):
+        raise ValueError(f"{what} must be {form}, got {value!r}")
+    return value
+
+
+class SapPmConfig(_Strict):
+    """SAP PM fields of the M2 notifications of a loop's tickets (BAPI_ALM_NOTIF_CREATE)."""
+
+    planning_plant: str | None = Field(default=None, description="IWERK: maintenance "
+                                       "planning plant, 4 letters or digits")
+    work_center: str | None = Field(default=None, description="ARBPL: main work centre, "
+                                    "1-8 characters")
+    code_group: str | None = Field(default=None, description="coding code group (QMGRP)")
+    coding: str | None = Field(default=None, description="coding code (QMCOD)")
+    damage_code_group: str | None = None
+    damage_code: str | None = None
+    cause_code_group: str | None = None
+    cause_code: str | None = None
+    object_part_code_group: str | None = None
+    object_part_code: str | None = None
+
+    @field_validator("planning_plant")
+    @classmethod
+    def _plant(cls, value: str | None) -> str | None:
+        return _code(value, "SAP planning plant (IWERK)", r"[A-Z0-9]{4}",
+                     "4 upper-case letters or digits, e.g. '1000'")
+
+    @field_validator("work_center")
+    @classmethod
+    def _work_center(cls, value: str | None) -> str | None:
+        return _code(value, "SAP work centre (ARBPL)", r"[A-Z0-9_/-]{1,8}",
+                     "1-8 upper-case letters, digits, _ / or -")
+
+    @field_validator("code_group", "damage_code_group", "cause_code_group",
+                     "object_part_code_group")
+    @classmethod
+    def _group(cls, value: str | None) -> str | None:
+        return _code(value, "an SAP catalogue code group", r"[A-Z0-9_-]{1,8}",
+                     "1-8 upper-case letters, digits, _ or -")
+
+    @field_validator("coding", "damage_code", "cause_code", "object_part_code")
+    @classmethod
+    def _catalogue_code(cls, value: str | None) -> str | None:
+        return _code(value, "an SAP catalogue code", r"[A-Z0-9_-]{1,4}",
+                     "1-4 upper-case letters, digits, _ or -")
+
+    @model_validator(mode="after")
+    def _codes_with_groups(self) -> SapPmConfig:
+        for kind in ("", "damage_", "cause_", "object_part_"):
+            group, code = f"{kind}code_group", ("coding" if not kind else f"{kind}code")
+            if (getattr(self, group) is None) != (getattr(self, code) is None):
+                raise ValueError(f"{group} and {code} go together: a catalogue code is "
+                                 "read within its code group")
+        return self
+
+
+class MaximoConfig(_Strict):
+    """Maximo fields of the work orders of a loop's tickets (``mxwo``)."""
+
+    siteid: str | None = Field(default=None, description="SITEID, 1-8 characters")
+    orgid: str | None = Field(default=None, description="ORGID, 1-8 characters")
+
+    @field_validator("siteid", "orgid")
+    @classmethod
+    def _maximo_id(cls, value: str | None) -> str | None:
+        return _code(value, "a Maximo site or organisation id", r"[A-Z0-9_-]{1,8}",
+                     "1-8 upper-case letters, digits, _ or -")
+
+
+class CmmsConfig(_Strict):
+    """CMMS fields of tickets, for the plant, a unit or a loop (the most specific wins,
+    field by field)."""
+
+    sap_pm: SapPmConfig = Field(default_factory=SapPmConfig)
+    maximo: MaximoConfig = Field(default_factory=MaximoConfig)
+
+    def over(self, base: CmmsConfig) -> CmmsConfig:
+        """These settings, with ``base``'s where these leave a field unset."""
+        mine = self.model_dump(exclude_none=True)
+        merged = base.model_dump(exclude_none=True)
+        for system, fields in mine.items():
+            merged.setdefault(system, {}).update(fields)
+        return CmmsConfig.model_validate(merged)
+
+
 class LoopConfig(_Strict):
     """One control loop."""
 
@@ -136,6 +233,8 @@ class LoopConfig(_Strict):
     valve_asset: str | None = None
     location: str | None = None
     importance: Importance = "medium"
+    cmms: CmmsConfig | None = Field(default=None, description="CMMS fields of its tickets "
+                                    "(over its unit's and the plant's)")
 
     @field_validator("ranges")
     @classmethod
@@ -197,6 +296,8 @@ class UnitConfig(_Strict):
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
     name: str = ""
     process: UnitProcessConfig | None = None
+    cmms: CmmsConfig | None = Field(default=None, description="CMMS fields of the tickets of "
+                                    "its loops (over the plant's)")
 
 
 class PlantConfig(_Strict):
@@ -205,6 +306,13 @@ class PlantConfig(_Strict):
     units: list[UnitConfig] = Field(default_factory=list)
     loops: list[LoopConfig] = Field(default_factory=list)
     connectors: dict[str, Any] = Field(default_factory=dict)
+    cmms: CmmsConfig = Field(default_factory=CmmsConfig,
+                             description="CMMS fields of every ticket, unless a unit or loop "
+                                         "sets them")
+    pi_points: dict[str, str] = Field(
+        default_factory=dict,
+        description="PI point or AF attribute, by the Path or Name a PI Web API answer gives "
+                    "it, -> the loop tag its values are stored as (POST /api/v1/ingest)")
 
     @model_validator(mode="after")
     def _consistent(self) -> PlantConfig:
@@ -213,6 +321,11 @@ class PlantConfig(_Strict):
         _no_duplicates([loop.id for loop in self.loops], "loops")
         tags = [tag for loop in self.loops for _, tag in loop.tags.items()]
         _no_duplicates(tags, "tags (a tag belongs to one loop)")
+        for point, tag in self.pi_points.items():
+            if tag not in tags:
+                raise ValueError(
+                    f"pi_points[{point!r}]: {tag!r} is not a tag of any loop; map the PI point "
+                    "to one of the loops' tags")
         for i, loop in enumerate(self.loops):
             if loop.unit is not None and loop.unit not in unit_ids:
                 raise ValueError(
@@ -227,6 +340,19 @@ class PlantConfig(_Strict):
                         f"{unit.id!r}"
                     )
         return self
+
+    def cmms_of(self, loop_id: str) -> CmmsConfig:
+        """The CMMS fields of the tickets of loop ``loop_id``: the loop's over its unit's
+        over the plant's (the plant's for a loop no longer configured)."""
+        cmms = self.cmms
+        loop = next((x for x in self.loops if x.id == loop_id), None)
+        if loop is None:
+            return cmms
+        unit = next((u for u in self.units if u.id == loop.unit), None)
+        for level in (unit.cmms if unit is not None else None, loop.cmms):
+            if level is not None:
+                cmms = level.over(cmms)
+        return cmms
 
     def loop(self, loop_id: str) -> LoopConfig:
         """The loop with id ``loop_id`` (KeyError if absent)."""
@@ -331,8 +457,19 @@ class Settings(BaseSettings):
     )
     workers: int = Field(default=2, ge=1, description="analysis process-pool size")
     analysis_timeout_s: float = Field(default=60.0, gt=0)
-    webhook_url: str | None = None
+    webhook_url: str | None = Field(
+        default=None, description="where ticket and alarm events are POSTed (Standard Webhooks)")
+    webhook_secret: SecretStr | None = Field(
+        default=None, description="the webhook's signing secret: whsec_ and base64 key bytes")
+    smtp_host: str | None = Field(default=None, description="SMTP server for e-mail events")
+    smtp_port: int = Field(default=25, gt=0, lt=65536)
+    email_from: str = "loopwatch@localhost"
+    email_to: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
+        default_factory=list, description="recipients of e-mail events (comma-separated)")
     host: str = "127.0.0.1"
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="console log lines: text, or JSON objects with the "
+                                    "request id (for a log collector)")
     port: int = Field(default=8000, ge=0, lt=65536)
     cors_origins: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
         default_factory=list,
@@ -422,6 +559,27 @@ class Settings(BaseSettings):
                     "(no path, no trailing slash)"
                 )
         return origins
+
+    @model_validator(mode="after")
+    def _notification_channels(self) -> Settings:
+        if self.webhook_url is not None:
+            if not self.webhook_url.startswith(("http://", "https://")):
+                raise ValueError(f"LOOPWATCH_WEBHOOK_URL must start with http:// or https://, "
+                                 f"got {self.webhook_url!r}")
+            secret = "" if self.webhook_secret is None else self.webhook_secret.get_secret_value()
+            try:
+                valid = secret.startswith("whsec_") and len(
+                    base64.b64decode(secret[6:], validate=True)) >= 16
+            except ValueError:
+                valid = False
+            if not valid:
+                raise ValueError(
+                    "LOOPWATCH_WEBHOOK_URL needs LOOPWATCH_WEBHOOK_SECRET: whsec_ and the "
+                    "base64 of at least 16 random bytes (the receiver checks the signature "
+                    "with it)")
+        if self.smtp_host is not None and not self.email_to:
+            raise ValueError("LOOPWATCH_SMTP_HOST needs LOOPWATCH_EMAIL_TO (the recipients)")
+        return self
 
     @model_validator(mode="after")
     def _no_unsafe_defaults(self) -> Settings:

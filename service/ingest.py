@@ -1,4 +1,4 @@
-"""Historian push: batches of samples for many tags, stored idempotently.
+r"""Historian push: batches of samples for many tags, stored idempotently.
 
 A batch has the shape of the PI Web API ``streamsets/recorded`` answer::
 
@@ -25,6 +25,23 @@ already_stored + sum(refused)``:
 
 Items of a tag that arrive out of time order are stored all the same and
 counted in ``out_of_order``.  ISO time stamps without an offset are UTC.
+
+A request body may also be a PI Web API ``GET streamsets/recorded`` answer as
+PI sends it (:func:`from_pi_web_api`)::
+
+    {"Links": {}, "Items": [{"WebId": "...", "Name": "FIC101.PV",
+                             "Path": "\\\\PISRV01\\FIC101.PV",
+                             "Items": [{"Timestamp": "2024-05-01T12:00:00.1234567Z",
+                                        "Value": 12.5, "UnitsAbbreviation": "m3/h",
+                                        "Good": true, "Questionable": false,
+                                        "Substituted": false}, ...]}, ...]}
+
+or its ``Items`` list alone.  A stream's tag is the plant file's ``pi_points``
+entry of its ``Path``, else of its ``Name``, else the ``Name`` itself.  A
+digital state (``"Value": {"Name": "Bad Input", "Value": 307, "IsSystem":
+true}``) of the system set is stored as a bad sample, a state of the point's
+own set as its code; ``Good: false`` is a bad sample; questionable and
+substituted values are stored as the values PI shows.
 """
 
 from __future__ import annotations
@@ -32,17 +49,19 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 from collections import Counter
-from collections.abc import Collection, Iterable, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import lru_cache
 from typing import Any, cast
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
-from sqlalchemy import CursorResult, TextualSelect, delete, text
+from sqlalchemy import CursorResult, TextualSelect, delete, func, select, text
 from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from connectors.base import MISSING, TIME_NAMES
@@ -54,14 +73,19 @@ __all__ = [
     "IngestItem",
     "IngestReport",
     "NewSample",
+    "PiStream",
+    "PiStreams",
     "TagItems",
     "TagReport",
+    "from_pi_web_api",
     "ingest_batch",
     "ingest_csv",
     "parse_batch",
     "parse_timestamp",
     "purge_samples",
 ]
+
+log = logging.getLogger(__name__)
 
 REFUSAL_REASONS = (
     "unknown_tag",
@@ -110,6 +134,52 @@ class TagItems(BaseModel):
 
 
 _BATCH = TypeAdapter(list[TagItems])
+
+
+class PiDigitalState(BaseModel):
+    """A digital state as PI Web API writes it in place of a value."""
+
+    model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
+
+    Name: str
+    Value: int = Field(description="the state's code in its set")
+    IsSystem: bool = Field(default=False,
+                           description="a state of the system set (Bad Input, Shutdown...)")
+
+
+class PiTimedValue(BaseModel):
+    """One recorded value of a PI Web API stream (other fields, as ``Annotated``, ignored)."""
+
+    model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
+
+    Timestamp: str
+    Value: float | PiDigitalState | None
+    Good: bool = True
+    Questionable: bool = False
+    Substituted: bool = False
+    UnitsAbbreviation: str | None = None
+
+
+class PiStream(BaseModel):
+    """The recorded values of one PI point or AF attribute, as PI Web API answers."""
+
+    model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
+
+    WebId: str | None = None
+    Name: str | None = None
+    Path: str | None = None
+    Items: list[PiTimedValue]
+
+
+class PiStreams(BaseModel):
+    """A PI Web API ``streamsets/recorded`` answer (``Links`` ignored)."""
+
+    model_config = ConfigDict(strict=True, extra="ignore", frozen=True)
+
+    Items: list[PiStream]
+
+
+_PI_STREAMS = TypeAdapter(list[PiStream])
 
 
 @dataclass(frozen=True)
@@ -302,51 +372,110 @@ class _TagIngest:
         )
 
 
+def _shape_error(exc: ValidationError, where: str) -> IngestError:
+    """The first problems of a batch that does not validate, each with its place."""
+    problems = "; ".join(
+        where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
+        + f": {e['msg']}"
+        for e in exc.errors(include_url=False, include_input=False)[:MAX_REPORTED_ERRORS]
+    )
+    more = exc.error_count() - MAX_REPORTED_ERRORS
+    return IngestError(f"invalid batch: {problems}" + (f" (and {more} more)" if more > 0 else ""))
+
+
 def _validate(batch: Iterable[TagItems | dict[str, Any]]) -> list[TagItems]:
     try:
         return _BATCH.validate_python(list(batch))
     except ValidationError as exc:
-        problems = "; ".join(
-            "batch" + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
-            + f": {e['msg']}"
-            for e in exc.errors(include_url=False, include_input=False)[:MAX_REPORTED_ERRORS]
-        )
-        more = exc.error_count() - MAX_REPORTED_ERRORS
-        raise IngestError(
-            f"invalid batch: {problems}" + (f" (and {more} more)" if more > 0 else "")
-        ) from None
+        raise _shape_error(exc, "batch") from None
     except TypeError:
         raise IngestError("invalid batch: expected a list of {tag, items} objects") from None
 
 
-def parse_batch(body: bytes, *, max_samples: int) -> list[TagItems]:
-    """A JSON batch from a request body, refused in time bounded by ``max_samples``.
+def _is_pi_web_api(batch: Any) -> bool:
+    """True for a PI Web API answer: ``{"Items": [...]}`` or a list of ``{"Items": ...}``."""
+    if isinstance(batch, dict):
+        return "Items" in batch
+    return isinstance(batch, list) and any(
+        isinstance(entry, dict) and "Items" in entry for entry in batch)
 
-    The entries and items are counted before anything is validated, so a
-    batch of a million stray numbers costs a count, not a million errors;
-    the error names the first :data:`MAX_REPORTED_ERRORS` problems and counts
-    the others.  NaN and Infinity are read (some historians write them).
+
+def _pi_value(value: PiTimedValue) -> dict[str, Any]:
+    """An item of the simple shape from a PI Web API timed value."""
+    number: float | None
+    if isinstance(value.Value, PiDigitalState):
+        number = None if value.Value.IsSystem else float(value.Value.Value)
+    else:
+        number = value.Value
+    return {"timestamp": value.Timestamp, "value": number, "good": value.Good}
+
+
+def from_pi_web_api(batch: Any, pi_points: Mapping[str, str]) -> list[TagItems]:
+    """The simple shape of a PI Web API ``streamsets/recorded`` answer (module docstring).
+
+    ``pi_points`` maps a stream's ``Path`` or ``Name`` to its tag (the plant
+    file's ``pi_points``).
 
     Raises
     ------
     IngestError
-        Not JSON, not a list of ``{tag, items}``, or more than ``max_samples``
-        entries or items.
+        The answer does not have PI Web API's shape (a value that is neither
+        a number nor a digital state, a stream with neither ``Name`` nor
+        ``Path``...); the message names the place, as ``batch.Items[0].Items[3]``.
+    """
+    where = "batch.Items" if isinstance(batch, dict) else "batch"
+    try:
+        parsed = (PiStreams.model_validate(batch).Items if isinstance(batch, dict)
+                  else _PI_STREAMS.validate_python(batch))
+    except ValidationError as exc:
+        raise _shape_error(exc, "batch") from None
+    result = []
+    for i, stream in enumerate(parsed):
+        path = stream.Path or ""
+        name = stream.Name or ""
+        tag = pi_points.get(path) or pi_points.get(name) or name
+        if not tag:
+            raise IngestError(
+                f"invalid batch: {where}[{i}]: a stream needs a Name or a Path to be mapped "
+                f"to a tag (WebId {stream.WebId!r} alone names no tag)")
+        result.append(TagItems(tag=tag, items=[IngestItem(**_pi_value(v)) for v in stream.Items]))
+    return result
+
+
+def parse_batch(body: bytes, *, max_samples: int,
+                pi_points: Mapping[str, str] | None = None) -> list[TagItems]:
+    """A JSON batch from a request body, refused in time bounded by ``max_samples``.
+
+    The body is either the simple shape (a list of ``{tag, items}``) or a PI
+    Web API answer (:func:`from_pi_web_api`, with ``pi_points``).  The
+    entries and items are counted before anything is validated, so a batch
+    of a million stray numbers costs a count, not a million errors; the
+    error names the first :data:`MAX_REPORTED_ERRORS` problems and counts the
+    others.  NaN and Infinity are read (some historians write them).
+
+    Raises
+    ------
+    IngestError
+        Not JSON, neither shape, or more than ``max_samples`` entries or items.
     """
     try:
         batch = json.loads(body)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise IngestError(f"invalid batch: not JSON: {exc}") from None
-    if not isinstance(batch, list):
-        raise IngestError("invalid batch: expected a list of {tag, items} objects")
-    samples = sum(len(entry["items"]) for entry in batch
-                  if isinstance(entry, dict) and isinstance(entry.get("items"), list))
-    for what, count in (("entries", len(batch)), ("samples", samples)):
+    pi = _is_pi_web_api(batch)
+    entries = batch.get("Items") if isinstance(batch, dict) else batch
+    if not isinstance(entries, list):
+        raise IngestError("invalid batch: expected a list of {tag, items} objects or a PI Web "
+                          "API answer ({Items: [{Name, Path, Items: [...]}]})")
+    key = "Items" if pi else "items"
+    samples = sum(len(entry[key]) for entry in entries
+                  if isinstance(entry, dict) and isinstance(entry.get(key), list))
+    for what, count in (("entries", len(entries)), ("samples", samples)):
         if count > max_samples:
             raise IngestError(
                 f"batch of {count} {what} is longer than the limit of {max_samples} "
                 "(LOOPWATCH_MAX_BATCH_SAMPLES); split it")
-    return _validate(batch)
+    return from_pi_web_api(batch, pi_points or {}) if pi else _validate(entries)
 
 
 TAGS_PER_LOOKUP = 100
@@ -629,8 +758,37 @@ def ingest_csv(
 
 
 def purge_samples(session: Session, older_than: float) -> int:
-    """Delete the samples stamped before ``older_than`` (UNIX s); the number deleted."""
+    """Delete the samples stamped before ``older_than`` (UNIX s); the number deleted.
+
+    Where ``samples`` is a TimescaleDB hypertable (migration 0002), the chunks
+    wholly before ``older_than`` are dropped with ``drop_chunks`` (a file
+    removed, not millions of rows deleted and vacuumed), then the rest is
+    deleted row by row; should ``drop_chunks`` fail, everything is deleted row
+    by row as elsewhere.
+    """
     if not math.isfinite(older_than):
         raise ValueError(f"older_than must be a finite UNIX time, got {older_than}")
+    if _is_hypertable(session):
+        count = session.scalar(select(func.count()).where(Sample.time < older_than)) or 0
+        try:
+            with session.begin_nested():  # a failure leaves the transaction usable
+                session.execute(
+                    text("SELECT drop_chunks('samples', older_than => CAST(:us AS bigint))"),
+                    {"us": int(older_than * 1_000_000)})  # the partitioning unit (0002)
+        except DBAPIError as exc:
+            log.warning("drop_chunks failed (%s): old samples are deleted row by row",
+                        type(exc).__name__)
+        session.execute(delete(Sample).where(Sample.time < older_than))
+        return int(count)
     result = session.execute(delete(Sample).where(Sample.time < older_than))
     return cast(CursorResult[Any], result).rowcount
+
+
+def _is_hypertable(session: Session) -> bool:
+    """True on PostgreSQL when TimescaleDB is installed and ``samples`` is its hypertable."""
+    if session.get_bind().dialect.name != "postgresql" or session.scalar(
+            text("SELECT 1 FROM pg_extension WHERE extname = 'timescaledb'")) is None:
+        return False
+    return session.scalar(text(
+        "SELECT 1 FROM timescaledb_information.hypertables WHERE hypertable_name = 'samples'"
+    )) is not None

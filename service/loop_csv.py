@@ -1,13 +1,16 @@
 """Reading one loop's measured data from a CSV file.
 
-The file has a header row; columns are found by name, case-insensitively:
-time (``time``, ``t``, ``t_s``, ``timestamp``), ``op``, ``pv``, ``sp`` and
-``mv``; any of them can be named explicitly instead.  Time is either seconds
-(any numeric column) or ISO 8601 timestamps (UTC unless an offset is
-given); without a time column the sampling interval must be given.  Empty
-cells and ``nan`` are kept as missing values (NaN) for the data-quality
-screen to report; anything else that is not a number is refused with the
-row and column.
+The file is read as the replay connector reads a historian export
+(:func:`connectors.replay.read_historian_export`): a header row, commas or
+semicolons with decimal commas, a byte-order mark ignored, rows in any order
+(historian exports run newest first), time as one column (``time``, ``t``,
+``t_s``, ``timestamp``: seconds or ISO 8601, UTC unless an offset is given)
+or as ``date`` and ``time`` columns.  Signal columns are found by name,
+case-insensitively: ``op``, ``pv``, ``sp`` and ``mv``; any of them can be
+named explicitly instead.  Without a time column the sampling interval must
+be given.  Empty cells, ``nan`` and ``NULL`` are kept as missing values (NaN)
+for the data-quality screen to report; anything else that is not a number is
+refused with the row and column.
 """
 
 from __future__ import annotations
@@ -19,13 +22,16 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from connectors.base import TIME_NAMES, column_index, number_columns, parse_time, read_csv_rows
+from connectors.replay import read_historian_export
 
 __all__ = ["LoopCsvError", "LoopData", "read_loop_csv"]
 
 FloatArray = NDArray[np.float64]
 
 SIGNALS = ("op", "pv", "sp", "mv")
+
+TS_TOLERANCE = 0.01
+"""Relative difference between ``ts`` and the time column's median step that is warned of."""
 
 
 class LoopCsvError(ValueError):
@@ -34,7 +40,7 @@ class LoopCsvError(ValueError):
 
 @dataclass(frozen=True)
 class LoopData:
-    """Measured signals of one loop; signals absent from the file are None."""
+    """Measured signals of one loop, in time order; signals absent from the file are None."""
 
     t: FloatArray
     ts: float
@@ -42,22 +48,14 @@ class LoopData:
     pv: FloatArray | None
     sp: FloatArray | None
     mv: FloatArray | None
-    columns: dict[str, str]  # signal -> column name used
+    columns: dict[str, str]  # signal -> column name used ("time": the time column(s))
+    warnings: tuple[str, ...] = ()
+    """Where the options and the data disagree (the data won)."""
 
     @property
     def samples(self) -> int:
         """Number of rows read."""
         return int(self.t.size)
-
-
-def _find(header: list[str], wanted: str | None, names: tuple[str, ...], path: Path) -> int | None:
-    if wanted is not None:
-        return column_index(header, wanted, path, LoopCsvError)
-    lowered = [h.strip().lower() for h in header]
-    for name in names:
-        if name in lowered:
-            return lowered.index(name)
-    return None
 
 
 def read_loop_csv(
@@ -77,8 +75,8 @@ def read_loop_csv(
     ----------
     ts : float, optional
         Sampling interval in seconds; required when the file has no time
-        column, and when given with a time column it is the nominal interval
-        (the time column is still checked).
+        column.  With a time column whose median step differs from it, the
+        time column's step is used and a warning says so.
     time, op, pv, sp, mv : str, optional
         Column names to use instead of the default names.
     min_samples : int
@@ -88,62 +86,45 @@ def read_loop_csv(
     ------
     LoopCsvError
         Missing file or columns, a cell that is not a number (with its row
-        and column), too few rows, or time that does not increase.
+        and column), too few rows, or two rows with the same time.
     """
     path = Path(path)
     if ts is not None and not (math.isfinite(ts) and ts > 0):
         raise LoopCsvError(f"--ts must be a positive number of seconds, got {ts}")
-    header, body = read_csv_rows(path, LoopCsvError)
-    wanted = {"op": op, "pv": pv, "sp": sp, "mv": mv}
-    index = {name: _find(header, wanted[name], (name,), path) for name in SIGNALS}
-    time_index = _find(header, time, TIME_NAMES, path)
-    if index["op"] is None and index["pv"] is None:
+    named = {name: column for name, column in
+             {"op": op, "pv": pv, "sp": sp, "mv": mv}.items() if column is not None}
+    export = read_historian_export(
+        path, list(named.values()), optional=[s for s in SIGNALS if s not in named],
+        time_column=time, interval=ts, error=LoopCsvError)
+    by_signal = {name: named.get(name, name) for name in SIGNALS}
+    values = {name: export.values.get(column) for name, column in by_signal.items()}
+    if values["op"] is None and values["pv"] is None:
+        raise LoopCsvError(f"{path}: needs an 'op' or a 'pv' column (or --op/--pv)")
+    if export.times.size < max(min_samples, 2):
         raise LoopCsvError(
-            f"{path}: needs an 'op' or a 'pv' column (or --op/--pv); "
-            f"the header has {', '.join(header)}"
+            f"{path}: {export.times.size} data rows, at least {max(min_samples, 2)} are needed"
         )
-    if time_index is None and ts is None:
-        raise LoopCsvError(
-            f"{path}: no time column (time, t, t_s, timestamp); give --time or --ts"
-        )
-    used = {name: i for name, i in index.items() if i is not None}
-    values = number_columns(path, header, body, used, LoopCsvError)
-    t: FloatArray = np.empty(len(body))
-    for k, (number, row) in enumerate(body):
-        if time_index is not None:
-            try:
-                t[k] = parse_time(row[time_index])
-            except ValueError:
-                raise LoopCsvError(
-                    f"{path}, row {number}, column {header[time_index]!r}: "
-                    f"{row[time_index]!r} is neither seconds nor an ISO 8601 time"
-                ) from None
-    if time_index is None:
-        assert ts is not None
-        t = np.arange(len(body), dtype=np.float64) * ts
-    else:
-        steps = np.diff(t)
-        bad = np.flatnonzero(~(steps > 0))
-        if bad.size:
-            k = int(bad[0])
-            raise LoopCsvError(
-                f"{path}, row {body[k + 1][0]}: time {t[k + 1]:g} does not increase "
-                f"(previous row {body[k][0]} has {t[k]:g}); sort the file and remove duplicates"
-            )
-        t = t - t[0]
-    if len(body) < max(min_samples, 2):
-        raise LoopCsvError(
-            f"{path}: {len(body)} data rows, at least {max(min_samples, 2)} are needed"
-        )
-    if ts is None:
-        ts = float(np.median(np.diff(t)))
+    t = export.times - export.times[0]
+    step = float(np.median(np.diff(t)))
+    warnings = []
+    if ts is None or (export.time_columns and abs(step - ts) > TS_TOLERANCE * ts):
+        if ts is not None:
+            warnings.append(
+                f"--ts {ts:g} s disagrees with the time column "
+                f"({' and '.join(export.time_columns)}: median step {step:g} s); the time "
+                "column is used (leave out --ts, or name another time column with --time)")
+        ts = step
+    columns = {name: export.columns[column] for name, column in by_signal.items()
+               if column in export.columns}
+    if export.time_columns:
+        columns["time"] = " and ".join(export.time_columns)
     return LoopData(
         t=t,
         ts=float(ts),
-        op=values.get("op"),
-        pv=values.get("pv"),
-        sp=values.get("sp"),
-        mv=values.get("mv"),
-        columns={name: header[i] for name, i in used.items()}
-        | ({"time": header[time_index]} if time_index is not None else {}),
+        op=values["op"],
+        pv=values["pv"],
+        sp=values["sp"],
+        mv=values["mv"],
+        columns=columns,
+        warnings=tuple(warnings),
     )

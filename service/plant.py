@@ -99,8 +99,8 @@ def sync_plant(session: Session, plant: PlantConfig, now: float) -> PlantConfig:
     extra_units = [UnitConfig(id=row.id, name=row.name) for row in session.scalars(
         select(Unit).where(Unit.id.in_({loop.unit for loop in added if loop.unit})))
         if row.id not in known_units]
-    return PlantConfig(units=[*plant.units, *extra_units], loops=[*plant.loops, *added],
-                       connectors=plant.connectors)
+    return PlantConfig(**{**dict(plant), "units": [*plant.units, *extra_units],
+                          "loops": [*plant.loops, *added]})
 
 
 class PlantRegistry:

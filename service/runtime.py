@@ -40,7 +40,7 @@ from service.ingest import (
     ingest_csv,
     parse_batch,
 )
-from service.metrics import Metrics
+from service.metrics import Metrics, ServiceCollector
 from service.plant import PlantRegistry
 from service.read_cache import ReadCache
 from service.security import ConcurrencyLimiter, RateLimiter
@@ -140,6 +140,7 @@ class AppState:
         return LoopBuffers.from_store(session, loops, since=now - window_s, now=now)
 
     def __post_init__(self) -> None:
+        self.metrics.register(ServiceCollector(self.store, lambda: self.sources, self.clock))
         self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)
         self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
@@ -262,7 +263,8 @@ class AppState:
         """:meth:`ingest` of a request body, parsed in the same slot
         (:func:`service.ingest.parse_batch`: refused in bounded time)."""
         with self._ingest_slots:
-            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples))
+            return self._ingest(parse_batch(body, max_samples=self.settings.max_batch_samples,
+                                            pi_points=self.registry.plant.pi_points))
 
     def _ingest(self, items: list[TagItems]) -> IngestReport:
         samples = sum(len(entry.items) for entry in items)

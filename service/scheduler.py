@@ -56,7 +56,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.alarms import expire_shelves, update_alarms_from_analysis
+from service.alarms import alarm_payload, expire_shelves, update_alarms_from_analysis
 from service.analysis import (
     UnitWindows,
     UnitWindowsError,
@@ -73,10 +73,11 @@ from service.executors import end_executor, executor_slots, kills_workers
 from service.ingest import purge_samples
 from service.leader import Election, instance_name
 from service.metrics import Metrics
+from service.notifications import Outbox
 from service.plant import PlantRegistry
 from service.store.db import Store
 from service.store.models import AnalysisRun, IngestLog, Sample, UnitAnalysisRun
-from service.tickets import evidence_from_run, update_ticket_from_analysis
+from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
 from service.verdicts import latest_unit_decision, settle_run
 
 __all__ = ["MAX_TRIES", "SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
@@ -136,6 +137,12 @@ class AnalysisJob:
     finish: Callable[[JobOutcome], None]
     lost_tries: int = 0
     deadline: float = math.inf
+    submitted: float = math.inf  # time.monotonic() of the last submission
+
+    @property
+    def kind(self) -> str:
+        """``loop`` or ``unit``: the first word of the label (the metrics' label)."""
+        return self.label.split(" ", 1)[0]
 
 
 def grid_rounds(last: float | None, now: float, interval_s: float) -> list[float]:
@@ -171,7 +178,7 @@ class AnalysisScheduler:
         executor_factory: Callable[[], Executor],
         metrics: Metrics,
         clock: Callable[[], float] = time.time,
-        on_ticket: Callable[[int], None] | None = None,
+        outbox: Outbox | None = None,
         election: Election | None = None,
         instance: str | None = None,
     ) -> None:
@@ -183,7 +190,7 @@ class AnalysisScheduler:
         self.executor = executor_factory()
         self.metrics = metrics
         self.clock = clock
-        self.on_ticket = on_ticket
+        self.outbox = outbox
         self.election = election
         self.instance = instance or instance_name()
         self._stop = threading.Event()
@@ -404,6 +411,7 @@ class AnalysisScheduler:
         again: list[AnalysisJob] = []  # retried or restarted: submitted before new jobs
         in_flight: dict[Future[dict[str, Any]], AnalysisJob] = {}
         drawing = True
+        began = time.monotonic()
         while True:
             if self._stop.is_set() or (scheduled and not self.leading):
                 drawing = False  # stopping or deposed: the next leader completes the round
@@ -413,7 +421,11 @@ class AnalysisScheduler:
                 if job is None:
                     drawing = False
                     break
-                job.deadline = time.monotonic() + self.settings.analysis_timeout_s
+                job.submitted = time.monotonic()
+                job.deadline = job.submitted + self.settings.analysis_timeout_s
+                if not job.lost_tries:
+                    self.metrics.observe("loopwatch_analysis_queue_seconds",
+                                         job.submitted - began, kind=job.kind)
                 in_flight[self.executor.submit(job.fn, *job.args)] = job
             if not in_flight:
                 return
@@ -442,9 +454,9 @@ class AnalysisScheduler:
                 self._lose(job, "timeout", "analysis took longer than "
                                            f"{self.settings.analysis_timeout_s:g} s", again)
 
-    @staticmethod
-    def _collect(future: Future[dict[str, Any]], job: AnalysisJob) -> AnalysisJob | None:
-        """Pass a finished job's outcome on; the job back if its worker process died."""
+    def _collect(self, future: Future[dict[str, Any]], job: AnalysisJob) -> AnalysisJob | None:
+        """Pass a finished job's outcome on (its duration to the histogram); the job back if
+        its worker process died."""
         try:
             result = future.result(timeout=0)
         except BrokenExecutor:
@@ -452,9 +464,12 @@ class AnalysisScheduler:
         except Exception as exc:  # a failing analysis must not stop the others
             error = f"{type(exc).__name__}: {exc}"
             log.warning("analysis of %s failed: %s", job.label, error)
-            job.finish(JobOutcome("failed", error=error))
+            outcome = JobOutcome("failed", error=error)
         else:
-            job.finish(JobOutcome("ok", result))
+            outcome = JobOutcome("ok", result)
+        self.metrics.observe("loopwatch_analysis_duration_seconds",
+                             time.monotonic() - job.submitted, kind=job.kind)
+        job.finish(outcome)
         return None
 
     def _take_unfinished(self, in_flight: dict[Future[dict[str, Any]], AnalysisJob]
@@ -504,8 +519,6 @@ class AnalysisScheduler:
             log.warning("loop %s, round %.0f: another scheduler stored its run first; "
                         "this result is dropped", loop.id, round_end)
             return None
-        if summary.ticket_id is not None and self.on_ticket is not None:
-            self.on_ticket(summary.ticket_id)
         return summary
 
     def _round_stored(self, loop_id: str, round_end: float) -> bool:
@@ -543,12 +556,16 @@ class AnalysisScheduler:
     def _decide(self, session: Session, loop: LoopConfig, run: AnalysisRun,
                 now: float) -> int | None:
         """The alarms and the ticket rule (:func:`service.tickets.update_ticket_from_analysis`)
-        for ``run`` with its final verdict; the id of the ticket opened or updated."""
+        for ``run`` with its final verdict; the id of the ticket opened or updated.  Alarm
+        changes and the ticket's event go into the outbox."""
         assert run.result is not None
-        update_alarms_from_analysis(
+        changed = update_alarms_from_analysis(
             session, loop.id, oscillating=bool(run.oscillating), usable=bool(run.usable),
             importance=loop.importance, message=self._message(run.result), now=now,
         )
+        if self.outbox is not None:
+            for alarm in changed:
+                self.outbox.add(session, "alarm.changed", alarm_payload(alarm), now)
         ticket = update_ticket_from_analysis(
             session, loop.id,
             valve_asset=loop.valve_asset or loop.id, location=loop.location or loop.unit,
@@ -556,7 +573,13 @@ class AnalysisScheduler:
             importance=loop.importance,
             confirmations_needed=self.settings.ticket_confirmations, now=now,
         )
-        return None if ticket is None else ticket.id
+        if ticket is None:
+            return None
+        if self.outbox is not None:
+            session.flush()
+            self.outbox.add(session, "ticket.changed",
+                            ticket_payload(ticket, self.registry.plant.cmms_of(loop.id)), now)
+        return ticket.id
 
     def _analyse_units(self, summaries: list[RunSummary], now: float,
                        round_end: float | None) -> list[RunSummary]:
@@ -599,8 +622,6 @@ class AnalysisScheduler:
                     settle_run(run, latest_unit_decision(session, unit_id, valves))
                     ticket_id = self._decide(session, loop, run, now)
                     decided[loop.id] = run.verdict, ticket_id
-                if ticket_id is not None and self.on_ticket is not None:
-                    self.on_ticket(ticket_id)
         return [replace(s, verdict=decided[s.loop_id][0], ticket_id=decided[s.loop_id][1])
                 if s.loop_id in decided else s for s in summaries]
 

@@ -29,6 +29,7 @@ import asyncio
 import gc
 import hashlib
 import logging
+import socket
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -47,17 +48,24 @@ from connectors.base import SampleSink
 from service.api.app import create_app
 from service.auth import ensure_bootstrap_key
 from service.buffer import LoopBuffers
-from service.config import PlantConfig, Settings, load_plant_config
+from service.config import ConfigError, PlantConfig, Settings, load_plant_config
 from service.connector_setup import build_connectors
 from service.demo import DemoFeeder, demo_plant_config
 from service.executors import make_executor
 from service.leader import make_election
+from service.logs import configure_logging
 from service.metrics import Metrics
+from service.notifications import (
+    Channel,
+    EmailChannel,
+    Outbox,
+    OutboxDispatcher,
+    WebhookChannel,
+)
 from service.plant import PlantRegistry, sync_plant
 from service.runtime import AppState, WatchedSource
 from service.scheduler import AnalysisScheduler
 from service.store.db import Store
-from service.tickets import TicketWebhook, get_ticket
 
 __all__ = [
     "INGEST_ROLES",
@@ -146,7 +154,7 @@ class Service:
     scheduler: AnalysisScheduler | None
     executor: Executor | None
     feeder: DemoFeeder | None
-    webhook: TicketWebhook | None
+    notifications: OutboxDispatcher | None
     admin_key: str
     key_generated: bool
     app: FastAPI
@@ -163,6 +171,8 @@ class Service:
             self.feeder.close_seam(self.state.ingest)
         if self.scheduler is not None:
             self.scheduler.start()
+        if self.notifications is not None:
+            self.notifications.start()
 
     def stop(self) -> None:
         """Stop reading and analysing; release the leadership, the pool and the database."""
@@ -172,12 +182,24 @@ class Service:
             self.feeder.stop()
         if self.scheduler is not None:
             self.scheduler.stop()
-        if self.webhook is not None:
-            self.webhook.close()
+        if self.notifications is not None:
+            self.notifications.stop()
         if self.scheduler is not None:
             self.scheduler.executor.shutdown(wait=False, cancel_futures=True)
         self.state.close_analyses()
         self.state.store.close()
+
+
+def notification_channels(settings: Settings) -> dict[str, Channel]:
+    """The notification channels the settings configure (webhook, e-mail), by name."""
+    channels: dict[str, Channel] = {}
+    if settings.webhook_url is not None and settings.webhook_secret is not None:
+        channels["webhook"] = WebhookChannel(settings.webhook_url,
+                                             settings.webhook_secret.get_secret_value())
+    if settings.smtp_host is not None:
+        channels["email"] = EmailChannel(settings.smtp_host, settings.smtp_port,
+                                         settings.email_from, settings.email_to)
+    return channels
 
 
 def _register(store: Store, plant: PlantConfig, admin_key: str, now: float, *,
@@ -244,12 +266,8 @@ def build_service(
     metrics = Metrics()
     state = AppState(settings=settings, registry=PlantRegistry(plant), store=store,
                      buffers=buffers, metrics=metrics, clock=clock)
-    webhook = TicketWebhook(settings.webhook_url) if settings.webhook_url else None
-
-    def post_ticket(ticket_id: int) -> None:
-        assert webhook is not None
-        with store.session() as session:
-            webhook.send(get_ticket(session, ticket_id))
+    channels = notification_channels(settings)
+    dispatcher = OutboxDispatcher(store, channels, clock=time.time) if channels else None
 
     scheduler = None
     if schedules:
@@ -259,7 +277,7 @@ def build_service(
             executor_factory=executor_factory or (
                 lambda: given if given is not None else make_executor(settings)),
             metrics=metrics, clock=clock,
-            on_ticket=post_ticket if webhook is not None else None,
+            outbox=Outbox(list(channels)) if channels else None,
             election=make_election(store, lease_s=settings.leader_lease_s),
         )
         executor = scheduler.executor
@@ -272,7 +290,7 @@ def build_service(
         else:
             connectors = connector_factory(plant, owns, state.ingest)
     state.sources = list(connectors)
-    return Service(state, scheduler, executor, feeder, webhook, admin_key, generated,
+    return Service(state, scheduler, executor, feeder, dispatcher, admin_key, generated,
                    create_app(state), role=role, connectors=connectors)
 
 
@@ -338,6 +356,7 @@ def uvicorn_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
         limit_concurrency=settings.max_connections,
         h11_max_incomplete_event_size=MAX_HEADER_BYTES,
         proxy_headers=True, forwarded_allow_ips=settings.forwarded_allow_ips,
+        log_config=None,  # uvicorn's records go to the handler of service.logs
     )
 
 
@@ -402,19 +421,16 @@ def tune_interpreter() -> None:
 def serve(config: Path | None, *, host: str | None = None, port: int | None = None,
           role: str | None = None) -> None:
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
-    for library in QUIET_LIBRARIES:  # they log every publish and node at INFO
-        logging.getLogger(library).setLevel(logging.WARNING)
     plant = load_plant_config(config) if config is not None else None
     settings = Settings()
+    configure_logging(settings.log_format, QUIET_LIBRARIES)
     updates: dict[str, Any] = {
         k: v for k, v in (("host", host), ("port", port), ("role", role)) if v is not None
     }
     if plant is None:
         updates |= {k: v for k, v in DEMO_SETTINGS.items() if k not in settings.model_fields_set}
     settings = settings.model_copy(update=updates)
+    check_port_free(settings.host, settings.port)  # before the plant starts and back-fills
     service = build_service(settings, plant, connector_factory=build_connectors)
 
     @asynccontextmanager
@@ -424,18 +440,57 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
             yield
 
     service.app.router.lifespan_context = lifespan
-    url = f"http://{settings.host}:{settings.port}"
-    print(f"loopwatch: role {settings.role}; dashboard at {url}/  (API schema at "
-          f"{url}/openapi.json, with a key)")
-    if service.key_generated:
-        print(f"loopwatch: admin API key for this run: {service.admin_key}")
-        print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
-        print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
-    if service.feeder is not None:
-        simulated = service.feeder.plant
-        print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
-              f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
-              f"{simulated.modbus_port}), {service.feeder.history_text} back-filled; "
-              "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
-              f"{settings.analysis_interval_s:g} s")
-    uvicorn.Server(uvicorn_config(service.app, settings)).run()
+    def announce() -> None:
+        url = f"http://{settings.host}:{settings.port}"
+        print(f"loopwatch: listening; role {settings.role}; dashboard at {url}/  (API docs "
+              f"at {url}/docs, with a key)")
+        if service.key_generated:
+            print(f"loopwatch: admin API key for this run: {service.admin_key}")
+            print(f"loopwatch: signed-in dashboard link: {url}/#key={service.admin_key}")
+            print("           (set LOOPWATCH_API_KEY to keep one across restarts)")
+        if service.feeder is not None:
+            simulated = service.feeder.plant
+            print(f"loopwatch: demo plant -- {len(simulated.loops)} simulated loops served over "
+                  f"OPC UA ({simulated.opcua_url}) and Modbus TCP ({simulated.host}:"
+                  f"{simulated.modbus_port}), {service.feeder.history_text} back-filled; "
+                  "sticky valves FV-101, FV-105 and FV-502 (column unit); analyses every "
+                  f"{settings.analysis_interval_s:g} s")
+        sys.stdout.flush()
+
+    AnnouncingServer(uvicorn_config(service.app, settings), announce).run()
+
+
+class AnnouncingServer(uvicorn.Server):
+    """A uvicorn server that calls ``announce`` once it listens (so the URL and the key
+    printed are those of a server that answers)."""
+
+    def __init__(self, config: uvicorn.Config, announce: Callable[[], None]) -> None:
+        super().__init__(config)
+        self.announce = announce
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        """Start listening, then announce (unless the start failed)."""
+        await super().startup(sockets)
+        if not self.should_exit:
+            self.announce()
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse to start when ``host:port`` is taken (port 0: any free port, never taken).
+
+    Raises
+    ------
+    ConfigError
+        The port is in use, with how to choose another.
+    """
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot listen on {host}:{port}: {exc.strerror} (another loopwatch or "
+                f"another server has it); choose another port with --port P or "
+                f"LOOPWATCH_PORT=P, e.g. --port {port + 1}") from None

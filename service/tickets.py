@@ -36,22 +36,15 @@ Every change is a :class:`~service.store.models.TicketEvent` with its actor.
 Invalid transitions raise :class:`TicketStateError` (HTTP 409 at the API edge).
 
 Priority, 1 (very high) .. 4 (low) as in SAP PM, see :func:`ticket_priority`.
-CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets can be
-posted to a URL by :class:`TicketWebhook`.
+CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets are
+notified by webhook and e-mail through the outbox (:mod:`service.notifications`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import queue
 import textwrap
-import threading
-import time
-import urllib.error
-import urllib.request
-import uuid
 from datetime import UTC, datetime
 from typing import Any, Literal, get_args
 
@@ -61,7 +54,7 @@ from sqlalchemy.orm import Session, selectinload
 from analytics.diagnosis import PATTERNS
 from analytics.valves import sj_to_fsfd
 from service.analysis import stiction_pattern_text
-from service.config import Importance
+from service.config import CmmsConfig, Importance
 from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
 
 __all__ = [
@@ -76,7 +69,6 @@ __all__ = [
     "TicketNotFoundError",
     "TicketState",
     "TicketStateError",
-    "TicketWebhook",
     "change_ticket_state",
     "check_transition",
     "evidence_from_run",
@@ -601,7 +593,7 @@ def get_ticket(session: Session, ticket_id: int) -> Ticket:
     return ticket
 
 
-def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
+def to_cmms_notification(ticket: Ticket, cmms: CmmsConfig | None = None) -> dict[str, Any]:
     """The ticket as a SAP PM M2 notification and as a Maximo work order.
 
     ``sap_pm``: the header fields of ``BAPI_ALM_NOTIF_CREATE`` (NOTIFHEADER)
@@ -619,6 +611,14 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
     (corrective), ``status`` "WAPPR", ``reportdate`` (ISO 8601), and
     ``externalrefid``/``sourcesysid`` identifying the ticket here.  A work
     order has no malfunction-start field: the long text carries it.
+
+    ``cmms`` (the plant file's settings of the ticket's loop,
+    :meth:`service.config.PlantConfig.cmms_of`) adds what is set of:
+    ``PLANPLANT``, ``WORK_CNTR`` and the coding ``CODE_GROUP``/``CODING`` to the
+    SAP header, the damage (``D_CODEGRP``/``D_CODE``) and object part
+    (``DL_CODEGRP``/``DL_CODE``) codes as ``ITEM``, the cause codes
+    (``CAUSE_CODEGRP``/``CAUSE_CODE``) as ``CAUSE``; ``siteid`` and ``orgid`` to
+    the Maximo work order.
     """
     start = _utc(ticket.malfunction_start)
     long_text = (
@@ -629,7 +629,7 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
         for paragraph in long_text.split("\n")
         for line in textwrap.wrap(paragraph, LONG_TEXT_LINE_CHARS)
     ]
-    return {
+    notification: dict[str, Any] = {
         "sap_pm": {
             "NOTIF_TYPE": "M2",
             "SHORT_TEXT": _short_text(ticket.title),
@@ -654,6 +654,28 @@ def to_cmms_notification(ticket: Ticket) -> dict[str, Any]:
             "sourcesysid": "LOOPWATCH",
         },
     }
+    if cmms is not None:
+        _add_settings(notification, cmms)
+    return notification
+
+
+SAP_HEADER_FIELDS = {"planning_plant": "PLANPLANT", "work_center": "WORK_CNTR",
+                     "code_group": "CODE_GROUP", "coding": "CODING"}
+SAP_ITEM_FIELDS = {"damage_code_group": "D_CODEGRP", "damage_code": "D_CODE",
+                   "object_part_code_group": "DL_CODEGRP", "object_part_code": "DL_CODE"}
+SAP_CAUSE_FIELDS = {"cause_code_group": "CAUSE_CODEGRP", "cause_code": "CAUSE_CODE"}
+"""Plant-file SAP PM settings -> BAPI_ALM_NOTIF_CREATE fields (header, item, cause)."""
+
+
+def _add_settings(notification: dict[str, Any], cmms: CmmsConfig) -> None:
+    """Add the fields ``cmms`` sets to ``notification``."""
+    sap = cmms.sap_pm.model_dump(exclude_none=True)
+    header = {SAP_HEADER_FIELDS[k]: v for k, v in sap.items() if k in SAP_HEADER_FIELDS}
+    item = {SAP_ITEM_FIELDS[k]: v for k, v in sap.items() if k in SAP_ITEM_FIELDS}
+    cause = {SAP_CAUSE_FIELDS[k]: v for k, v in sap.items() if k in SAP_CAUSE_FIELDS}
+    notification["sap_pm"] |= header | ({"ITEM": item} if item else {}) | (
+        {"CAUSE": cause} if cause else {})
+    notification["maximo"] |= cmms.maximo.model_dump(exclude_none=True)
 
 
 def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
@@ -675,8 +697,9 @@ def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:
     }
 
 
-def ticket_payload(ticket: Ticket) -> dict[str, Any]:
-    """What the webhook posts: the ticket, its latest change and its CMMS mapping."""
+def ticket_payload(ticket: Ticket, cmms: CmmsConfig | None = None) -> dict[str, Any]:
+    """What a notification of a ticket's change carries: the ticket, its latest change and
+    its CMMS mapping."""
     last = ticket.events[-1] if ticket.events else None
     change = None if last is None else {
         "at": last.at, "from_state": last.from_state, "to_state": last.to_state,
@@ -685,104 +708,5 @@ def ticket_payload(ticket: Ticket) -> dict[str, Any]:
     return {
         "ticket": ticket_to_dict(ticket),
         "change": change,
-        "cmms": to_cmms_notification(ticket),
+        "cmms": to_cmms_notification(ticket, cmms),
     }
-
-
-class TicketWebhook:
-    """Posts new and changed tickets as JSON to ``url`` from a background thread.
-
-    :meth:`send` only queues the payload, so the analysis never waits.  A
-    delivery is tried ``1 + retries`` times, waiting ``backoff_s``, then
-    twice as long, and so on between attempts; every attempt carries the same
-    ``Idempotency-Key`` header so a receiver can drop repeats.  Failures are
-    logged and counted in :attr:`failed`, never raised.  :meth:`close` (or
-    leaving the ``with`` block) delivers what is queued, then stops.
-
-    Attributes
-    ----------
-    delivered : int
-        Payloads the receiver accepted (2xx).
-    failed : int
-        Payloads given up after the last retry, or sent after :meth:`close`.
-    """
-
-    def __init__(
-        self, url: str, *, retries: int = 3, backoff_s: float = 1.0, timeout_s: float = 10.0
-    ) -> None:
-        if not url.startswith(("http://", "https://")):
-            raise ValueError(f"webhook URL must start with http:// or https://, got {url!r}")
-        if retries < 0 or backoff_s < 0 or timeout_s <= 0:
-            raise ValueError(
-                "webhook needs retries >= 0, backoff_s >= 0 and timeout_s > 0, got "
-                f"retries={retries}, backoff_s={backoff_s}, timeout_s={timeout_s}"
-            )
-        self.url = url
-        self.retries = retries
-        self.backoff_s = backoff_s
-        self.timeout_s = timeout_s
-        self.delivered = 0
-        self.failed = 0
-        self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="ticket-webhook", daemon=True)
-        self._thread.start()
-
-    def __enter__(self) -> TicketWebhook:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-    def send(self, ticket: Ticket) -> None:
-        """Queue the ticket for posting (reads the ticket now, posts later)."""
-        if self._closed:
-            self.failed += 1
-            logger.warning("ticket webhook closed: ticket %s not sent to %s", ticket.id, self.url)
-            return
-        body = json.dumps(ticket_payload(ticket)).encode()
-        self._queue.put((uuid.uuid4().hex, body))
-
-    def close(self, timeout_s: float | None = None) -> None:
-        """Deliver what is queued (waiting up to ``timeout_s``), then stop the thread."""
-        if not self._closed:
-            self._closed = True
-            self._queue.put(None)
-        self._thread.join(timeout_s)
-
-    def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
-            self._deliver(*item)
-
-    def _deliver(self, key: str, body: bytes) -> None:
-        attempts = 1 + self.retries
-        error: Exception | None = None
-        for attempt in range(1, attempts + 1):
-            try:
-                self._post(key, body)
-            except Exception as exc:  # any failure is logged, never raised into the caller
-                error = exc
-                logger.info("ticket webhook: attempt %d/%d to %s failed: %s",
-                            attempt, attempts, self.url, exc)
-            else:
-                self.delivered += 1
-                return
-            if attempt < attempts:
-                time.sleep(self.backoff_s * 2 ** (attempt - 1))
-        self.failed += 1
-        logger.warning("ticket webhook: delivery to %s failed after %d attempts: %s",
-                       self.url, attempts, error)
-
-    def _post(self, key: str, body: bytes) -> None:
-        request = urllib.request.Request(
-            self.url,
-            data=body,
-            headers={"Content-Type": "application/json", "Idempotency-Key": key},
-            method="POST",
-        )
-        try:
-            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
-                response.read()
-        except urllib.error.HTTPError as exc:
-            exc.close()
-            raise

@@ -48,6 +48,7 @@ from service.api.routes import (
     tickets,
     unit_prediction,
 )
+from service.logs import RequestIdMiddleware
 from service.runtime import AnalysisUnavailableError, AppState
 from service.security import install_protections, retry_after
 from service.spool import StoreUnavailableError, is_store_outage
@@ -136,6 +137,7 @@ def create_app(state: AppState) -> FastAPI:
 
     app.add_middleware(UnexpectedErrorMiddleware)  # innermost: its 500 gets the headers
     install_protections(app, state.settings)
+    app.add_middleware(RequestIdMiddleware)  # outermost: every record of a request has its id
     unavailable_retry = retry_after(state.settings.spool_retry_s)
 
     @app.exception_handler(RequestValidationError)

@@ -8,13 +8,18 @@ error is raised as :class:`CliError`: printed without a traceback, exit 2.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import json
+import sys
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["COMMAND_MODULES", "CliError", "command_modules", "read_json_file"]
+if TYPE_CHECKING:
+    from service.loop_csv import LoopData
+
+__all__ = ["COMMAND_MODULES", "CliError", "command_modules", "read_json_file", "read_loop_file"]
 
 
 class CliError(Exception):
@@ -42,3 +47,27 @@ def read_json_file(path: Path) -> Any:
         raise CliError(
             f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
         ) from None
+
+
+def read_loop_file(args: argparse.Namespace, *, min_samples: int = 2, context: str = "",
+                   **columns: str) -> LoopData:
+    """The loop data of ``args.file`` with the options ``--ts`` and ``--time``, ``--op``...
+    (``columns`` overrides them); its warnings printed to stderr.
+
+    Raises
+    ------
+    CliError
+        The file cannot be read as loop data (the message, after ``context``).
+    """
+    # imported here: a command such as plant-sim loads nothing else of the service
+    from service.loop_csv import LoopCsvError, read_loop_csv
+
+    names = {name: getattr(args, name, None) for name in ("time", "op", "pv", "sp", "mv")}
+    try:
+        data = read_loop_csv(args.file, ts=args.ts, min_samples=min_samples,
+                             **(names | columns))
+    except LoopCsvError as exc:
+        raise CliError(f"{context}{exc}") from None
+    for warning in data.warnings:
+        print(f"{args.file}: warning: {context}{warning}", file=sys.stderr)
+    return data

@@ -18,8 +18,7 @@ import numpy as np
 
 from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, ModelCheck, check_model
-from service.commands import CliError, read_json_file
-from service.loop_csv import LoopCsvError, read_loop_csv
+from service.commands import CliError, read_json_file, read_loop_file
 
 __all__ = ["print_report", "register"]
 
@@ -97,13 +96,7 @@ def print_report(result: ModelCheck, source: str, out: TextIO) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    try:
-        data = read_loop_csv(
-            args.file, ts=args.ts, time=args.time, op=args.op, pv=args.pv, sp=args.sp,
-            mv=args.mv, min_samples=MIN_SAMPLES,
-        )
-    except LoopCsvError as exc:
-        raise CliError(str(exc)) from None
+    data = read_loop_file(args, min_samples=MIN_SAMPLES)
     if data.op is None or data.pv is None:
         missing = "op" if data.op is None else "pv"
         raise CliError(f"{args.file}: a model check needs both OP and PV; no {missing!r} column")

@@ -15,7 +15,6 @@ cycle (:func:`analytics.plantwide.locate_sticky_valves`).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -28,8 +27,9 @@ from analytics.errors import AnalyticsError
 from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, UnitModel, diagnose_unit
 from analytics.plantwide.unit import MODEL_NOTE
 from analytics.simulation import ClosedLoopModel
-from service.commands import CliError, read_json_file
-from service.loop_csv import LoopCsvError, read_loop_csv
+from connectors.base import read_csv_rows
+from service.commands import CliError, read_json_file, read_loop_file
+from service.loop_csv import LoopCsvError
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
 
@@ -59,13 +59,11 @@ def register(commands: Any) -> None:
 
 
 def _header(path: Path) -> list[str]:
+    """The column names, read as the loops' data will be (commas or semicolons, a BOM)."""
     try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            return next(csv.reader(handle), [])
-    except FileNotFoundError:
-        raise CliError(f"{path}: no such file") from None
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise CliError(f"{path}: not a readable CSV file ({exc})") from None
+        return read_csv_rows(path, LoopCsvError)[0]
+    except LoopCsvError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _loop_names(path: Path, wanted: str | None) -> list[str]:
@@ -89,10 +87,7 @@ def _read_loop(
     path: Path, loop: str, args: argparse.Namespace
 ) -> tuple[float, FloatArray, FloatArray]:
     """Sampling interval, OP and PV of ``loop``; missing values are refused."""
-    try:
-        data = read_loop_csv(path, ts=args.ts, time=args.time, op=f"op_{loop}", pv=f"pv_{loop}")
-    except LoopCsvError as exc:
-        raise CliError(f"loop {loop}: {exc}") from None
+    data = read_loop_file(args, context=f"loop {loop}: ", op=f"op_{loop}", pv=f"pv_{loop}")
     assert data.op is not None and data.pv is not None  # both columns were named
     for role, values in (("op", data.op), ("pv", data.pv)):
         missing = np.flatnonzero(~np.isfinite(values))

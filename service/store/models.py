@@ -269,3 +269,28 @@ class IngestLog(Base):
     first_time: Mapped[float] = mapped_column(Float)
     last_time: Mapped[float] = mapped_column(Float)
     samples: Mapped[int] = mapped_column(Integer)
+
+
+class Notification(Base):
+    """One event to deliver on one channel (the notification outbox).
+
+    Written in the transaction of the change it reports, so a change that is
+    stored is delivered at least once, across restarts;
+    :class:`service.notifications.OutboxDispatcher` delivers it.  ``event_id``
+    is the ``webhook-id`` the receiver may drop repeats by.
+    """
+
+    __tablename__ = "notifications"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    event_id: Mapped[str] = mapped_column(String(40), unique=True)
+    channel: Mapped[str] = mapped_column(String(16))
+    event_type: Mapped[str] = mapped_column(String(40))
+    payload: Mapped[dict[str, Any]]
+    created_at: Mapped[float] = mapped_column(Float)
+    state: Mapped[str] = mapped_column(String(16))  # pending, delivered, failed
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[float] = mapped_column(Float)
+    last_error: Mapped[str | None] = mapped_column(Text)
+    finished_at: Mapped[float | None] = mapped_column(Float)
+
+    __table_args__ = (Index("ix_notifications_state_due", "state", "next_attempt_at"),)

@@ -27,7 +27,7 @@ from pydantic import ValidationError
 
 from connectors.base import Backoff
 from connectors.opcua import OpcUaConnector, OpcUaEndpointConfig
-from tests.servers import free_port
+from tests.servers import TcpRelay, free_port
 
 pytestmark = pytest.mark.serial  # timing-sensitive: run alone, after the parallel tests
 
@@ -61,9 +61,11 @@ class PlainServer:
     ``initial`` gives the tag a value of another type."""
 
     def __init__(self, port: int, tags: Iterable[str], *, initial: dict[str, Any] | None = None,
-                 secure: Path | None = None, users: dict[str, str] | None = None) -> None:
+                 secure: Path | None = None, users: dict[str, str] | None = None,
+                 history: Iterable[str] = ()) -> None:
         self.port, self.tags, self.secure, self.users = port, list(tags), secure, users
         self.initial = initial or {}
+        self.history = list(history)  # tags whose changes the server keeps (HistoryRead)
         self.server: Server | None = None
 
     @property
@@ -82,6 +84,9 @@ class PlainServer:
                 ua.NodeId(tag, index), tag, self.initial.get(tag, 0.0)
             )
         await server.start()
+        for tag in self.history:
+            await server.historize_node_data_change(server.get_node(ua.NodeId(tag, index)),
+                                                    period=None)
         self.server = server
 
     async def stop(self) -> None:
@@ -124,10 +129,15 @@ class _PasswordUsers:
 
 
 async def _require_certificates(server: Server, pki: Path) -> None:
-    """Basic256Sha256 Sign and SignAndEncrypt only; trust only the certificates in pki/trusted."""
+    """Basic256Sha256, Aes128Sha256RsaOaep and Aes256Sha256RsaPss, Sign and SignAndEncrypt
+    only; trust only the certificates in pki/trusted."""
     server.set_security_policy([
         ua.SecurityPolicyType.Basic256Sha256_Sign,
         ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+        ua.SecurityPolicyType.Aes128Sha256RsaOaep_Sign,
+        ua.SecurityPolicyType.Aes128Sha256RsaOaep_SignAndEncrypt,
+        ua.SecurityPolicyType.Aes256Sha256RsaPss_Sign,
+        ua.SecurityPolicyType.Aes256Sha256RsaPss_SignAndEncrypt,
     ])
     await server.set_application_uri("urn:loopwatch:test-server")
     await server.load_certificate(str(pki / "server" / "cert.der"))
@@ -142,7 +152,8 @@ async def _require_certificates(server: Server, pki: Path) -> None:
 
 @pytest.fixture(scope="module")
 def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Self-signed certificates: the server, a trusted client, and a stranger."""
+    """Self-signed certificates: the server, a trusted client, and a stranger; the server's
+    trust store (``trusted``: the client) and the clients' (``trusted_servers``: the server)."""
     root = tmp_path_factory.mktemp("pki")
 
     async def make() -> None:
@@ -158,6 +169,9 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
             )
         (root / "trusted").mkdir()
         (root / "trusted" / "client.der").write_bytes((root / "client" / "cert.der").read_bytes())
+        (root / "trusted_servers").mkdir()
+        (root / "trusted_servers" / "server.der").write_bytes(
+            (root / "server" / "cert.der").read_bytes())
 
     asyncio.run(make())
     return root
@@ -426,6 +440,53 @@ def test_the_watchdog_reconnects_when_the_subscription_goes_silent():
     run(scenario)
 
 
+def test_after_an_outage_the_missed_samples_are_read_from_the_server_history():
+    """The network fails while the server keeps running and writing: the node the server
+    keeps history of has no hole once the connector is back; the other one has."""
+    kept, lost = "FIC-301.PV", "FIC-302.PV"
+    server = PlainServer(free_port(), [kept, lost], history=[kept])
+    sink = Sink()
+
+    def stamps(tag: str) -> list[float]:
+        return [t for _, t, _, _ in sink.items(tag)]
+
+    async def write_both(value: float) -> float:
+        stamp = round(time.time(), 3)  # OPC UA time stamps keep 100 ns, floats less
+        for tag in (kept, lost):
+            await server.write(tag, value, stamp)
+        await asyncio.sleep(0.05)  # distinct time stamps
+        return stamp
+
+    async def scenario() -> OpcUaConnector:
+        async with server, TcpRelay(server.port) as relay:
+            config = endpoint(server, url=f"opc.tcp://127.0.0.1:{relay.port}")
+            connector = OpcUaConnector(config, sink, backoff=FAST_BACKOFF)
+            async with running(connector):
+                await wait_for(lambda: connector.counters.samples == 2)  # initial values
+                before = await write_both(1.0)
+                await wait_for(lambda: before in stamps(kept) and before in stamps(lost))
+                relay.cut()
+                await wait_for(lambda: not connector.connected)
+                missed = [await write_both(10.0 + k) for k in range(3)]
+                relay.restore()
+                await wait_for(lambda: set(missed) <= set(stamps(kept)))
+                after = await write_both(20.0)
+                await wait_for(lambda: after in stamps(kept) and after in stamps(lost))
+            return connector, missed
+
+    connector, missed = asyncio.run(asyncio.wait_for(scenario(), 60))
+    counters = connector.counters
+    assert counters.reconnects == 1 and len(connector.outages) == 1
+    assert counters.samples == counters.delivered == len(sink.items())
+    assert len(stamps(kept)) == len(set(stamps(kept))) == 6  # initial, before, 3 missed, after
+    values = {t: v for _, t, v, _ in sink.items(kept)}
+    assert [values[t] for t in missed] == [10.0, 11.0, 12.0]
+    # the node without history shows the gap: only the latest missed value, as the new
+    # subscription's first sample
+    assert [t for t in stamps(lost) if t in missed] == [missed[-1]]
+    assert counters.backfilled >= 2  # the newest missed one may come live first
+
+
 def test_run_in_a_thread_and_stop_flushes():
     server = PlainServer(free_port(), ["FIC-101.SP"])
     sink = Sink()
@@ -471,6 +532,33 @@ def test_certificates_sign_and_encrypt(pki, mode):
     run(scenario)
 
 
+@pytest.mark.parametrize("policy", ["Basic256Sha256", "Aes128Sha256RsaOaep", "Aes256Sha256RsaPss"])
+def test_security_policies_validate_the_server_certificate_against_the_trust_store(pki, policy):
+    server = PlainServer(free_port(), ["AIC-503.PV"], secure=pki)
+    security = {
+        "security_policy": policy, "security_mode": "SignAndEncrypt",
+        "certificate": pki / "client" / "cert.der", "private_key": pki / "client" / "key.pem",
+        "application_uri": CLIENT_URI,
+    }
+
+    async def scenario() -> tuple[OpcUaConnector, OpcUaConnector]:
+        async with server:
+            trusting = await first_sample_or_error(
+                endpoint(server, **security, trusted_certificates=pki / "trusted_servers"))
+            # a trust store without the server's certificate
+            wary = await first_sample_or_error(
+                endpoint(server, **security, trusted_certificates=pki / "trusted"))
+        return trusting, wary
+
+    trusting, wary = asyncio.run(asyncio.wait_for(scenario(), 60))
+    assert trusting.outages == [] and trusting.counters.samples == 1
+    assert wary.counters.samples == 0
+    error = wary.last_error or ""
+    assert error.startswith("BadCertificateUntrusted: the server certificate ")
+    assert "(application urn:loopwatch:test-server, SHA-256 " in error
+    assert f"copy its certificate into {pki / 'trusted'} to trust it" in error
+
+
 def test_username_and_password():
     server = PlainServer(free_port(), ["FIC-105.PV"], users={"operator": "s3cret"})
 
@@ -491,10 +579,15 @@ def test_username_and_password():
 
 @pytest.mark.parametrize(("change", "message"), [
     ({"url": "http://plant:4840"}, "url"),
-    ({"security_mode": "Sign"}, "security_mode Sign needs security_policy Basic256Sha256"),
+    ({"security_mode": "Sign"}, "security_mode Sign needs a security_policy (Basic256Sha256, "
+     "Aes128Sha256RsaOaep, Aes256Sha256RsaPss)"),
     ({"security_policy": "Basic256Sha256"}, "needs security_mode Sign or SignAndEncrypt"),
     ({"security_policy": "Basic256Sha256", "security_mode": "Sign"},
      "needs certificate and private_key"),
+    ({"security_policy": "Aes256Sha256RsaPss", "security_mode": "Sign",
+      "certificate": __file__, "private_key": __file__},
+     "needs trusted_certificates (a directory of the server certificates to trust) or the "
+     "server's own server_certificate"),
     ({"certificate": "/no/such/cert.der"}, "certificate"),
     ({"username": "operator"}, "username and password go together"),
     ({"watchdog_s": 1.0, "publishing_interval_ms": 1000}, "at least three publishing intervals"),

@@ -162,7 +162,7 @@ def test_naive_times_are_read_in_the_given_time_zone(tmp_path):
         ("t,x\n5,1\n6,2\n5,3\n", ["x"], "rows 2 and 4: the same time"),
         ("t,x\n0,1\n", ["y"], "no column 'y'; the header has t, x"),
         ("a,x\n0,1\n", ["x"], "no time column (time, t, t_s, timestamp, or date and time)"),
-        ("t,x\n0,1\n", ["t"], "column 't' holds the time, it cannot be replayed"),
+        ("t,x\n0,1\n", ["t"], "column 't' holds the time, it cannot be read as a signal"),
         ("t,x\n", ["x"], "no data rows below the header"),
         ("", ["x"], "the file is empty"),
     ],

@@ -189,8 +189,8 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
                   "with an identified process model"})
     assert client.get("/api/v1/loops/FIC-9/advice", headers=viewer).status_code == 404
     metrics = client.get("/metrics", headers=viewer).text
-    assert 'loopwatch_analyses_total{status="ok"} 4' in metrics
-    assert "loopwatch_tickets_open 1" in metrics
+    assert 'loopwatch_analyses_total{status="ok"} 4.0' in metrics
+    assert "loopwatch_tickets_open 1.0" in metrics
 
 
 def test_health_names_the_pattern_and_lists_the_episodes_at_utc_times(service, client):

@@ -1,4 +1,4 @@
-"""The ``loopwatch`` command line: simulate and demo."""
+"""The ``loopwatch`` command line: simulate, demo, and analyze and model-check of plant exports."""
 
 import csv
 import json
@@ -6,6 +6,7 @@ import json
 import pytest
 
 from service.cli import main
+from tests.shared_data import SHARED_DATA, require_file
 
 
 def test_simulate_a_scenario_to_csv(tmp_path, capsys):
@@ -115,7 +116,7 @@ def test_analyze_readable_report_of_a_healthy_loop(tmp_path, capsys):
         ("t,op,pv\n0,1,2\n1,x,3\n", [], "row 3, column 'op': 'x' is not a number"),
         ("t,flow\n0,1\n1,2\n", [], "needs an 'op' or a 'pv' column"),
         ("op,pv\n1,2\n2,3\n", [], "no time column"),
-        ("t,op,pv\n0,1,2\n5,1,2\n3,1,2\n", [], "row 4: time 3 does not increase"),
+        ("t,op,pv\n0,1,2\n5,1,2\n5,1,2\n", [], "rows 3 and 4: the same time"),
         ("t,op,pv\n" + "".join(f"{k},{k % 7},{k % 5}\n" for k in range(20)), [],
          "20 data rows, at least 100 are needed"),
     ],
@@ -126,3 +127,36 @@ def test_analyze_refuses_bad_input_with_file_row_and_column(tmp_path, capsys, te
     assert main(["analyze", str(path), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and "bad.csv" in err
+
+
+# ---------------------------------------------------------------- the plant's own exports
+
+PLANT = SHARED_DATA / "plant_unlabelled"
+
+
+def test_analyze_reads_a_plant_export_as_it_is_and_warns_of_a_wrong_ts(capsys):
+    """BOM, id/date/time columns, newest first, NULL cells: read as the replay reads them."""
+    path = require_file(PLANT / "FIC-211_20241121-27.csv")
+    assert main(["analyze", str(path), "--op", "FV_211", "--pv", "FT_211", "--ts", "5",
+                 "--json"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    assert report["samples"] == 10080 and report["ts"] == 60.0
+    assert "93 NaN" in json.dumps(report["quality"])  # the NULL cells, kept as holes
+    assert ("warning: --ts 5 s disagrees with the time column (date and time: median step "
+            "60 s); the time column is used") in err
+
+
+def test_model_check_reads_a_plant_export_in_semicolons_with_decimal_commas(tmp_path, capsys):
+    """The same export as a European spreadsheet writes it gives the same model check."""
+    source = require_file(PLANT / "LIC-106_20241121-27.csv")
+    text = source.read_text(encoding="utf-8-sig")
+    european = tmp_path / "LIC-106.csv"
+    european.write_text("\ufeff" + text.replace(",", ";").replace(".", ","), encoding="utf-8")
+    results = []
+    for path in (source, european):
+        assert main(["model-check", str(path), "--op", "LV_106", "--pv", "FT_115",
+                     "--json"]) == 0
+        results.append(json.loads(capsys.readouterr().out))
+    assert results[0]["base_model"]["dt"] == 60.0
+    assert results[0] == results[1]

@@ -81,7 +81,7 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 await until(f"the {server} loss to be noticed", lambda c=connected: not c())
                 connector = opcua if server == "opcua" else modbus
                 name = connector.name
-                assert f'loopwatch_connector_up{{connector="{name}"}} 0' in await metrics()
+                assert f'loopwatch_connector_up{{connector="{name}"}} 0.0' in await metrics()
                 await asyncio.sleep(DOWN_S)
                 times[f"{server} up"] = time.time()
                 await plant.bring_back(server)
@@ -89,10 +89,10 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
                 before = connector.counters
                 scraped = await metrics()
                 after = connector.counters
-                assert f'loopwatch_connector_up{{connector="{name}"}} 1' in scraped
-                assert f'loopwatch_connector_outages{{connector="{name}"}} 1' in scraped
+                assert f'loopwatch_connector_up{{connector="{name}"}} 1.0' in scraped
+                assert f'loopwatch_connector_outages_total{{connector="{name}"}} 1.0' in scraped
                 delivered = float(scraped.split(
-                    f'loopwatch_connector_delivered{{connector="{name}"}} ')[1].split()[0])
+                    f'loopwatch_connector_delivered_total{{connector="{name}"}} ')[1].split()[0])
                 assert before.delivered <= delivered <= after.delivered
             bad_before = (opcua.counters.bad, modbus.counters.bad)
             plant.set_bad("FIC-101.PV")  # over OPC UA

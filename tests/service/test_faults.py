@@ -179,7 +179,7 @@ def test_beyond_the_spool_bound_batches_are_refused_and_counted(make_service, st
     assert (books.received, books.stored, books.spooled) == (15 + 542, 15 + 361, 0)
     assert stored_samples(store)[("FIC-2.PV", T0 - 10)] == 1.0
     metrics = client.get("/metrics", headers={"X-API-Key": ADMIN}).text
-    assert 'loopwatch_samples_refused_total{reason="spool_full"} 180' in metrics
+    assert 'loopwatch_samples_refused_total{reason="spool_full"} 180.0' in metrics
     assert_books_balance(svc, store)
 
 

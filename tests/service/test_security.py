@@ -28,7 +28,8 @@ from service.server import Service
 from service.store.models import ApiKey
 from tests.service.test_api import ADMIN, T0
 
-PUBLIC = {("GET", "/healthz"), ("GET", "/"), ("GET", "/static/{name}")}
+PUBLIC = {("GET", "/healthz"), ("GET", "/"), ("GET", "/static/{name:path}"), ("GET", "/docs"),
+          ("GET", "/redoc")}
 """Routes without a key: the liveness probe and the dashboard shell (fixed files, no data)."""
 
 ANY_KEY = "any key"
@@ -125,6 +126,7 @@ def new_key(client: TestClient, role: str, name: str | None = None) -> str:
 
 
 def call(client: TestClient, method: str, path: str, key: str | None) -> Any:
+    path = re.sub(r"\{(\w+):\w+\}", r"{\1}", path)  # {name:path} -> {name}
     url = path.format(**{k: v for k, v in PATH_VALUES.items() if f"{{{k}}}" in path})
     body = {} if method in ("POST", "PUT", "PATCH") else None
     headers = {} if key is None else {"X-API-Key": key}
@@ -176,13 +178,17 @@ def test_every_keyed_route_refuses_a_missing_unknown_or_revoked_key(make_service
         assert call(client, method, path, None).status_code == 200, path
 
 
-def test_the_schema_needs_a_key_and_the_cdn_docs_pages_are_not_served(client):
+def test_the_schema_needs_a_key_and_the_docs_pages_load_only_loopwatch_files(client):
     assert client.get("/openapi.json").status_code == 401
     schema = client.get("/openapi.json", headers={"X-API-Key": new_key(client, "historian")})
     assert schema.status_code == 200
     assert "/api/v1/ingest" in schema.json()["paths"]
-    assert client.get("/docs").status_code == 404
-    assert client.get("/redoc").status_code == 404
+    for path in ("/docs", "/redoc"):
+        page = client.get(path)
+        assert page.status_code == 200
+        sources = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+        assert sources and all(s.startswith("/") for s in sources), sources
+        assert all(client.get(s).status_code == 200 for s in sources if s.startswith("/static/"))
 
 
 def test_keys_are_stored_as_hashes_only(service, client):
@@ -291,11 +297,12 @@ def test_the_dashboard_needs_nothing_the_content_security_policy_forbids(client)
     assert page.headers["Content-Security-Policy"] == CONTENT_SECURITY_POLICY
     assert "'unsafe-inline'" not in CONTENT_SECURITY_POLICY
     assert "script-src 'self'" in CONTENT_SECURITY_POLICY
-    audit = _PageAudit()
-    audit.feed(page.text)
-    assert audit.blocked == []
+    for path in ("/", "/docs", "/redoc"):
+        audit = _PageAudit()
+        audit.feed(client.get(path).text)
+        assert audit.blocked == [], path
     for name in STATIC_FILES:
-        if name.endswith(".js"):
+        if name.endswith(".js") and not name.startswith("vendor/"):  # ours, not Swagger's
             script = client.get(f"/static/{name}").text
             assert not re.search(r"\beval\(|new Function\(|\.innerHTML\s*=", script), name
 

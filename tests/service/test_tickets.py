@@ -1,10 +1,5 @@
-"""Valve-repair tickets: confirmation, deduplication, lifecycle, CMMS fields, webhook."""
+"""Valve-repair tickets: confirmation, deduplication, lifecycle, CMMS fields."""
 
-import json
-import logging
-import threading
-from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 
@@ -13,7 +8,6 @@ from service.tickets import (
     MAX_TICKET_EPISODES,
     TicketNotFoundError,
     TicketStateError,
-    TicketWebhook,
     change_ticket_state,
     check_transition,
     evidence_from_run,
@@ -24,7 +18,6 @@ from service.tickets import (
     to_cmms_notification,
     update_ticket_from_analysis,
 )
-from tests.servers import free_port
 
 T0 = 1_700_000_000.0  # 2023-11-14T22:13:20Z
 WINDOW_S = 600.0
@@ -494,118 +487,3 @@ def test_cmms_notification_fields(store):
         "sourcesysid": "LOOPWATCH",
     }
     assert maximo["description_longdescription"].startswith("Malfunction start: 2023-11-14T22")
-
-
-# --- webhook ------------------------------------------------------------------
-
-
-class Receiver(ThreadingHTTPServer):
-    """A real HTTP endpoint: refuses the first ``failures`` posts with 503, then accepts."""
-
-    def __init__(self, failures: int) -> None:
-        super().__init__(("127.0.0.1", 0), ReceiverHandler)
-        self.failures = failures
-        self.keys: list[str] = []
-        self.received: list[dict] = []
-        self.gate = threading.Event()
-        self.gate.set()
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.server_address[1]}/tickets"
-
-
-class ReceiverHandler(BaseHTTPRequestHandler):
-    server: Receiver
-
-    def do_POST(self) -> None:
-        body = self.rfile.read(int(self.headers["Content-Length"]))
-        self.server.gate.wait(10)
-        self.server.keys.append(self.headers["Idempotency-Key"])
-        if len(self.server.keys) <= self.server.failures:
-            self.send_response(503)
-        else:
-            self.server.received.append(json.loads(body))
-            self.send_response(202)
-        self.send_header("Content-Length", "0")
-        self.end_headers()
-
-    def log_message(self, *args: object) -> None:
-        """Quiet."""
-
-
-@pytest.fixture
-def receiver(request) -> Iterator[Receiver]:
-    server = Receiver(getattr(request, "param", 0))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield server
-    server.gate.set()
-    server.shutdown()
-    server.server_close()
-    thread.join()
-
-
-@pytest.mark.parametrize("receiver", [1], indirect=True)
-def test_webhook_retries_and_delivers_once(store, receiver):
-    with store.session() as s:
-        ticket = opened_ticket(s)
-    with TicketWebhook(receiver.url, retries=3, backoff_s=0.01) as webhook:
-        webhook.send(ticket)
-    assert (webhook.delivered, webhook.failed) == (1, 0)
-    assert len(receiver.keys) == 2 and receiver.keys[0] == receiver.keys[1]
-    (payload,) = receiver.received
-    assert payload["ticket"]["id"] == ticket.id
-    assert payload["ticket"]["evidence"]["valve_asset"] == "FV-101"
-    assert payload["change"]["to_state"] == "open"
-    assert payload["change"]["actor"] == "analysis"
-    assert payload["cmms"]["sap_pm"]["NOTIF_TYPE"] == "M2"
-
-
-def test_webhook_send_does_not_wait_for_the_receiver(store, receiver):
-    receiver.gate.clear()  # the receiver holds every request until the gate opens
-    webhook = TicketWebhook(receiver.url, retries=0, backoff_s=0)
-    with store.session() as s:
-        ticket = opened_ticket(s)
-        webhook.send(ticket)  # the payload is read now, posted later
-        change_ticket_state(s, ticket.id, "acknowledged", actor="mike", now=T0 + 900)
-        webhook.send(ticket)
-    assert receiver.received == []  # send() returned while the receiver was still holding
-    receiver.gate.set()
-    webhook.close()
-    assert [p["change"]["to_state"] for p in receiver.received] == ["open", "acknowledged"]
-    assert webhook.delivered == 2
-
-
-@pytest.mark.parametrize("receiver", [99], indirect=True)
-def test_webhook_failures_are_logged_and_counted_never_raised(store, receiver, caplog):
-    with store.session() as s:
-        ticket = opened_ticket(s)
-    caplog.set_level(logging.INFO, logger="service.tickets")
-    with TicketWebhook(receiver.url, retries=2, backoff_s=0.001) as webhook:
-        webhook.send(ticket)
-    assert (webhook.delivered, webhook.failed) == (0, 1)
-    assert len(receiver.keys) == 3
-    assert caplog.records[-1].levelno == logging.WARNING
-    assert caplog.records[-1].getMessage() == (
-        f"ticket webhook: delivery to {receiver.url} failed after 3 attempts: "
-        "HTTP Error 503: Service Unavailable"
-    )
-    webhook.send(ticket)  # after close: counted and logged, not raised
-    assert webhook.failed == 2
-
-
-def test_webhook_to_a_closed_port(store):
-    with store.session() as s:
-        ticket = opened_ticket(s)
-    with TicketWebhook(f"http://127.0.0.1:{free_port()}/", retries=1, backoff_s=0) as webhook:
-        webhook.send(ticket)
-    assert (webhook.delivered, webhook.failed) == (0, 1)
-
-
-def test_webhook_settings_are_checked():
-    with pytest.raises(ValueError, match="must start with http:// or https://, got 'ftp://x'"):
-        TicketWebhook("ftp://x")
-    with pytest.raises(ValueError, match="retries >= 0, backoff_s >= 0 and timeout_s > 0, got "
-                                         "retries=-1"):
-        TicketWebhook("http://127.0.0.1:1/", retries=-1)

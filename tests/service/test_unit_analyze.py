@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,6 +46,20 @@ def test_json_report_names_the_sticky_valves(column_csv, capsys):
     assert all(0 < v["confidence"] <= 1 and v["S"] > 0 for v in report["sticky_valves"])
     periods = sorted(round(g["period_s"]) for g in report["groups"])
     assert len(periods) == 2 and 110 < periods[0] < 140 and 270 < periods[1] < 320
+
+
+@pytest.mark.slow
+def test_a_semicolon_file_with_decimal_commas_finds_its_loops_and_the_same_valves(
+        column_csv, tmp_path, capsys):
+    text = Path(column_csv).read_text()
+    european = tmp_path / "column-2-eu.csv"
+    european.write_text("\ufeff" + text.replace(",", ";").replace(".", ","), encoding="utf-8")
+    reports = []
+    for path in (column_csv, str(european)):
+        assert run(path, "--skip", "2000", "--json") == 0  # the loops read off the header
+        reports.append(json.loads(capsys.readouterr().out))
+    assert reports[1]["loops"] == ["loop1", "loop2", "loop3"]
+    assert reports[1]["sticky_valves"] == reports[0]["sticky_valves"]
 
 
 @pytest.mark.slow

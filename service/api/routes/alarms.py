@@ -28,6 +28,7 @@ from service.api.deps import (
     require,
     row_id,
 )
+from service.logs import audit
 from service.store.models import Alarm
 
 router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"],
@@ -101,8 +102,12 @@ def _detail(alarm: Alarm) -> AlarmDetail:
     return AlarmDetail.model_validate(alarm, from_attributes=True)
 
 
-def _actor(key: Principal) -> str:
-    return f"{key.name} ({key.role})"
+def _acted(alarm: Alarm) -> AlarmDetail:
+    """The alarm as answered after an action, which becomes an audit record."""
+    last = alarm.events[-1]
+    audit(last.actor, f"alarm {last.event}", f"alarm {alarm.id} ({alarm.loop_id} {alarm.kind})",
+          to_state=last.to_state, note=last.note)
+    return _detail(alarm)
 
 
 @router.get("", response_model=AlarmsPublic)
@@ -145,7 +150,7 @@ def ack(alarm_id: AlarmId, session: SessionDep, state: StateDep,
         key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """Acknowledge (operator); 409 if the alarm is not waiting for it."""
     _get(session, alarm_id)
-    return _detail(acknowledge(session, alarm_id, actor=_actor(key), now=state.clock(),
+    return _acted(acknowledge(session, alarm_id, actor=key.actor, now=state.clock(),
                                note=_note(body)))
 
 
@@ -154,7 +159,7 @@ def shelve_alarm(alarm_id: AlarmId, body: ShelveRequest, session: SessionDep, st
                  key: Operator) -> AlarmDetail:
     """Shelve for ``duration_s`` (operator); it comes back by itself."""
     _get(session, alarm_id)
-    return _detail(shelve(session, alarm_id, duration_s=body.duration_s, actor=_actor(key),
+    return _acted(shelve(session, alarm_id, duration_s=body.duration_s, actor=key.actor,
                           now=state.clock(), note=body.note))
 
 
@@ -163,7 +168,7 @@ def unshelve_alarm(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                    key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """End a shelve early (operator)."""
     _get(session, alarm_id)
-    return _detail(unshelve(session, alarm_id, actor=_actor(key), now=state.clock(),
+    return _acted(unshelve(session, alarm_id, actor=key.actor, now=state.clock(),
                             note=_note(body)))
 
 
@@ -172,7 +177,7 @@ def out_of_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                    key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Remove from service (admin), e.g. while the loop is in manual for maintenance."""
     _get(session, alarm_id)
-    return _detail(remove_from_service(session, alarm_id, actor=_actor(key),
+    return _acted(remove_from_service(session, alarm_id, actor=key.actor,
                                        now=state.clock(), note=_note(body)))
 
 
@@ -181,5 +186,5 @@ def in_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Return to service (admin)."""
     _get(session, alarm_id)
-    return _detail(return_to_service(session, alarm_id, actor=_actor(key),
+    return _acted(return_to_service(session, alarm_id, actor=key.actor,
                                      now=state.clock(), note=_note(body)))

@@ -1,4 +1,5 @@
-"""Historian push: JSON batches (PI Web API ``streamsets/recorded`` shape) and CSV."""
+"""Historian push: JSON batches (simple, or a PI Web API ``streamsets/recorded`` answer)
+and CSV."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import TypeAdapter
 
 from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
-from service.ingest import IngestError, IngestReport, TagItems
+from service.ingest import IngestError, IngestReport, PiStream, PiStreams, TagItems
 
 router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"], responses=ERROR_RESPONSES)
 Historian = Annotated[Principal, Depends(require("ingest"))]
@@ -37,7 +38,7 @@ def _inlined(schema: dict[str, Any]) -> dict[str, Any]:
     return cast(dict[str, Any], resolve(schema))
 
 
-BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems]).json_schema())
+BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems] | PiStreams | list[PiStream]).json_schema())
 
 
 @router.post(
@@ -48,7 +49,10 @@ BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems]).json_schema())
         "application/json": {"schema": BATCH_SCHEMA}}}},
 )
 async def ingest(request: Request, state: StateDep, _: Historian) -> JSONResponse:
-    """Store samples of many tags: ``[{tag, items: [{timestamp, value, good}]}]``.
+    """Store samples of many tags: ``[{tag, items: [{timestamp, value, good}]}]``, or a
+    PI Web API ``streamsets/recorded`` answer (``{Items: [{WebId, Name, Path, Items:
+    [{Timestamp, Value, Good, ...}]}]}``, its streams mapped to tags by the plant file's
+    ``pi_points``, by Path or Name; digital system states are stored as bad samples).
 
     Idempotent: items already stored with the same value count as
     ``already_stored``.  Unknown tags, bad timestamps, duplicates and

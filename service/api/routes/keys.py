@@ -17,6 +17,7 @@ from service.api.deps import (
     row_id,
 )
 from service.auth import AuthError, KeyConflictError, Role, create_key, list_keys, revoke_key
+from service.logs import audit
 from service.store.models import ApiKey
 
 router = APIRouter(prefix="/api/v1/keys", tags=["keys"], responses=ERROR_RESPONSES)
@@ -60,9 +61,12 @@ def _public(row: ApiKey) -> KeyPublic:
 
 
 @router.post("", response_model=KeyCreated, status_code=201)
-def create(body: KeyCreate, session: SessionDep, state: StateDep, _: Admin) -> KeyCreated:
+def create(body: KeyCreate, session: SessionDep, state: StateDep, admin: Admin) -> KeyCreated:
     """Create a key; store the returned ``key`` now, it cannot be shown again."""
     key, row = create_key(session, body.name, body.role, state.clock())
+    session.flush()
+    audit(admin.actor, "created API key", f"{row.key_id} ({row.name})",
+          role=row.role)
     return KeyCreated(**_public(row).model_dump(), key=key)
 
 
@@ -75,12 +79,15 @@ def list_all(session: SessionDep, _: Admin) -> KeysPublic:
 
 @router.delete("/{key_id}", response_model=KeyPublic, responses=error_responses(404, 409))
 def revoke(key_id: Annotated[int, row_id("the key's row id (`id`)")], session: SessionDep,
-           state: StateDep, _: Admin) -> KeyPublic:
+           state: StateDep, admin: Admin) -> KeyPublic:
     """Revoke a key; requests with it get 401 from now on.  409 for the last active
     admin key (create another one first)."""
     try:
-        return _public(revoke_key(session, key_id, state.clock()))
+        row = revoke_key(session, key_id, state.clock())
     except KeyConflictError as exc:
         raise HTTPException(409, str(exc)) from None
     except AuthError:
         raise HTTPException(404, "API key not found") from None
+    audit(admin.actor, "revoked API key", f"{row.key_id} ({row.name})",
+          role=row.role)
+    return _public(row)

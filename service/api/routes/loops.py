@@ -26,6 +26,7 @@ from service.api.deps import (
 from service.api.routes import advice, unit_diagnosis
 from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.config import LoopConfig
+from service.logs import audit
 from service.plant import TagConflictError
 from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
 from service.tickets import run_episodes
@@ -459,7 +460,7 @@ def get_loop_config(loop_id: str, session: SessionDep, _: Reader) -> dict[str, A
 @router.put("/loops/{loop_id}", response_model=LoopPublic, status_code=200,
             responses=error_responses(409))
 def put_loop(
-    loop_id: str, body: dict[str, Any], session: SessionDep, state: StateDep, _: Admin
+    loop_id: str, body: dict[str, Any], session: SessionDep, state: StateDep, admin: Admin
 ) -> LoopPublic:
     """Create or replace a loop from its configuration (admin).  The loop is kept in the
     store and loaded at every start (a loop of the plant file with the same id takes
@@ -467,7 +468,7 @@ def put_loop(
     loop."""
     try:
         loop = LoopConfig.model_validate({**body, "id": loop_id})
-        state.registry.upsert_loop(session, loop, state.clock())
+        created = state.registry.upsert_loop(session, loop, state.clock())
     except ValidationError as exc:
         raise HTTPException(
             422, exc.errors(include_url=False, include_context=False, include_input=False)
@@ -476,7 +477,9 @@ def put_loop(
         raise HTTPException(409, str(exc)) from None
     session.flush()
     state.buffers.add_loop(loop)
-    return get_loop(loop_id, session, _)
+    audit(admin.actor, "added loop" if created else "changed loop", loop_id,
+          config=loop.model_dump(mode="json", exclude_defaults=True))
+    return get_loop(loop_id, session, admin)
 
 
 def _run_public(run: AnalysisRun) -> RunPublic:

@@ -5,11 +5,10 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends
-from fastapi.responses import PlainTextResponse
-from sqlalchemy import func, select
+from fastapi.responses import PlainTextResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST
 
-from service.api.deps import ERROR_RESPONSES, Principal, SessionDep, StateDep, require
-from service.store.models import Alarm, Loop, Ticket
+from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
 
 router = APIRouter(tags=["system"])
 
@@ -21,32 +20,10 @@ def liveness() -> dict[str, str]:
 
 
 @router.get("/metrics", response_class=PlainTextResponse, responses=ERROR_RESPONSES)
-def metrics(
-    session: SessionDep, state: StateDep, _: Annotated[Principal, Depends(require("read"))]
-) -> str:
-    """Counters and gauges in the Prometheus text format; per connector whether data
-    comes now (``loopwatch_connector_up``), its outages and their total length, and its
-    samples since start: made, bad, delivered to ingest, given up, still on their way."""
-    gauges = {
-        "loopwatch_loops": float(session.scalar(select(func.count()).select_from(Loop)) or 0),
-        "loopwatch_alarms_active": float(
-            session.scalar(select(func.count()).where(Alarm.state != "normal")) or 0
-        ),
-        "loopwatch_tickets_open": float(
-            session.scalar(
-                select(func.count()).where(Ticket.state.in_(("open", "acknowledged", "scheduled")))
-            ) or 0
-        ),
-    }
-    now = state.clock()
-    for source in state.sources:
-        outages = source.outages
-        label = f'{{connector="{source.name}"}}'
-        gauges[f"loopwatch_connector_up{label}"] = float(not outages or outages[-1].end is not None)
-        gauges[f"loopwatch_connector_outages{label}"] = float(len(outages))
-        gauges[f"loopwatch_connector_outage_seconds{label}"] = sum(
-            (now if o.end is None else o.end) - o.start for o in outages)
-        counters = source.counters
-        for count in ("samples", "bad", "delivered", "undelivered", "pending"):
-            gauges[f"loopwatch_connector_{count}{label}"] = float(getattr(counters, count))
-    return state.metrics.render(gauges)
+def metrics(state: StateDep, _: Annotated[Principal, Depends(require("read"))]) -> Response:
+    """Counters, gauges and histograms in the Prometheus text format
+    (:mod:`service.metrics`): ingest, analyses and their durations, the store's loops,
+    alarms and tickets, and per connector whether data comes now
+    (``loopwatch_connector_up``), its outages and their total length, and its samples
+    since start: made, bad, delivered to ingest, given up, still on their way."""
+    return Response(state.metrics.render(), media_type=CONTENT_TYPE_LATEST)

@@ -17,6 +17,7 @@ from service.api.deps import (
     require,
     row_id,
 )
+from service.logs import audit
 from service.store.models import Ticket
 from service.tickets import (
     TICKET_STATES,
@@ -122,9 +123,12 @@ def detail(ticket_id: TicketId, session: SessionDep, _: Reader) -> TicketDetail:
 
 
 @router.get("/{ticket_id}/cmms")
-def cmms(ticket_id: TicketId, session: SessionDep, _: Reader) -> dict[str, Any]:
-    """The ticket as a SAP PM M2 notification and a Maximo work order."""
-    return to_cmms_notification(_get(session, ticket_id))
+def cmms(ticket_id: TicketId, session: SessionDep, state: StateDep,
+         _: Reader) -> dict[str, Any]:
+    """The ticket as a SAP PM M2 notification and a Maximo work order, with the CMMS fields
+    the plant file sets for its loop (or unit, or the plant)."""
+    ticket = _get(session, ticket_id)
+    return to_cmms_notification(ticket, state.registry.plant.cmms_of(ticket.loop_id))
 
 
 @router.patch("/{ticket_id}", response_model=TicketDetail)
@@ -132,7 +136,9 @@ def update(ticket_id: TicketId, body: TicketUpdate, session: SessionDep, state: 
            key: Maintenance) -> TicketDetail:
     """Move the ticket along open -> acknowledged -> scheduled -> done (or cancelled)."""
     _get(session, ticket_id)
-    ticket = change_ticket_state(session, ticket_id, body.state,
-                                 actor=f"{key.name} ({key.role})", now=state.clock(),
+    actor = key.actor
+    ticket = change_ticket_state(session, ticket_id, body.state, actor=actor, now=state.clock(),
                                  note=body.note)
+    audit(actor, "ticket state change", f"ticket {ticket.id} ({ticket.valve_asset})",
+          to_state=body.state, note=body.note)
     return _detail(ticket)
