@@ -41,6 +41,7 @@ from service.ingest import (
     parse_batch,
 )
 from service.metrics import Metrics, ServiceCollector
+from service.notifications import Outbox
 from service.plant import PlantRegistry
 from service.read_cache import ReadCache
 from service.security import ConcurrencyLimiter, RateLimiter
@@ -123,6 +124,9 @@ class AppState:
     metrics: Metrics = field(default_factory=Metrics)
     clock: Callable[[], float] = time.time
     sources: list[WatchedSource] = field(default_factory=list)
+    outbox: Outbox | None = None
+    """Where the routes write the events of operators' alarm and ticket actions
+    (:mod:`service.notifications`); None without a notification channel."""
     spool: IngestSpool = field(init=False)
     keys: KeyVerifier = field(init=False)
     limiter: RateLimiter = field(init=False)

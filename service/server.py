@@ -268,6 +268,7 @@ def build_service(
                      buffers=buffers, metrics=metrics, clock=clock)
     channels = notification_channels(settings)
     dispatcher = OutboxDispatcher(store, channels, clock=time.time) if channels else None
+    state.outbox = Outbox(list(channels)) if channels else None
 
     scheduler = None
     if schedules:
@@ -277,7 +278,7 @@ def build_service(
             executor_factory=executor_factory or (
                 lambda: given if given is not None else make_executor(settings)),
             metrics=metrics, clock=clock,
-            outbox=Outbox(list(channels)) if channels else None,
+            outbox=state.outbox,
             election=make_election(store, lease_s=settings.leader_lease_s),
         )
         executor = scheduler.executor

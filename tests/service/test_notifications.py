@@ -20,7 +20,7 @@ import pytest
 from aiosmtpd.controller import Controller
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import select
+from sqlalchemy import func, select
 from standardwebhooks.webhooks import Webhook, WebhookVerificationError
 
 from service.config import Settings
@@ -257,3 +257,30 @@ def test_an_email_refused_for_good_is_not_tried_again():
             channel.deliver("msg_1", "alarm.changed", {"alarm": {}}, T0)
     finally:
         controller.stop()
+
+
+def test_operators_alarm_and_ticket_actions_are_notified_too(tmp_path):
+    """Issue 23: "send alarm events as well as tickets" -- an operator's acknowledge and a
+    planner's ticket change are events like the analysis's, written with the action."""
+    service = make_service(tmp_path, webhook_url="http://127.0.0.1:1/hook",
+                           webhook_secret=SECRET)
+    analyse_two_hours(service)
+    client = TestClient(service.app)
+    headers = {"X-API-Key": ADMIN}
+    alarm = client.get("/api/v1/alarms", headers=headers).json()["data"][0]
+    ticket = client.get("/api/v1/tickets", headers=headers).json()["data"][0]
+    with service.state.store.session() as session:
+        before = session.scalar(select(func.count()).select_from(Notification))
+    assert client.post(f"/api/v1/alarms/{alarm['id']}/acknowledge",
+                       headers=headers).status_code == 200
+    assert client.patch(f"/api/v1/tickets/{ticket['id']}", json={"state": "acknowledged"},
+                        headers=headers).status_code == 200
+    with service.state.store.session() as session:
+        added = session.scalars(select(Notification).order_by(Notification.id)
+                                .offset(before)).all()
+        events = [(n.event_type, n.payload) for n in added]
+    assert [kind for kind, _ in events] == ["alarm.changed", "ticket.changed"]
+    assert events[0][1]["alarm"]["id"] == alarm["id"]
+    assert events[0][1]["change"]["event"] == "acknowledged"
+    assert events[1][1]["ticket"]["state"] == "acknowledged"
+    close(service)

@@ -6,11 +6,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, HTTPException, Query
 from pydantic import BaseModel, Field
+from sqlalchemy.orm import Session
 
 from service.alarms import (
     ALARM_STATES,
     AlarmNotFoundError,
     acknowledge,
+    alarm_payload,
     get_alarm,
     list_alarms,
     remove_from_service,
@@ -20,6 +22,7 @@ from service.alarms import (
 )
 from service.api.deps import (
     ERROR_RESPONSES,
+    AppState,
     Offset,
     Principal,
     SessionDep,
@@ -102,11 +105,14 @@ def _detail(alarm: Alarm) -> AlarmDetail:
     return AlarmDetail.model_validate(alarm, from_attributes=True)
 
 
-def _acted(alarm: Alarm) -> AlarmDetail:
-    """The alarm as answered after an action, which becomes an audit record."""
+def _acted(session: Session, state: AppState, alarm: Alarm) -> AlarmDetail:
+    """The alarm as answered after an action, which becomes an audit record and an
+    ``alarm.changed`` event in the outbox (in the action's transaction)."""
     last = alarm.events[-1]
     audit(last.actor, f"alarm {last.event}", f"alarm {alarm.id} ({alarm.loop_id} {alarm.kind})",
           to_state=last.to_state, note=last.note)
+    if state.outbox is not None:
+        state.outbox.add(session, "alarm.changed", alarm_payload(alarm), state.clock())
     return _detail(alarm)
 
 
@@ -150,8 +156,8 @@ def ack(alarm_id: AlarmId, session: SessionDep, state: StateDep,
         key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """Acknowledge (operator); 409 if the alarm is not waiting for it."""
     _get(session, alarm_id)
-    return _acted(acknowledge(session, alarm_id, actor=key.actor, now=state.clock(),
-                               note=_note(body)))
+    alarm = acknowledge(session, alarm_id, actor=key.actor, now=state.clock(), note=_note(body))
+    return _acted(session, state, alarm)
 
 
 @router.post("/{alarm_id}/shelve", response_model=AlarmDetail)
@@ -159,8 +165,9 @@ def shelve_alarm(alarm_id: AlarmId, body: ShelveRequest, session: SessionDep, st
                  key: Operator) -> AlarmDetail:
     """Shelve for ``duration_s`` (operator); it comes back by itself."""
     _get(session, alarm_id)
-    return _acted(shelve(session, alarm_id, duration_s=body.duration_s, actor=key.actor,
-                          now=state.clock(), note=body.note))
+    alarm = shelve(session, alarm_id, duration_s=body.duration_s, actor=key.actor,
+                   now=state.clock(), note=body.note)
+    return _acted(session, state, alarm)
 
 
 @router.post("/{alarm_id}/unshelve", response_model=AlarmDetail)
@@ -168,8 +175,8 @@ def unshelve_alarm(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                    key: Operator, body: OptionalNote = None) -> AlarmDetail:
     """End a shelve early (operator)."""
     _get(session, alarm_id)
-    return _acted(unshelve(session, alarm_id, actor=key.actor, now=state.clock(),
-                            note=_note(body)))
+    alarm = unshelve(session, alarm_id, actor=key.actor, now=state.clock(), note=_note(body))
+    return _acted(session, state, alarm)
 
 
 @router.post("/{alarm_id}/out-of-service", response_model=AlarmDetail)
@@ -177,8 +184,9 @@ def out_of_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                    key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Remove from service (admin), e.g. while the loop is in manual for maintenance."""
     _get(session, alarm_id)
-    return _acted(remove_from_service(session, alarm_id, actor=key.actor,
-                                       now=state.clock(), note=_note(body)))
+    alarm = remove_from_service(session, alarm_id, actor=key.actor, now=state.clock(),
+                                note=_note(body))
+    return _acted(session, state, alarm)
 
 
 @router.post("/{alarm_id}/in-service", response_model=AlarmDetail)
@@ -186,5 +194,6 @@ def in_service(alarm_id: AlarmId, session: SessionDep, state: StateDep,
                key: Admin, body: OptionalNote = None) -> AlarmDetail:
     """Return to service (admin)."""
     _get(session, alarm_id)
-    return _acted(return_to_service(session, alarm_id, actor=key.actor,
-                                     now=state.clock(), note=_note(body)))
+    alarm = return_to_service(session, alarm_id, actor=key.actor, now=state.clock(),
+                              note=_note(body))
+    return _acted(session, state, alarm)

@@ -26,6 +26,7 @@ from service.tickets import (
     change_ticket_state,
     get_ticket,
     list_tickets,
+    ticket_payload,
     ticket_to_dict,
     to_cmms_notification,
 )
@@ -141,4 +142,8 @@ def update(ticket_id: TicketId, body: TicketUpdate, session: SessionDep, state: 
                                  note=body.note)
     audit(actor, "ticket state change", f"ticket {ticket.id} ({ticket.valve_asset})",
           to_state=body.state, note=body.note)
+    if state.outbox is not None:
+        state.outbox.add(session, "ticket.changed",
+                         ticket_payload(ticket, state.registry.plant.cmms_of(ticket.loop_id)),
+                         state.clock())
     return _detail(ticket)
