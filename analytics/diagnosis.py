@@ -506,8 +506,8 @@ def diagnose_loop(
         # cycle only clear slips count (:func:`cycle_slips`).
         evidence = [d.detect(window) for d in DEFAULT_DETECTORS]
         if oscillation.detected and analysis is not None:
-            cycle_analysis = cycle_slips(analysis)
-            transient = [d.decide(cycle_analysis) for d in TRANSIENT_DETECTORS]
+            analysis = cycle_slips(analysis)  # the episodes reported are those that count
+            transient = [d.decide(analysis) for d in TRANSIENT_DETECTORS]
         evidence += [
             e if e.decision != NO_STICTION
             else _set_aside(e, "set aside: on a cycle only holds count, not their absence")

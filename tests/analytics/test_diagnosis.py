@@ -53,6 +53,7 @@ def test_on_a_regular_cycle_only_clear_slips_count():
     _, sine = run("flow-sine150s-ts1")
     assert sine.oscillation.detected and sine.stiction.verdict == "no_stiction"
     assert sine.stiction.methods["stick_jump"].decision != "stiction"
+    assert sine.episodes == ()  # the episodes reported are the slips that count
     _, sticky = run("flow-he-S4-J2-ts1")
     assert sticky.oscillation.detected
     assert sticky.stiction.methods["stick_jump"].decision == "stiction"
