@@ -29,7 +29,7 @@ from analytics.synthetic_cases import synthetic_library
 from analytics.valves import ChoudhuryValve, KanoValve
 from service import plots
 from service.buffer import LoopBuffers
-from service.config import Settings
+from service.config import PlantConfig, Settings
 from service.server import build_service
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
@@ -563,3 +563,25 @@ def test_plots_before_any_analysis_answer_404_with_the_reason(client):
         response = get_plot(client, "FIC-1", kind)
         assert response.status_code == 404
         assert response.json() == {"detail": "No analysis of loop FIC-1 yet"}
+
+
+def test_the_trend_of_a_loop_with_a_mode_tag_draws_its_signals(store):
+    """The demo's loops carry a mode tag (issue 24); the trend drew nothing but a 500
+    ("unknown signals ['mode']")."""
+    config = plant().model_dump()
+    config["loops"][0]["tags"]["mode"] = "FIC-1.MODE"
+    config["loops"][0]["mode_map"] = {8: "auto", 16: "manual"}
+    settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
+                        buffer_horizon_s=7200)
+    svc = build_service(settings, PlantConfig.model_validate(config),
+                        executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    client = TestClient(svc.app)
+    mode = {"tag": "FIC-1.MODE", "items": [{"timestamp": T0 - 3000.0, "value": 8.0},
+                                           {"timestamp": T0 - 600.0, "value": 16.0}]}
+    batch = [*simulated_batch(), mode]
+    assert client.post("/api/v1/ingest", json=batch, headers=HEADERS).status_code == 200
+    response = get_plot(client, "FIC-1", "trend")
+    assert response.status_code == 200, response.text
+    assert "Controller output" in response.text
+    svc.executor.shutdown()
+    svc.state.store.close()

@@ -147,9 +147,9 @@ def _values(values: list[float | None]) -> np.ndarray:
 def _trend(session: SessionDep, state: StateDep, key: Principal, loop: Loop,
            start: float | None, end: float | None) -> plots.Figure:
     data = loop_data(loop.id, session, state, key, start, end, TREND_POINTS)
-    series = {
+    series = {  # the mode tag is a state, not a trace (the loop page lists it)
         s.signal: (np.asarray(s.t, dtype=float), _values(s.value))
-        for s in data.series
+        for s in data.series if s.signal in plots.SIGNAL_LABELS
     }
     if not any(t.size for t, _ in series.values()):
         raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:g} and "
