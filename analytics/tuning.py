@@ -1517,3 +1517,167 @@ def _multi_loop_plan(
     else:
         notes.append("section 5.6: no combination in the search box predicts a smaller cycle")
     return candidates, maps, notes
+
+
+#: The loop model reproduces the measured cycle if its period is within this
+#: fraction of the measured one (issue 19's rule before any advice).
+PERIOD_TOLERANCE = 0.15
+#: ... and its OP amplitude (first harmonic) within this fraction.
+AMPLITUDE_TOLERANCE = 0.25
+
+
+def _relative_error(model: float | None, measured: float | None) -> float | None:
+    if model is None or measured is None or not measured > 0 or not math.isfinite(model):
+        return None
+    return (model - measured) / measured
+
+
+@dataclass(frozen=True)
+class CycleAgreement:
+    """The cycle of the loop model against the cycle measured on the plant.
+
+    Advice is only as good as the model it is computed on: before the effect
+    of a retune is believed, the model at the current tuning must cycle as
+    the loop does, within :data:`PERIOD_TOLERANCE` in period and
+    :data:`AMPLITUDE_TOLERANCE` in OP amplitude (both the first harmonic, the
+    ``A`` of the describing function, thesis Eq. 3.4).  The simulation of the
+    model is the reference; the describing-function prediction is compared
+    too, because it is only a first-harmonic approximation (Atherton 1975,
+    ch. 7 [3]_): a stick-slip cycle under integral action is far from
+    sinusoidal and its harmonic balance can miss the period by tens of percent
+    where the simulation of the same model does not.
+
+    Attributes
+    ----------
+    measured_period_s, measured_amplitude : float or None
+        The loop's cycle (diagnosis: period and OP amplitude, % of span).
+    predicted_period_error, simulated_period_error : float or None
+        ``(model - measured) / measured``; None where a side has no cycle.
+    predicted_amplitude_error, simulated_amplitude_error : float or None
+        The same for the OP amplitude.
+    """
+
+    measured_period_s: float | None
+    measured_amplitude: float | None
+    predicted_period_error: float | None
+    simulated_period_error: float | None
+    predicted_amplitude_error: float | None
+    simulated_amplitude_error: float | None
+
+    @classmethod
+    def of(cls, advice: TuningAdvice, period_s: float | None,
+           amplitude: float | None) -> CycleAgreement:
+        """Compare the current tuning's predicted and simulated cycle of ``advice``
+        (loop 0) with the measured ``period_s`` and OP ``amplitude``."""
+        predicted, simulated = advice.current_predicted, advice.current_simulated
+        return cls(
+            period_s, amplitude,
+            _relative_error(predicted.period_s, period_s),
+            _relative_error(simulated.period_s, period_s),
+            _relative_error(predicted.amplitudes[0], amplitude),
+            _relative_error(simulated.amplitudes[0], amplitude),
+        )
+
+    @property
+    def reproduces(self) -> bool:
+        """The simulated model cycles with the measured period and amplitude."""
+        period, amplitude = self.simulated_period_error, self.simulated_amplitude_error
+        return (period is not None and abs(period) <= PERIOD_TOLERANCE
+                and (amplitude is None or abs(amplitude) <= AMPLITUDE_TOLERANCE))
+
+    @property
+    def predicted_agrees(self) -> bool:
+        """The describing function predicts the measured period."""
+        error = self.predicted_period_error
+        return error is not None and abs(error) <= PERIOD_TOLERANCE
+
+    def explanation(self) -> str:
+        """What agrees and what does not, in words.
+
+        >>> CycleAgreement(100.0, 2.0, 0.35, 0.05, 0.1, -0.1).explanation()[:58]
+        'the model reproduces the measured cycle (100 s): simulated'
+        """
+        if self.measured_period_s is None:
+            return "no cycle was measured: the model cannot be checked against the loop"
+        measured = f"{self.measured_period_s:.3g} s"
+        if self.simulated_period_error is None:
+            return (f"the model disagrees with the measurement: the loop cycles at {measured} "
+                    "but the simulated model does not cycle; its process or valve estimate "
+                    "is wrong, so the predicted effects below are not reliable")
+        parts = [f"simulated period {self.simulated_period_error:+.0%}"]
+        if self.simulated_amplitude_error is not None:
+            parts.append(f"amplitude {self.simulated_amplitude_error:+.0%}")
+        if self.reproduces:
+            text = f"the model reproduces the measured cycle ({measured}): {', '.join(parts)}"
+        else:
+            text = (f"the model disagrees with the measurement ({measured}): {', '.join(parts)}"
+                    f" (limits {PERIOD_TOLERANCE:.0%} and {AMPLITUDE_TOLERANCE:.0%}); the "
+                    "identified process or valve does not describe this cycle, so the "
+                    "predicted effects below are not reliable")
+        if self.predicted_period_error is None:
+            text += "; the describing function predicts no cycle"
+        elif not self.predicted_agrees:
+            text += (f"; the describing function's period is {self.predicted_period_error:+.0%}"
+                     " off (first-harmonic approximation of a non-sinusoidal stick-slip "
+                     "cycle): the simulation is the reference")
+        return text
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {
+            "measured": {"period_s": self.measured_period_s,
+                         "amplitude": self.measured_amplitude},
+            "period_error": {"predicted": self.predicted_period_error,
+                             "simulated": self.simulated_period_error},
+            "amplitude_error": {"predicted": self.predicted_amplitude_error,
+                                "simulated": self.simulated_amplitude_error},
+            "reproduces": self.reproduces,
+            "agree": self.reproduces and self.predicted_agrees,
+            "explanation": self.explanation(),
+        }
+
+
+#: Gain margins offered by :func:`detune` (Astrom & Hagglund 2006, sec. 4.8 [2]_:
+#: 2-5 is the usual range).
+DETUNING_GAIN_MARGINS = (2.0, 3.0)
+
+
+def detune(tuning: Tuning, period_s: float,
+           gain_margins: Sequence[float] = DETUNING_GAIN_MARGINS) -> dict[str, Any]:
+    """Detuning of a loop that cycles by itself (a linear oscillation: over-tuned).
+
+    A loop whose linear closed loop cycles steadily sits at its ultimate
+    point: ``L(j w_u) = Kc C(j w_u) G(j w_u) = -1`` at the measured
+    ``w_u = 2 pi / period_s`` (Astrom & Hagglund 2006, sec. 6.2, the point
+    relay autotuning measures [2]_).  Scaling ``Kc`` alone does not change the
+    phase of ``L``, so the phase crossover stays at ``w_u`` and the gain
+    margin of ``Kc / m`` is ``m``, whatever the process.  A noise-driven,
+    lightly damped loop sits a little inside the stability limit (gain margin
+    slightly above 1), so the margins given are lower bounds.  ``Ti`` is kept.
+
+    Examples
+    --------
+    >>> advice = detune(Tuning(3.0, 4.0), 11.5)
+    >>> [(r["tunings"][0]["Kc"], r["gain_margin"]) for r in advice["recommendations"]]
+    [(1.5, 2.0), (1.0, 3.0)]
+    """
+    if not period_s > 0 or any(not m > 1 for m in gain_margins):
+        raise ModelSpecError(f"need a period > 0 and gain margins > 1, got {period_s}, "
+                             f"{list(gain_margins)}")
+    return {
+        "kind": "detuning",
+        "current": [tuning.to_dict()],
+        "ultimate_period_s": period_s,
+        "recommendations": [{
+            "tunings": [dataclasses.replace(tuning, kc=tuning.kc / m).to_dict()],
+            "source": f"ultimate point at the measured period: Kc / {m:g}",
+            "gain_margin": m,
+            "predicted": {"oscillating": False, "period_s": None},
+        } for m in gain_margins],
+        "notes": [
+            f"the loop cycles at {period_s:.3g} s with a healthy valve: taken as its "
+            "ultimate point (gain margin 1 now), lowering Kc by m gives a gain margin of "
+            "at least m; if the cycle comes from a disturbance entering the loop, detuning "
+            "does not remove it (its period would not change with Kc)",
+        ],
+    }

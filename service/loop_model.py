@@ -38,10 +38,10 @@ class IdentifiedLoop:
         return self.ts / 2.0
 
     def closed_loop(self, duration: float) -> ClosedLoopModel:
-        """The loop as a simulator model (set point at mid span)."""
+        """The loop as a simulator model, at rest at mid span (no set-point schedule, so
+        that :func:`analytics.tuning.excited_model` can step it into its cycle)."""
         return ClosedLoopModel(process=self.process,
-                               loops=(Loop(self.controller, self.valve, setpoint=50.0,
-                                           pv_bias=50.0),),
+                               loops=(Loop(self.controller, self.valve, pv_bias=50.0),),
                                dt=self.ts, duration=duration)
 
 

@@ -647,9 +647,22 @@ function tuningText(tunings) {
   return (tunings || []).map((t) => `Kc ${num(t.Kc, 3)}, Ti ${num(t.Ti, 1)} s`).join("; ");
 }
 
+function detuningResult(advice) {
+  // Detuning of a loop that cycles with a healthy valve: Kc lowered for a gain margin.
+  const rows = advice.recommendations.map((r) => h("tr", { "data-advice": "recommended" },
+    h("td", {}, tuningText(r.tunings)), h("td", {}, r.source),
+    h("td", {}, `gain margin ${r.gain_margin.toFixed(1)}`)));
+  return h("div", {},
+    definitionList([["Current tuning", tuningText(advice.current)],
+      ["Cycle (ultimate period)", `${advice.ultimate_period_s.toFixed(1)} s`]]),
+    table("Detuning", ["Tuning", "From", "Predicted"], rows, "No detuning."),
+    ...advice.notes.map((note) => h("p", { class: "note" }, note)));
+}
+
 function adviceResult(advice) {
   // Tuning advice (GET /loops/{id}/advice): every candidate was predicted with the describing
   // function and simulated; only the ones the simulation confirms are recommended.
+  if (advice.kind === "detuning") return detuningResult(advice);
   const rows = [...advice.recommendations.map((r) => [r, "recommended"]),
     ...advice.rejected.map((r) => [r, "not recommended"])].map(([r, kind]) =>
     h("tr", { "data-advice": kind },
@@ -661,6 +674,7 @@ function adviceResult(advice) {
       ["Current tuning", tuningText(advice.current)],
       ["Current, predicted", cycleText(advice.current_predicted)],
       ["Current, simulated", cycleText(advice.current_simulated)],
+      ["Against the measured cycle", advice.measured_cycle.explanation],
     ]),
     table("Candidate tunings", ["Tuning", "From", "Predicted", "Simulated", "Verdict"], rows,
       "No candidate tuning."),

@@ -185,8 +185,8 @@ def test_analysis_alarm_and_ticket_lifecycle(service, client):
         assert {"predicted", "simulated", "outcome"} <= offer.keys()
     unavailable = client.get("/api/v1/loops/FIC-2/advice", headers=viewer)
     assert (unavailable.status_code, unavailable.json()) == (409, {
-        "detail": "Advice not available: the latest analysis has no stiction estimate (S, J) "
-                  "with an identified process model"})
+        "detail": "Advice not available: the loop does not cycle and its valve is not sticky; "
+                  "there is nothing to retune"})
     assert client.get("/api/v1/loops/FIC-9/advice", headers=viewer).status_code == 404
     metrics = client.get("/metrics", headers=viewer).text
     assert 'loopwatch_analyses_total{status="ok"} 4.0' in metrics

@@ -1,4 +1,5 @@
-"""Tuning advice for a loop with a sticky valve (thesis chapter 5), verified by simulation."""
+"""Tuning advice for an oscillating loop (thesis chapter 5), checked against the measured
+cycle: retunes for a sticky valve verified by simulation, detuning for an over-tuned loop."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
-from analytics.tuning import advise
+from analytics.tuning import CycleAgreement, Tuning, advise, detune
 from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
@@ -22,37 +23,77 @@ SIMULATED_S = 4000.0
 
 
 def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
-    """Advice is a pure function of the run and the loop's configuration (cached by
+    """Advice for a sticky valve, with the model's cycle checked against the measured one.
+
+    A pure function of the run and the loop's configuration (cached by
     :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
-    model = identified_loop(json.loads(config), json.loads(diagnosis))
-    return advise(model.closed_loop(SIMULATED_S)).to_dict()
+    result = json.loads(diagnosis)
+    model = identified_loop(json.loads(config), result)
+    advice = advise(model.closed_loop(SIMULATED_S))
+    oscillation = result["oscillation"]
+    agreement = CycleAgreement.of(advice, oscillation.get("period_s"),
+                                  oscillation.get("amplitude_op"))
+    return {"kind": "stiction", **advice.to_dict(), "measured_cycle": agreement.to_dict()}
+
+
+def _detuning(config: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+    """Detuning of a loop that cycles with a healthy valve (:func:`analytics.tuning.detune`)."""
+    controller = config["controller"]
+    tuning = Tuning(float(controller["Kc"]), float(controller.get("Ti") or "inf"))
+    return detune(tuning, float(result["oscillation"]["period_s"]))
 
 
 @router.get("/loops/{loop_id}/advice")
 def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) -> dict[str, Any]:
-    """Retunes that remove or reduce the stiction cycle until the valve is repaired.
+    """What to retune, from a model checked against the loop's measured cycle.
 
-    Built from the latest stiction estimate (S, J and the identified process)
-    and the configured controller; every offer carries its predicted effect
-    and was checked in simulation.  404 for an unknown loop; 409 with the reason
-    when the loop has no estimate or no controller configuration (as the unit
-    prediction does).
+    A sticky valve (final verdict ``stiction``): retunes that remove or reduce
+    the stiction cycle until the valve is repaired, from the latest estimate
+    (S, J and the identified process) and the configured controller; every
+    offer carries its predicted effect and was checked in simulation, and
+    ``measured_cycle`` says whether the model reproduces the measured cycle.
+    A loop that cycles with a healthy valve: detuning with the predicted gain
+    margin.  404 for an unknown loop; 409 with the reason and what to
+    configure when the loop has no controller, no analysis, no cycle, a valve
+    cleared by its unit's diagnosis, or a model the advice cannot analyse.
     """
     loop = session.get(Loop, loop_id)
     if loop is None:
         raise HTTPException(404, "Loop not found")
+    if not loop.config.get("controller"):
+        raise HTTPException(409, "Advice not available: the loop's configuration has no "
+                                 "controller; configure controller: {type: PI, Kc, Ti, action} "
+                                 f"(plant file or PUT /api/v1/loops/{loop_id})")
     run = latest_loop_run(session, loop_id)
-    if run is None:
+    if run is None or run.result is None:
         raise HTTPException(409, "Advice not available: the loop has not been analysed yet")
+    result = run.result
+    valve = result.get("valve") or {}
+    verdict = valve.get("verdict", (result.get("stiction") or {}).get("verdict"))
+    oscillating = bool((result.get("oscillation") or {}).get("detected"))
+    if verdict != "stiction":
+        if not oscillating:
+            raise HTTPException(409, "Advice not available: the loop does not cycle and its "
+                                     "valve is not sticky; there is nothing to retune")
+        if valve.get("decided_by") == "unit":
+            raise HTTPException(409, f"Advice not available: the loop {valve['reason']} (unit "
+                                     f"{valve['unit_id']}'s diagnosis); retuning it would not "
+                                     "remove the cause: see the advice for that valve's loop")
+        if verdict != "no_stiction":
+            raise HTTPException(409, "Advice not available: the loop cycles but whether its "
+                                     f"valve sticks is {verdict}; no model to advise from")
+        return {"loop_id": loop_id, "run_id": run.id, **_detuning(loop.config, result)}
     try:
-        identified_loop(loop.config, run.result)
+        identified_loop(loop.config, result)
     except ModelUnavailableError as exc:
         raise HTTPException(409, f"Advice not available: {exc}") from None
     try:
         advice = state.analyse_cached(
             _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
-            json.dumps(run.result, sort_keys=True),
+            json.dumps(result, sort_keys=True),
         )
     except AnalyticsError as exc:
-        raise HTTPException(422, f"Advice not available: {exc}") from None
+        # the identified model is beyond what the analysis handles: the server's limit
+        raise HTTPException(409, f"Advice not available for the identified model: {exc}"
+                            ) from None
     return {"loop_id": loop_id, "run_id": run.id, **advice}
