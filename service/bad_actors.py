@@ -1,7 +1,8 @@
 """The KPI-based bad-actor score: KPI severity x loop importance x time spent bad.
 
 Each stored analysis run carries the KPIs of its window (``result["kpis"]``,
-:func:`service.analysis.analyse_window`).  Over a period the score of a loop is
+:func:`service.analysis.analyse_window`, also in its ``kpis`` column).  Over a period
+the score of a loop is
 
 ``score = 100 x severity x weight(importance) x bad_share``
 

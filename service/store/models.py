@@ -19,8 +19,9 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship, validates
 
 
 class Base(DeclarativeBase):
@@ -89,6 +90,8 @@ class AnalysisRun(Base):
     __table_args__ = (
         Index("ix_analysis_runs_loop_started", "loop_id", "started_at"),
         Index("ix_analysis_runs_round_end", "round_end"),
+        Index("ix_analysis_runs_ok_loop_started", "loop_id", "started_at", "id",
+              postgresql_where=text("status = 'ok'"), sqlite_where=text("status = 'ok'")),
         UniqueConstraint("loop_id", "round_end", name="uq_analysis_runs_loop_round"),
     )
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
@@ -107,12 +110,20 @@ class AnalysisRun(Base):
     J: Mapped[float | None] = mapped_column(Float)
     health: Mapped[float | None] = mapped_column(Float)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    kpis: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """``result["kpis"]`` on its own, set with ``result`` (:meth:`_keep_kpis`): the KPI
+    history and the ranking read it without the whole diagnosis (migration 0007)."""
     error: Mapped[str | None] = mapped_column(Text)
     round_end: Mapped[float | None] = mapped_column(Float)
     """End of the scheduled round's window; None for an analysis run on demand.  At most
     one run per loop and round (the constraint that keeps a failover from running twice)."""
     scheduled_by: Mapped[str | None] = mapped_column(String(200))
     """The scheduler process (host:pid:nonce) that stored the run."""
+
+    @validates("result")
+    def _keep_kpis(self, _key: str, result: dict[str, Any] | None) -> dict[str, Any] | None:
+        self.kpis = None if result is None else result.get("kpis")
+        return result
 
     @property
     def unread_when_new(self) -> bool:

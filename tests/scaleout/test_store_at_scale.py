@@ -1,10 +1,12 @@
-"""The store at scale: migration 0002, replicas migrating together, the PostgreSQL ingest path.
+"""The store at scale: migrations 0002 and 0007, replicas migrating together, the PostgreSQL
+ingest path.
 
 Every test runs on SQLite and on a real PostgreSQL unless it is about
 PostgreSQL only.
 """
 
 import importlib.util
+import json
 import threading
 from collections.abc import Iterator
 from itertools import count
@@ -92,6 +94,45 @@ def test_0002_keeps_the_data_of_0001_and_adds_the_scale_out_schema(empty_url: st
     schema = inspect(engine)
     assert "leader_leases" not in schema.get_table_names()
     assert [k["referred_table"] for k in schema.get_foreign_keys("samples")] == ["tags"]
+    engine.dispose()
+
+
+def test_0007_moves_the_kpis_of_the_stored_runs_into_their_column(empty_url: str) -> None:
+    """Runs stored before 0007 get their ``result["kpis"]`` in the ``kpis`` column, and
+    the ok runs an index by loop and time; a run stored after it keeps the two equal."""
+    engine = make_engine(empty_url)
+    migrate(engine, "0006")
+    kpis = {"oscillation_index": 0.4, "harris": {"normalised": 0.75}}
+    with engine.begin() as connection:
+        connection.execute(text(
+            "INSERT INTO loops (id, name, config, created_at, updated_at) "
+            "VALUES ('FIC-101', '', '{}', 0, 0)"))
+        connection.execute(text(
+            "INSERT INTO analysis_runs (loop_id, started_at, status, result) VALUES "
+            "('FIC-101', 1, 'ok', :with_kpis), ('FIC-101', 2, 'ok', '{\"quality\": {}}'), "
+            "('FIC-101', 3, 'failed', NULL)"),
+            {"with_kpis": json.dumps({"quality": {}, "kpis": kpis})})
+    migrate(engine)
+    schema = inspect(engine)
+    index = {i["name"]: i for i in schema.get_indexes("analysis_runs")}[
+        "ix_analysis_runs_ok_loop_started"]
+    assert index["column_names"] == ["loop_id", "started_at", "id"]
+    store = Store(empty_url)
+    with store.session() as session:
+        runs = session.scalars(select(AnalysisRun).order_by(AnalysisRun.started_at)).all()
+        assert [r.kpis for r in runs] == [kpis, None, None]
+        runs[1].result = {"quality": {}, "kpis": {"saturation": 0.1}}
+        session.add(AnalysisRun(loop_id="FIC-101", started_at=4, status="ok",
+                                result={"kpis": {"saturation": 0.2}}))
+    with store.session() as session:
+        assert [r.kpis for r in session.scalars(
+            select(AnalysisRun).order_by(AnalysisRun.started_at))] == [
+            kpis, {"saturation": 0.1}, None, {"saturation": 0.2}]
+    store.close()
+    engine.dispose()
+    downgrade(empty_url, "0006")
+    engine = make_engine(empty_url)
+    assert "kpis" not in {c["name"] for c in inspect(engine).get_columns("analysis_runs")}
     engine.dispose()
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from pypdf import PdfReader
+from sqlalchemy import event
 
 from analytics.kpi import oscillation_index
 from analytics.synthetic_cases import synthetic_library
@@ -108,6 +109,34 @@ def test_every_run_stores_its_kpis_and_the_history_returns_them(service, client)
                            params={"since": T0 - 60, "until": T0}).json()
     assert only_last["count"] == 1
     assert client.get("/api/v1/loops/FIC-1/kpis", headers=viewer).json()["count"] == 2
+
+
+def test_the_kpi_history_reads_the_kpis_column_not_the_whole_diagnosis(service, client):
+    """The history route reads each run's ``kpis`` (about 0.5 kB), never its ``result``
+    (the ~9 kB diagnosis that PostgreSQL would decompress and parse for every run)."""
+    historian, viewer = key(client, "historian"), key(client, "viewer")
+    assert client.post("/api/v1/ingest", json=simulated_batch(7200),
+                       headers=historian).status_code == 200
+    service.scheduler.run_once(T0 - 3600)
+    service.scheduler.run_once(T0)
+    statements: list[str] = []
+
+    def note(_conn, _cursor, statement, *_args) -> None:
+        statements.append(statement)
+
+    engine = service.state.store.engine
+    event.listen(engine, "before_cursor_execute", note)
+    try:
+        body = client.get("/api/v1/loops/FIC-1/kpis", headers=viewer,
+                          params={"since": T0 - 2 * 3600, "until": T0}).json()
+    finally:
+        event.remove(engine, "before_cursor_execute", note)
+    assert [s for s in statements if "analysis_runs" in s]  # the route did read the runs
+    assert not [s for s in statements if "analysis_runs.result" in s]
+    with service.state.store.session() as session:
+        stored = [r.result["kpis"] for r in session.query(AnalysisRun)
+                  .filter(AnalysisRun.loop_id == "FIC-1").order_by(AnalysisRun.started_at)]
+    assert [p["kpis"] for p in body["data"]] == stored and len(stored) == 2
 
 
 def test_kpi_history_refusals(client):

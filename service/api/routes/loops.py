@@ -356,12 +356,12 @@ def counted_runs(session: Session, since: float, until: float, bucket_s: float
                AnalysisRun.started_at <= until)
         .group_by(AnalysisRun.loop_id, bucket)
     )
-    # only the KPIs the score reads, extracted by the database: parsing every run's
-    # diagnosis here cost more than the rest of the ranking
+    # only the KPIs the score reads, extracted by the database from the runs' ``kpis``
+    # column: parsing every run's diagnosis here cost more than the rest of the ranking
     runs: dict[str, list[tuple[float, float | None, dict[str, Any] | None]]] = {}
     for loop_id, started_at, health, *values in session.execute(
         select(AnalysisRun.loop_id, AnalysisRun.started_at, AnalysisRun.health,
-               *(AnalysisRun.result[("kpis", *path)].as_float() for path in SCORED_KPIS))
+               *(AnalysisRun.kpis[path].as_float() for path in SCORED_KPIS))
         .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
     ):
         runs.setdefault(loop_id, []).append((started_at, health, scored_kpis(values)))
@@ -372,7 +372,7 @@ def latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
     """Each loop's KPIs of its latest successful run (loops without any left out)."""
     latest = (select(func.max(AnalysisRun.id)).where(AnalysisRun.status == "ok")
               .group_by(AnalysisRun.loop_id))
-    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.result["kpis"])
+    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.kpis)
                            .where(AnalysisRun.id.in_(latest)))
     return {loop_id: kpis for loop_id, kpis in rows if kpis}
 
@@ -543,32 +543,35 @@ def loop_kpis(
     With more than ``limit`` runs in the range (a run a minute is 43,200 in 30 days), every
     ``k``-th run counting back from the newest is returned, ``k = ceil(total / limit)``,
     so the history spans the range; ``total`` says how many runs there were.  The thinning
-    happens in the database, which reads the KPIs of the returned runs only.
+    happens in the database, on the index of the ``ok`` runs by loop and time, and it reads
+    the ``kpis`` column of the returned runs only, not their whole diagnosis.
     """
     _loop_or_404(session, loop_id)
     until = state.clock() if until is None else until
     since = until - 30 * 86400.0 if since is None else since
     if not until > since:
         raise HTTPException(422, "until must be after since")
-    in_range = (AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok",
-                AnalysisRun.started_at >= since, AnalysisRun.started_at <= until)
-    total = session.scalar(select(func.count()).where(*in_range)) or 0
-    step = max(1, -(-total // limit))
+    # One pass over the index of the ok runs numbers them newest first and counts them;
+    # the step k = ceil(total / limit) in integer arithmetic (SQLite has no ceil).
     numbered = select(
         AnalysisRun.id,
         func.row_number().over(order_by=(AnalysisRun.started_at.desc(),
                                           AnalysisRun.id.desc())).label("rn"),
-    ).where(*in_range).subquery()
-    chosen = select(numbered.c.id).where((numbered.c.rn - 1) % step == 0)
+        func.count().over().label("total"),
+    ).where(AnalysisRun.loop_id == loop_id, AnalysisRun.status == "ok",
+            AnalysisRun.started_at >= since, AnalysisRun.started_at <= until).subquery()
+    chosen = select(numbered.c.id, numbered.c.total).where(
+        (numbered.c.rn - 1) % ((numbered.c.total + (limit - 1)) // limit) == 0).subquery()
     rows = session.execute(
         select(AnalysisRun.id, AnalysisRun.started_at, AnalysisRun.window_start,
-               AnalysisRun.window_end, AnalysisRun.health, AnalysisRun.result["kpis"])
-        .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
-    ).all() if total else []
+               AnalysisRun.window_end, AnalysisRun.health, AnalysisRun.kpis, chosen.c.total)
+        .join(chosen, AnalysisRun.id == chosen.c.id)
+        .order_by(AnalysisRun.started_at, AnalysisRun.id)
+    ).all()
     data = [KpiPointPublic(run_id=r[0], started_at=r[1], window_start=r[2], window_end=r[3],
                            health=r[4], kpis=r[5]) for r in rows]
     return KpiHistoryPublic(loop_id=loop_id, since=since, until=until, data=data,
-                            count=len(data), total=total)
+                            count=len(data), total=rows[0][6] if rows else 0)
 
 
 def _downsample(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
