@@ -104,6 +104,16 @@ def test_servers_going_away_and_coming_back_and_failed_tags(tmp_path):
             received = (opcua.counters.samples, modbus.counters.samples)
             await until("good samples again", lambda: opcua.counters.samples > received[0] + 40
                         and modbus.counters.samples > received[1] + 12)
+            # ... and stored after the bad ones for both failed tags (a count of samples
+            # alone is reached sooner when the plant serves more tags, e.g. its mode tags)
+            watcher = Store(settings.resolved_database_url)
+            try:
+                await until("good values stored after the failures", lambda: all(
+                    (rows := stored(watcher, tag)) and rows[-1][2]
+                    and any(not good for *_, good in rows)
+                    for tag in ("FIC-101.PV", "FIC-105.PV")))
+            finally:
+                watcher.close()
         finally:
             await asyncio.to_thread(service.stop)
         return opcua, modbus, service.state.accounting()
