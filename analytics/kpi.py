@@ -58,7 +58,9 @@ __all__ = [
     "SetpointResponse",
     "error_statistics",
     "harris_index",
+    "longest_normal_stretch",
     "loop_kpis",
+    "manual_samples",
     "oscillation_index",
     "reversals_per_day",
     "saturation",
@@ -416,6 +418,36 @@ def service_factor(mode: ArrayLike, mapping: Mapping[Any, Mode], ts: float) -> S
                          counts["manual"] * ts)
 
 
+def manual_samples(mode: ArrayLike, mapping: Mapping[Any, Mode]) -> NDArray[np.bool_]:
+    """Which samples of the raw ``mode`` signal the ``mapping`` names manual.
+
+    >>> manual_samples([1, 0, 0, 2], {0: "manual", 1: "auto", 2: "cascade"}).tolist()
+    [False, True, True, False]
+    """
+    names_manual = [raw for raw, name in mapping.items() if name == "manual"]
+    return np.isin(np.asarray(mode), names_manual)
+
+
+def longest_normal_stretch(manual: NDArray[np.bool_]) -> slice:
+    """The longest run of samples not in manual (the first of equal runs; empty if none).
+
+    A controller is judged on the time it controlled (Jelali 2013, sec. 7.2):
+    the stiction and oscillation diagnosis of a window with a stretch in
+    manual is made on its longest stretch in auto or cascade.
+
+    >>> longest_normal_stretch(np.array([0, 0, 1, 1, 0, 0, 0, 1], dtype=bool))
+    slice(4, 7, None)
+    >>> longest_normal_stretch(np.ones(3, dtype=bool))
+    slice(0, 0, None)
+    """
+    edges = np.diff(np.concatenate(([1], manual.astype(np.int8), [1])))
+    starts, stops = np.flatnonzero(edges == -1), np.flatnonzero(edges == 1)
+    if starts.size == 0:
+        return slice(0, 0)
+    k = int(np.argmax(stops - starts))
+    return slice(int(starts[k]), int(stops[k]))
+
+
 def oscillation_index(detected: bool, regularity: float | None) -> float:
     """Oscillation index 0 (none) .. 1 (a strongly regular oscillation).
 
@@ -509,8 +541,7 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     manual = np.zeros(n, dtype=bool)
     if mode is not None and mode_mapping is not None:
         factor = service_factor(mode, mode_mapping, ts)
-        manual = np.isin(np.asarray(mode), [raw for raw, name in mode_mapping.items()
-                                            if name == "manual"])
+        manual = manual_samples(mode, mode_mapping)
         if manual.any():
             notes.append(
                 f"in manual {100 * factor.manual:.0f} % of the window ({factor.manual_s:.0f} s): "

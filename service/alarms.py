@@ -240,20 +240,24 @@ def update_alarms_from_analysis(
     importance: Importance,
     message: str,
     now: float,
+    out_of_service: bool = False,
 ) -> list[Alarm]:
     """Feed one analysis of a loop into its alarms; returns the alarms whose state changed.
 
-    ``data_quality`` is active when the data are not ``usable``.  On unusable
-    data nothing is known about oscillation, so the ``oscillation`` alarm is
-    left as it is.  An alarm row is created the first time its condition is
-    active and re-used afterwards (``raised_at`` is the latest activation).
+    ``data_quality`` is active when the data are not ``usable``, unless the
+    loop is ``out_of_service``: in manual too long to be judged, which is no
+    fault of the data (ISA-18.2 suppresses a loop's alarms by design while it
+    is out of service).  On unusable data nothing is known about oscillation,
+    so the ``oscillation`` alarm is left as it is.  An alarm row is created
+    the first time its condition is active and re-used afterwards
+    (``raised_at`` is the latest activation).
     ``message`` describes the finding: it becomes the alarm's message while
     the condition is active and the note of every condition change.  The
     priority follows the loop's current ``importance``.
     """
     if session.get(Loop, loop_id) is None:
         raise LookupError(f"loop {loop_id!r} not found")
-    conditions: dict[AlarmKind, bool] = {"data_quality": not usable}
+    conditions: dict[AlarmKind, bool] = {"data_quality": not usable and not out_of_service}
     if usable:
         conditions["oscillation"] = oscillating
     alarms = {a.kind: a for a in session.scalars(select(Alarm).where(Alarm.loop_id == loop_id))}

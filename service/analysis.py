@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from analytics.diagnosis import diagnose_loop
-from analytics.kpi import loop_kpis
+from analytics.kpi import longest_normal_stretch, loop_kpis, manual_samples
 from analytics.lti import TransferFunction
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
@@ -33,6 +33,7 @@ __all__ = [
     "analyse_window",
     "dead_time_samples",
     "health_score",
+    "manual_stretch",
     "stiction_pattern_text",
     "to_percent_of_span",
     "unit_model_spec",
@@ -125,6 +126,36 @@ def dead_time_samples(loop: dict[str, Any]) -> int | None:
     return int(np.floor(float(theta) / float(loop["ts"]) + 1e-9)) + 1
 
 
+def manual_stretch(diagnosis: dict[str, Any], manual: NDArray[np.bool_], t: FloatArray,
+                   judged: slice, ts: float) -> dict[str, Any]:
+    """What a window with samples in manual was diagnosed on, for the pages and the alarms.
+
+    ``share`` of the window in manual, the ``judged_from`` / ``judged_to``
+    times and ``judged_samples`` of the stretch in auto or cascade that was
+    diagnosed, and a ``note``.  When that stretch is too short to judge, the
+    diagnosis's reason says so instead of calling the data unusable: a loop in
+    manual is out of service, not a failed transmitter (ISA-18.2 suppresses
+    its alarms by design).
+
+    >>> d = {"quality": {"usable": False}, "stiction": {"reason": "data unusable: too short"}}
+    >>> m = manual_stretch(d, np.array([1, 1, 1, 0], dtype=bool), np.arange(4.0), slice(3, 4), 1.0)
+    >>> m["share"], m["judged_samples"], d["stiction"]["reason"]
+    (0.75, 1, 'in manual 75 % of the window: the 1 s in auto or cascade are too few to judge')
+    """
+    kept = t[judged]
+    share = float(manual.mean())
+    if kept.size and diagnosis["quality"]["usable"]:
+        note = (f"in manual {100 * share:.0f} % of the window: diagnosed on its "
+                f"{kept.size * ts / 60:.0f} min in auto or cascade")
+    else:
+        note = (f"in manual {100 * share:.0f} % of the window: the {kept.size * ts:.0f} s in "
+                "auto or cascade are too few to judge")
+        diagnosis["stiction"]["reason"] = note
+    return {"share": share, "judged_from": float(kept[0]) if kept.size else None,
+            "judged_to": float(kept[-1]) if kept.size else None,
+            "judged_samples": int(kept.size), "note": note}
+
+
 def analyse_window(
     loop: dict[str, Any],
     ts: float,
@@ -143,7 +174,10 @@ def analyse_window(
         ``op``, ``pv``, ``sp``, ``mv`` arrays (NaN where missing) or None, and
         optionally ``mode``, the raw values of the loop's mode tag (its
         ``mode_map`` names them): the KPIs then give the service factor and
-        leave the time in manual out of the controller's figures.
+        leave the time in manual out of the controller's figures, and the
+        diagnosis is made on the window's longest stretch in auto or cascade
+        (:func:`analytics.kpi.longest_normal_stretch`; in manual OP is the
+        operator's, not the controller's).
 
     Returns
     -------
@@ -154,7 +188,8 @@ def analyse_window(
         (``start_s``, ...) count from it, and ``kpis``
         (:meth:`analytics.kpi.LoopKpis.to_dict` of the same window in % of
         span; the Harris index only with a configured dead time,
-        :func:`dead_time_samples`).
+        :func:`dead_time_samples`).  With samples in manual, ``manual``
+        (:func:`manual_stretch`) says which stretch was diagnosed.
     """
     ranges: dict[str, tuple[float, float]] = {
         k: (float(v[0]), float(v[1])) for k, v in (loop.get("ranges") or {}).items()
@@ -163,13 +198,24 @@ def analyse_window(
         ranges.setdefault("sp", ranges["pv"])  # the set point is in PV units
     scaled = {name: to_percent_of_span(x, ranges.get(name)) for name, x in signals.items()
               if name != "mode"}
+    mode = signals.get("mode")
+    mode_mapping = None if loop.get("mode_map") is None else {
+        float(raw): name for raw, name in loop["mode_map"].items()}
+    manual = None if mode is None or mode_mapping is None else manual_samples(mode, mode_mapping)
+    judged = longest_normal_stretch(manual) if manual is not None and manual.any() else slice(None)
+
+    def cut(x: FloatArray | None) -> FloatArray | None:
+        return None if x is None else x[judged]
+
     diagnosis = diagnose_loop(
-        ts=ts, t=t, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
-        mv=scaled.get("mv"), process_type=loop.get("process_type"),
+        ts=ts, t=t[judged], op=cut(scaled.get("op")), pv=cut(scaled.get("pv")),
+        sp=cut(scaled.get("sp")), mv=cut(scaled.get("mv")), process_type=loop.get("process_type"),
         ranges={name: (0.0, 100.0) for name in ranges},
     ).to_dict()
+    if manual is not None and manual.any():
+        diagnosis["manual"] = manual_stretch(diagnosis, manual, t, judged, ts)
     diagnosis["health"] = health_score(diagnosis)
-    diagnosis["first_sample_at"] = float(t[0]) if t.size else None
+    diagnosis["first_sample_at"] = float(t[judged][0]) if t[judged].size else None
     limits = loop.get("pv_limits")
     pv_limits = None
     if limits is not None:
@@ -179,9 +225,7 @@ def analyse_window(
     diagnosis["kpis"] = loop_kpis(
         ts, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
         dead_time=dead_time_samples({**loop, "ts": ts}), pv_limits=pv_limits,
-        mode=signals.get("mode"),
-        mode_mapping=None if loop.get("mode_map") is None else {
-            float(raw): name for raw, name in loop["mode_map"].items()},
+        mode=mode, mode_mapping=mode_mapping,
         oscillation=diagnosis["oscillation"] if diagnosis["quality"]["usable"] else None,
     ).to_dict()
     return diagnosis

@@ -562,6 +562,7 @@ class AnalysisScheduler:
         changed = update_alarms_from_analysis(
             session, loop.id, oscillating=bool(run.oscillating), usable=bool(run.usable),
             importance=loop.importance, message=self._message(run.result), now=now,
+            out_of_service="manual" in run.result and not run.usable,
         )
         if self.outbox is not None:
             for alarm in changed:
@@ -713,7 +714,7 @@ class AnalysisScheduler:
         if not diagnosis["quality"]["usable"]:
             if final["verdict"] == "stiction":
                 return f"data unusable, {valve}"
-            return "data unusable: " + stiction["reason"]
+            return stiction["reason"]  # "data unusable: ..." or why a loop in manual is not judged
         osc = diagnosis["oscillation"]
         if not osc["detected"]:
             return "no oscillation" + ("" if pattern is None else f"; {valve}")

@@ -746,6 +746,7 @@ async function renderLoop(loopId) {
       ["Valve verdict", verdictPill(stiction && stiction.verdict, stiction && stiction.confidence)],
       ["Stiction pattern", health.stiction_pattern || "—"],
       ["Why", stiction ? stiction.reason : "—"],
+      ...(diagnosis && diagnosis.manual ? [["Manual mode", diagnosis.manual.note]] : []),
       ...(stiction && stiction.decided_by === "unit" ? [["Decided by", `unit ${stiction.unit_id}'s `
         + `diagnosis; this loop's own analysis: ${diagnosis.stiction.verdict.replace("_", " ")}, `
         + "kept below as evidence"]] : []),

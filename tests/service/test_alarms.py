@@ -282,6 +282,20 @@ def test_unusable_data_raise_data_quality_and_leave_oscillation_alone(store):
         }
 
 
+def test_a_loop_out_of_service_raises_no_data_quality_alarm(store):
+    """A loop in manual too long to be judged is out of service, not faulty data: its
+    data-quality alarm stays quiet (ISA-18.2 suppression by design), and its oscillation
+    alarm is left as it was."""
+    with store.session() as s:
+        add_loop(s)
+        (osc,) = analyse(s, at=T0, oscillating=True)
+        assert update_alarms_from_analysis(
+            s, "FIC-101", oscillating=False, usable=False, importance="critical",
+            message="in manual 90 % of the window", now=T0 + 60, out_of_service=True) == []
+        assert s.query(Alarm).filter_by(kind="data_quality").count() == 0
+        assert (osc.state, osc.condition_active) == ("unacknowledged", True)
+
+
 def test_list_alarms_filters_and_orders(store):
     with store.session() as s:
         s.add(Unit(id="column", name="Column"))

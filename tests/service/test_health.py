@@ -69,7 +69,9 @@ def test_stiction_pattern_text(pattern, op_travel, words):
      "no_stiction"),
     (diagnosis(usable=False, verdict="stiction", pattern="stuck", op_travel=30.0),
      "data unusable, valve: stiction (stuck: OP travelled 30.0 % with no PV response)"),
-    (diagnosis(usable=False, verdict="undecided", reason="PV flat"), "data unusable: PV flat"),
+    # the reason of unusable data is the diagnosis's own, which says so (it was said twice)
+    (diagnosis(usable=False, verdict="undecided", reason="data unusable: PV flat"),
+     "data unusable: PV flat"),
 ])
 def test_alarm_messages_name_the_stiction_pattern(case, message):
     assert AnalysisScheduler._message(case) == message

@@ -90,7 +90,11 @@ def _holds_samples(window: LoopWindowData) -> bool:
 
 def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
                      ) -> LoopWindowData:
-    """The samples of ``run``'s window, in % of span: from the rolling buffer, else the store."""
+    """The samples ``run`` diagnosed, in % of span: from the rolling buffer, else the store.
+
+    With a stretch in manual that is the window's longest stretch in auto or
+    cascade (``diagnosis["manual"]``, :func:`service.analysis.manual_stretch`).
+    """
     assert run.window_start is not None and run.window_end is not None
     try:
         window = state.buffers.window(loop.id, run.window_end - run.window_start,
@@ -104,10 +108,16 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
         window = stored.window(loop.id, run.window_end - run.window_start, run.window_end)
     if not _holds_samples(window):
         raise HTTPException(404, "Samples of the analysed window are no longer stored")
+    manual = (run.result or {}).get("manual")
+    judged = slice(None)
+    if manual is not None:
+        if manual["judged_from"] is None:
+            raise HTTPException(404, "The loop was in manual over the whole analysed window")
+        judged = (window.t >= manual["judged_from"]) & (window.t <= manual["judged_to"])
     ranges = loop.config.get("ranges") or {}
-    scaled = {name: to_percent_of_span(x, tuple(ranges[name]) if name in ranges else None)
+    scaled = {name: to_percent_of_span(x[judged], tuple(ranges[name]) if name in ranges else None)
               for name, x in window.signals.items()}
-    return LoopWindowData(t=window.t, op=scaled.get("op"), pv=scaled.get("pv"),
+    return LoopWindowData(t=window.t[judged], op=scaled.get("op"), pv=scaled.get("pv"),
                           sp=scaled.get("sp"), mv=scaled.get("mv"), ts=window.ts)
 
 
