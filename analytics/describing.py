@@ -27,19 +27,31 @@ References
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Literal
 
 import numpy as np
+import scipy.interpolate
 from numpy.typing import ArrayLike, NDArray
 
-from analytics.errors import ValveModelError
+from analytics.errors import ModelSpecError, ValveModelError
 from analytics.valves import (
     ChoudhuryValve,
+    DeadbandValve,
+    HeValve,
+    KarnoppValve,
+    StenmanValve,
     ValveModel,
 )
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
+DescribingChoice = Literal["model", "equivalent"]
+"""Which describing function a sticky valve gets (:func:`analytic_sj`)."""
 
 
 def _amplitudes(A: ArrayLike) -> FloatArray:
@@ -241,8 +253,9 @@ def df_curve(
         A = S / 2 * np.geomspace(1 + 1e-3, 100.0, 200)
     else:
         A = _amplitudes(amplitudes)
-    if isinstance(valve, ChoudhuryValve):  # and its subclass KanoValve
-        return A, choudhury_df(A, valve.S, valve.J)
+    sj = analytic_sj(valve)  # Choudhury's valve and its subclass, Kano's
+    if sj is not None:
+        return A, choudhury_df(A, *sj)
     return A, numerical_df(valve, A, omega=omega)
 
 
@@ -267,3 +280,170 @@ def table_5_1_limits(S: float, J: float) -> dict[str, complex]:
     ChoudhuryValve(S, J)  # validates S and J
     small = complex(0.0, -math.pi * S / (4 * J)) if J > 0 else complex(-math.inf, -math.inf)
     return {"A->S/2": small, "A->inf": complex(-1.0, 0.0)}
+
+
+# ---------------------------------------------------------------------------- for the solvers
+@dataclass(frozen=True)
+class ValveDescribingFunction:
+    """Describing function of one sticky valve, ``N(A)`` for ``A > threshold``, as
+    the harmonic-balance solvers use it (:mod:`analytics.limit_cycle`,
+    :mod:`analytics.tuning`): its value, its slope, the end of its ``-1/N``
+    curve and that curve tabulated by branches of monotone phase."""
+
+    threshold: float
+    value: Callable[[FloatArray], ComplexArray]
+    slope: Callable[[FloatArray], ComplexArray]
+    edge: complex | None  # lim_{A -> threshold+} -1/N, if finite
+    source: str
+    excess: FloatArray  # A / threshold - 1 of the tabulated -1/N curve
+
+    def table(self) -> tuple[FloatArray, ComplexArray]:
+        """Amplitudes ``threshold (1 + excess)`` and ``-1/N`` there."""
+        amplitudes = self.threshold * (1.0 + self.excess)
+        return amplitudes, -1.0 / self.value(amplitudes)
+
+    @cached_property
+    def branches(self) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+        """The ``-1/N`` curve split where its phase turns: per branch the phase
+        (ascending), ``log|-1/N|`` and ``A`` at the tabulated points."""
+        amplitudes, curve = self.table()
+        phase = np.unwrap(np.angle(curve))
+        direction = np.sign(np.diff(phase))
+        turns = np.flatnonzero(direction[1:] != direction[:-1]) + 1
+        bounds = [0, *turns.tolist(), phase.size - 1]
+        result = []
+        for start, stop in itertools.pairwise(bounds):
+            if direction[start] == 0:
+                continue
+            branch = np.arange(start, stop + 1)
+            order = np.argsort(phase[branch])
+            chosen = branch[order]
+            result.append((phase[chosen], np.log(np.abs(curve[chosen])), amplitudes[chosen]))
+        return result
+
+    def crossings(
+        self, loop: ComplexArray, omega: FloatArray
+    ) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Brackets where each row of ``loop`` (``L(jw)`` on the grid ``omega``) crosses
+        ``-1/N(A)``: the row index, ``omega`` and ``A`` of every guess.
+
+        On each branch of the ``-1/N`` curve whose phase is monotone in ``A``, the
+        phase condition gives ``A`` for every ``w`` whose ``arg L`` lies in the
+        branch's range; a sign change of ``log|L| - log|1/N|`` between grid points
+        brackets a crossing (linear interpolation gives the guess).
+        """
+        loop = np.atleast_2d(loop)
+        log_loop = np.log(np.abs(loop))
+        rows, omegas, amplitudes = [], [], []
+        for psi, log_radius, amp in self.branches:
+            centre = 0.5 * (psi[0] + psi[-1])
+            theta = centre + np.angle(loop * np.exp(-1j * centre))
+            inside = (theta >= psi[0]) & (theta <= psi[-1])
+            gap = log_loop - np.interp(theta, psi, log_radius)
+            pair = inside[:, :-1] & inside[:, 1:] & (np.abs(np.diff(theta, axis=1)) < math.pi / 2)
+            row, k = np.nonzero(pair & (np.sign(gap[:, :-1]) != np.sign(gap[:, 1:])))
+            fraction = gap[row, k] / (gap[row, k] - gap[row, k + 1])
+            omegas.append(omega[k] * (omega[k + 1] / omega[k]) ** fraction)
+            angle = theta[row, k] + fraction * (theta[row, k + 1] - theta[row, k])
+            amplitudes.append(np.interp(angle, psi, amp))
+            rows.append(row)
+        if not rows:
+            return np.empty(0, dtype=np.int64), np.empty(0), np.empty(0)
+        return np.concatenate(rows), np.concatenate(omegas), np.concatenate(amplitudes)
+
+
+def _choudhury_slope(A: FloatArray, S: float, J: float) -> ComplexArray:
+    """``dN/dA`` of the (S, J) describing function (thesis Eq. 3.4, ERRATA item 1), A > S/2.
+
+    With ``u = S/A`` and ``c = cos(phi) = sqrt(u (2 - u))`` the DF reads
+    ``N = [(1 + u) c + pi/2 + asin(1 - u) - 2 (S - J) c / A] / pi
+    - j [S^2 + 2 (S - J)(A - S)] / (pi A^2)``; this is its derivative in closed form.
+    """
+    u = S / A
+    c = np.sqrt(u * (2.0 - u))
+    d_real_du = (2 * u * (1 - u) - 2 * (S - J) / S * u * (3 - 2 * u)) / (math.pi * c)
+    d_imag = (2 * (S**2 + 2 * (S - J) * (A - S)) / A - 2 * (S - J)) / (math.pi * A**2)
+    return np.asarray(-u / A * d_real_du + 1j * d_imag, dtype=np.complex128)
+
+
+def _choudhury(S: float, J: float, source: str) -> ValveDescribingFunction:
+    def value(A: FloatArray) -> ComplexArray:
+        return choudhury_df(np.maximum(A, S / 2 * (1 + 1e-15)), S, J)
+
+    def slope(A: FloatArray) -> ComplexArray:
+        return _choudhury_slope(np.maximum(A, S / 2 * (1 + 1e-15)), S, J)
+
+    edge = table_5_1_limits(S, J)["A->S/2"] if J > 0 else None
+    return ValveDescribingFunction(S / 2, value, slope, edge, source, np.geomspace(1e-9, 1e4, 1400))
+
+
+def _tabulated(valve: ValveModel) -> ValveDescribingFunction:
+    """Numerical DF of any valve model, interpolated (PCHIP in ``log(A - threshold)``)."""
+    nominal = valve.stick_band / 2
+    amplitudes = nominal * (1.0 + np.geomspace(1e-3, 200.0, 160))
+    gains = numerical_df(valve, amplitudes)
+    stuck = np.flatnonzero(gains == 0)
+    first = int(stuck[-1]) + 1 if stuck.size else 0
+    if first >= amplitudes.size - 4:
+        raise ModelSpecError(f"valve {valve!r} barely moves: no describing function to use")
+    threshold = float(amplitudes[first - 1]) if first else nominal
+    coordinate = np.log(amplitudes[first:] - threshold)
+    real = scipy.interpolate.PchipInterpolator(coordinate, gains[first:].real, extrapolate=True)
+    imag = scipy.interpolate.PchipInterpolator(coordinate, gains[first:].imag, extrapolate=True)
+    low, high = coordinate[0], coordinate[-1]
+
+    def value(A: FloatArray) -> ComplexArray:
+        u = np.clip(np.log(np.maximum(A - threshold, 1e-300)), low, high)
+        return np.asarray(real(u) + 1j * imag(u), dtype=np.complex128)
+
+    def slope(A: FloatArray) -> ComplexArray:
+        u = np.log(np.maximum(A - threshold, 1e-300))
+        inside = (u >= low) & (u <= high)
+        du = np.where(inside, 1.0 / np.maximum(A - threshold, 1e-300), 0.0)
+        uc = np.clip(u, low, high)
+        return np.asarray((real(uc, 1) + 1j * imag(uc, 1)) * du, dtype=np.complex128)
+
+    excess = amplitudes[first:] / threshold - 1.0
+    return ValveDescribingFunction(threshold, value, slope, None, f"numerical DF of {valve!r}",
+                                   excess)
+
+
+def equivalent_sj(valve: ValveModel) -> tuple[float, float] | None:
+    """(S, J) of the two-parameter model equivalent to ``valve``, if there is one."""
+    if isinstance(valve, ChoudhuryValve):
+        return valve.S, valve.J
+    if isinstance(valve, HeValve):
+        return valve.S, valve.J  # thesis Eq. 1.2, ERRATA item 6
+    if isinstance(valve, DeadbandValve):
+        return valve.deadband, 0.0
+    if isinstance(valve, StenmanValve):
+        return valve.d, valve.d
+    if isinstance(valve, KarnoppValve):
+        return valve.stick_band, min(valve.stick_band, 2 * (valve.fs_force - valve.fc_force))
+    return None
+
+
+def analytic_sj(valve: ValveModel, describing: DescribingChoice = "model"
+                ) -> tuple[float, float] | None:
+    """The (S, J) whose analytic DF (:func:`choudhury_df`) stands for ``valve``, or None
+    when its own DF must be computed numerically (:func:`numerical_df`).
+
+    The one place that decides which describing function a valve gets:
+    ``"model"`` uses the analytic DF only for the (S, J) models themselves
+    (Choudhury's and Kano's valves); ``"equivalent"`` uses it for every valve
+    with an equivalent (S, J) (:func:`equivalent_sj`).
+    """
+    if describing == "equivalent" or isinstance(valve, ChoudhuryValve):
+        return equivalent_sj(valve)
+    return None
+
+
+def valve_describing_function(valve: ValveModel, describing: DescribingChoice = "model"
+                              ) -> ValveDescribingFunction:
+    """The describing function of ``valve`` for the harmonic-balance solvers: analytic
+    or tabulated as :func:`analytic_sj` decides."""
+    sj = analytic_sj(valve, describing)
+    if sj is None:
+        return _tabulated(valve)
+    S, J = sj
+    return _choudhury(S, J, f"Choudhury DF with S={S:g}, J={J:g}")

@@ -249,9 +249,14 @@ class TransferFunction:
         )
 
     @property
+    def integrators(self) -> int:
+        """Poles at ``s = 0`` net of zeros there (negative for a net zero at ``s = 0``)."""
+        return _s_multiplicity(self.den) - _s_multiplicity(self.num)
+
+    @property
     def is_integrating(self) -> bool:
         """True if ``G`` has a pole at ``s = 0`` once common factors of ``s`` are cancelled."""
-        return any(self.num) and _s_multiplicity(self.den) > _s_multiplicity(self.num)
+        return any(self.num) and self.integrators > 0
 
     @property
     def dc_gain(self) -> float:

@@ -71,21 +71,22 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
-from analytics.describing import table_5_1_limits
+from analytics.describing import (
+    DescribingChoice,
+    ValveDescribingFunction,
+    equivalent_sj,
+    table_5_1_limits,
+    valve_describing_function,
+)
 from analytics.errors import ModelSpecError
 from analytics.limit_cycle import (
     GRID_PER_DECADE,
-    DescribingChoice,
     Prediction,
     SimulatedLimitCycle,
-    _crossings,
-    _equivalent_sj,
-    _valve_df,
-    _ValveDF,
     predict_limit_cycles,
     simulate_limit_cycle,
 )
-from analytics.lti import TransferFunction, _s_multiplicity
+from analytics.lti import TransferFunction
 from analytics.simulation import ClosedLoopModel, PIDController
 from analytics.valves import IdealValve, ValveModel
 
@@ -105,7 +106,7 @@ MS_LIMIT = 2.0
 MIN_REDUCTION = 0.05
 #: The describing function of a valve, built once per valve (a tabulated one costs
 #: a simulation per amplitude).
-_describing_function = functools.lru_cache(maxsize=64)(_valve_df)
+_describing_function = functools.lru_cache(maxsize=64)(valve_describing_function)
 #: Complex loop-response samples evaluated at once in :func:`safe_tuning_map`.
 _CHUNK_SAMPLES = 2_000_000
 #: Safe picks of the map the exact solver may refute before the search gives up.
@@ -475,7 +476,7 @@ def analyse_single_loop(
         f_imag = float(first_order.open_loop_response(kc, ti, np.array([omega_f]))[0].imag)
     if omega_h is not None:
         h_real = float(first_order.open_loop_response(kc, ti, np.array([omega_h]))[0].real)
-    sj = _equivalent_sj(valve)
+    sj = equivalent_sj(valve)
     edge = None
     if sj is not None and sj[1] > 0:
         edge = table_5_1_limits(*sj)["A->S/2"].imag
@@ -570,11 +571,6 @@ def _map_action(controller: PIDController) -> Literal["reverse", "direct"]:
     return "reverse" if reverse else "direct"
 
 
-def _integrators(process: TransferFunction) -> int:
-    """Poles at ``s = 0`` net of zeros there."""
-    return _s_multiplicity(process.den) - _s_multiplicity(process.num)
-
-
 def _unstable_roots(loop: ComplexArray, types: IntArray) -> tuple[IntArray, BoolArray]:
     """Right-half-plane closed-loop roots of each row of ``loop`` (``L(jw)`` on a grid
     from the low-frequency asymptote to where ``|L| < 1/2``), by the argument
@@ -593,7 +589,7 @@ def _unstable_roots(loop: ComplexArray, types: IntArray) -> tuple[IntArray, Bool
 
 
 def _cycle_brackets(
-    loop: ComplexArray, omega: FloatArray, df: _ValveDF, searched: BoolArray
+    loop: ComplexArray, omega: FloatArray, df: ValveDescribingFunction, searched: BoolArray
 ) -> tuple[IntArray, FloatArray, FloatArray]:
     """Crossings of ``-1/N`` by the ``searched`` rows of ``loop``: row, ``w`` and ``A``
     of each. A row can only cross where ``|L|`` lies within the moduli of the
@@ -614,7 +610,7 @@ def _cycle_brackets(
         if group.size == 0:
             continue
         span = slice(max(int(first[group].min()) - 1, 0), int(last[group].max()) + 2)
-        hit, w, amplitude = _crossings(loop[rows[group], span], omega[span], df)
+        hit, w, amplitude = df.crossings(loop[rows[group], span], omega[span])
         found.append(np.asarray(rows[group][hit], dtype=np.int64))
         omegas.append(w)
         amplitudes.append(amplitude)
@@ -646,7 +642,7 @@ def _frequency_grid(
     corners += [1 / t for t in (delay, ti.max(), ti.min()) if 0 < t < math.inf]
     bottom = 1e-3 * min([*corners, top / 10])
     weakest = kc.min() * (1 - 1j / (ti.max() * coarse)) * response(coarse)
-    if _integrators(process) > 0 or math.isfinite(ti.max()):
+    if process.integrators > 0 or math.isfinite(ti.max()):
         for _ in range(12):
             if abs(np.interp(np.log(bottom), np.log(coarse), np.abs(weakest))) >= 10:
                 break
@@ -748,7 +744,7 @@ def safe_tuning_map(
     omega = _frequency_grid(response, process, kc_values, ti_values, delay, radius)
     pairs = np.array([(k, t) for k in kc_values for t in ti_values])
     n_rows = len(pairs)
-    integrators = _integrators(process)
+    integrators = process.integrators
 
     def loop_response(rows: slice | IntArray, frequencies: FloatArray) -> ComplexArray:
         gains, times = pairs[rows, :1], pairs[rows, 1:]

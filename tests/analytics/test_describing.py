@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from analytics.describing import (
+    analytic_sj,
     choudhury_df,
     df_curve,
     negative_inverse_df,
     numerical_df,
     table_5_1_limits,
+    valve_describing_function,
 )
 from analytics.errors import ValveModelError
 from analytics.valves import (
@@ -22,6 +24,7 @@ from analytics.valves import (
     HeValve,
     KanoValve,
     KarnoppValve,
+    StenmanValve,
     sj_to_fsfd,
 )
 
@@ -214,3 +217,33 @@ def test_invalid_amplitudes(A: object) -> None:
 def test_invalid_simulation_settings(kwargs: dict[str, float]) -> None:
     with pytest.raises(ValveModelError):
         numerical_df(ChoudhuryValve(4.0, 2.0), 3.0, **kwargs)  # type: ignore[arg-type]
+
+
+def test_stiction_df_slope_is_the_derivative_of_the_df() -> None:
+    """The closed-form dN/dA the solvers use against central differences of Eq. 3.4."""
+    S, J = 4.0, 1.5
+    amplitudes = S / 2 * (1 + np.geomspace(1e-3, 1e4, 15))
+    step = 1e-6 * amplitudes
+    numerical = (choudhury_df(amplitudes + step, S, J) - choudhury_df(amplitudes - step, S, J)) / (
+        2 * step
+    )
+    df = valve_describing_function(ChoudhuryValve(S, J))
+    np.testing.assert_allclose(df.slope(amplitudes), numerical, rtol=1e-5)
+
+
+@pytest.mark.parametrize(("valve", "model", "equivalent"), [
+    (KanoValve(4.0, 2.0), (4.0, 2.0), (4.0, 2.0)),
+    (HeValve(3.0, 1.0), None, (4.0, 2.0)),  # S = fs + fd, J = fs - fd (ERRATA item 6)
+    (DeadbandValve(2.0), None, (2.0, 0.0)),
+    (StenmanValve(1.5), None, (1.5, 1.5)),
+])
+def test_one_place_decides_which_describing_function_a_valve_gets(valve, model, equivalent):
+    """The analytic (S, J) DF for the (S, J) models, the numerical one for the others
+    unless their equivalent is asked for; df_curve and the solvers agree."""
+    assert analytic_sj(valve, "model") == model
+    assert analytic_sj(valve, "equivalent") == equivalent
+    # The solvers tabulate a numerical DF and interpolate it: at its own points it is df_curve's.
+    amplitudes, minus_inverse = valve_describing_function(valve, "model").table()
+    amplitudes, minus_inverse = amplitudes[::20], minus_inverse[::20]
+    _, curve = df_curve(valve, amplitudes)
+    np.testing.assert_allclose(-1.0 / minus_inverse, curve, rtol=1e-9)

@@ -28,7 +28,6 @@ from analytics.limit_cycle import (
     LimitCycle,
     LimitCycleReport,
     Prediction,
-    _choudhury_slope,
     _minor_coefficients,
     _predictor,
     compare,
@@ -236,17 +235,6 @@ def test_three_sticky_valves_give_the_pinned_solution_set(case: str) -> None:
         np.testing.assert_allclose(cycle.op_amplitudes, amplitudes, rtol=1e-4)
         assert (cycle.moving, cycle.stable) == (moving, stable)
         assert_harmonic_balance(cycle, process, controllers, valves)
-
-
-def test_stiction_df_slope_is_the_derivative_of_the_df() -> None:
-    """The closed-form dN/dA used by the solver against central differences of Eq. 3.4."""
-    S, J = 4.0, 1.5
-    amplitudes = S / 2 * (1 + np.geomspace(1e-3, 1e4, 15))
-    step = 1e-6 * amplitudes
-    numerical = (choudhury_df(amplitudes + step, S, J) - choudhury_df(amplitudes - step, S, J)) / (
-        2 * step
-    )
-    np.testing.assert_allclose(_choudhury_slope(amplitudes, S, J), numerical, rtol=1e-5)
 
 
 def test_principal_minor_expansion_is_the_determinant() -> None:
