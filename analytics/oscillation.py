@@ -65,6 +65,7 @@ from scipy import fft as sfft
 from scipy.stats import f as f_dist
 
 from analytics.errors import DataError
+from analytics.signals import zero_crossings
 
 __all__ = [
     "REGULARITY_CAP",
@@ -318,14 +319,6 @@ def _filterbank(
     return np.asarray(frac, dtype=np.float64), np.asarray(dens, dtype=np.float64)
 
 
-def _zero_crossings(y: FloatArray) -> FloatArray:
-    """Linearly interpolated positions of the sign changes of ``y``."""
-    s = np.signbit(y)
-    i = np.flatnonzero(s[1:] != s[:-1])
-    y0, y1 = y[i], y[i + 1]
-    return np.asarray(i + y0 / (y0 - y1), dtype=np.float64)
-
-
 def _acf_regularity(
     spec: _Spectrum, f_lo: float, f_hi: float, n_intervals: int
 ) -> tuple[float, float, int]:
@@ -345,7 +338,7 @@ def _acf_regularity(
     """
     band = (spec.f >= f_lo) & (spec.f <= f_hi)
     acf = sfft.irfft(np.where(band, spec.P, 0.0), spec.nfft)[: spec.n]
-    zc = _zero_crossings(acf)[: n_intervals + 1]
+    zc = zero_crossings(acf)[: n_intervals + 1]
     if zc.size < 4:
         return float("nan"), 0.0, max(zc.size - 1, 0)
     tp = 2.0 * np.diff(zc)

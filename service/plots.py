@@ -51,6 +51,7 @@ from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
 from analytics.lti import TransferFunction, simulate_open_loop
+from analytics.signals import autocorrelation
 from analytics.stiction.signature import EllipseFit
 from analytics.valves import ValveModel
 
@@ -64,7 +65,6 @@ __all__ = [
     "Panel",
     "Series",
     "StictionModelPath",
-    "autocorrelation",
     "ellipse_points",
     "format_utc",
     "history_figure",
@@ -191,22 +191,6 @@ def power_spectrum(x: ArrayLike, ts: float) -> tuple[FloatArray, FloatArray]:
     frequency, power = frequency[1:], power[1:]
     peak = float(power.max())
     return 1.0 / frequency, power / peak if peak > 0 else power
-
-
-def autocorrelation(x: ArrayLike, max_lag: int) -> FloatArray:
-    """Biased autocorrelation of the mean-removed ``x`` at lags ``0..max_lag`` (1 at 0).
-
-    Computed through the FFT with zero padding to twice the length (Wiener-Khinchin).
-    """
-    values = np.asarray(x, dtype=np.float64)
-    values = values[np.isfinite(values)]
-    if values.size < 2:
-        raise ValueError("autocorrelation needs at least 2 finite samples")
-    centred = values - values.mean()
-    n = centred.size
-    spectrum = np.fft.rfft(centred, 2 * n)
-    acf = np.fft.irfft(spectrum * np.conj(spectrum), 2 * n)[: min(max_lag, n - 1) + 1]
-    return np.asarray(acf / acf[0] if acf[0] > 0 else acf, dtype=np.float64)
 
 
 def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, FloatArray]:

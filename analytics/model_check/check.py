@@ -82,6 +82,7 @@ from analytics.model_check.effects import (
 from analytics.model_check.identify import identify_controller, identify_model
 from analytics.model_check.model import LoopModel, Quantiser, friction_of
 from analytics.oscillation import bandpass, detect_loop_oscillation
+from analytics.signals import autocorrelation
 
 __all__ = [
     "MIN_SAMPLES",
@@ -894,13 +895,9 @@ def _correlation_time(d: FloatArray) -> float:
     >>> 7 < _correlation_time(ar) < 11  # (1 + 0.8) / (1 - 0.8) = 9
     True
     """
-    x = d - d.mean()
-    n = x.size
-    spectrum = np.abs(np.fft.rfft(x, 2 * n)) ** 2
-    acf = np.fft.irfft(spectrum)[: n // 4]
-    if not acf[0] > 0:
+    rho = autocorrelation(d, d.size // 4 - 1)
+    if not rho[0] > 0:
         return 1.0
-    rho = acf / acf[0]
     stop = np.flatnonzero(rho <= 0.0)
     last = int(stop[0]) if stop.size else rho.size
     return max(1.0 + 2.0 * float(np.sum(rho[1:last])), 1.0)

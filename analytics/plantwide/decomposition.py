@@ -59,9 +59,9 @@ from scipy import fft as sfft
 
 from analytics.errors import DataError
 from analytics.oscillation import bandpass
+from analytics.signals import upward_crossings
 from analytics.stiction.shape_rules import (
     POINTS_PER_CYCLE,
-    _upward_crossings,
     classify_cycle_shape,
     resample_segments,
 )
@@ -272,7 +272,7 @@ def _cycles(x: FloatArray, period: float) -> FloatArray:
     that the shapes are looking for, and the noise averages out over the cycles.
     """
     centred = x - x.mean()
-    up = _upward_crossings(bandpass(x, period))
+    up = upward_crossings(bandpass(x, period))
     lengths = np.diff(up)
     regular = (lengths > 0.7 * period) & (lengths < 1.4 * period)
     starts, stops = up[:-1][regular], up[1:][regular]

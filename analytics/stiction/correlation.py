@@ -55,7 +55,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import fft as sfft
 
-from analytics.oscillation import _zero_crossings, bandpass
+from analytics.oscillation import bandpass
+from analytics.signals import zero_crossings
 from analytics.stiction.evidence import (
     NO_STICTION,
     SELF_REGULATING,
@@ -96,7 +97,7 @@ def ccf_zero_crossings(u: FloatArray, y: FloatArray, max_lag: int) -> tuple[floa
     left = np.concatenate([cross[:1], cross[::-1][:max_lag]])  # lags 0, -1, ..., -max_lag
     crossings = []
     for branch in (left, right):
-        zeros = _zero_crossings(branch)
+        zeros = zero_crossings(branch)
         crossings.append(float(zeros[0]) if zeros.size else float("nan"))
     return crossings[0], crossings[1]
 

@@ -49,7 +49,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
 
-from analytics.oscillation import _zero_crossings, bandpass
+from analytics.oscillation import bandpass
+from analytics.signals import upward_crossings, zero_crossings
 from analytics.stiction.evidence import (
     INTEGRATING,
     NO_STICTION,
@@ -173,7 +174,7 @@ def half_cycle_bounds(x: FloatArray, hysteresis: float = 0.2) -> FloatArray:
     reached = np.flatnonzero(side)
     sides = side[reached]
     switches = reached[1:][sides[1:] != sides[:-1]]
-    crossings = _zero_crossings(x)
+    crossings = zero_crossings(x)
     before = np.searchsorted(crossings, switches) - 1
     return crossings[before[before >= 0]]
 
@@ -458,7 +459,7 @@ class ShapeRulesDetector:
             return MethodEvidence.undecided(self.name, problem)
         assert window.op is not None and window.pv is not None
         period = float(window.period_samples or 0.0)
-        up = _upward_crossings(bandpass(window.pv, period))
+        up = upward_crossings(bandpass(window.pv, period))
         lengths = np.diff(up)
         regular = (lengths > 0.7 * period) & (lengths < 1.4 * period)
         if np.count_nonzero(regular) < self.min_cycles:
@@ -518,10 +519,3 @@ class ShapeRulesDetector:
             share,
             details,
         )
-
-
-def _upward_crossings(y: FloatArray) -> FloatArray:
-    """Interpolated positions where ``y`` crosses zero going up."""
-    crossings = _zero_crossings(y)
-    below = y[np.floor(crossings).astype(np.int64)] < 0
-    return crossings[below]
