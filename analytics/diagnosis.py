@@ -49,7 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from analytics.errors import DataError
-from analytics.oscillation import LoopOscillation, detect_loop_oscillation
+from analytics.oscillation import LoopOscillation, detect_loop_oscillation, envelope_variation
 from analytics.quality import QualityReport, assess_quality
 from analytics.quantification import (
     MIN_FIT_R2,
@@ -156,6 +156,12 @@ class LoopDiagnosis:
         measured (no OP, or unusable data).
     episode_stick_band : float or None
         Stick band read off the episodes (:func:`episode_stick_band`).
+    envelope_variation : float or None
+        How steady the detected oscillation's amplitude is
+        (:func:`analytics.oscillation.envelope_variation` of OP, else PV):
+        near 0 for a limit cycle or a periodic forcing, about 0.52 for a
+        lightly damped loop driven by noise (an over-tuned loop); None
+        without an oscillation or with fewer than eight periods.
     """
 
     samples: int
@@ -172,6 +178,7 @@ class LoopDiagnosis:
     episodes: tuple[StickEpisode, ...] = ()
     op_travel: float | None = None
     episode_stick_band: float | None = None
+    envelope_variation: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -196,6 +203,7 @@ class LoopDiagnosis:
                 "amplitude_op": osc.amplitude_op if osc else None,
                 "amplitude_pv": osc.amplitude_pv if osc else None,
                 "analysed_period_s": self.cycle_period_s,
+                "envelope_variation": self.envelope_variation,
                 "oscillations": [
                     {"signal": signal, "period_s": o.period_s, "amplitude": o.amplitude,
                      "regularity": o.regularity, "presence": o.presence,
@@ -399,6 +407,18 @@ def _infer_process_type(estimate: StictionEstimate | None) -> tuple[ProcessType,
     return "self-regulating", "assumed"
 
 
+def _envelope_variation(oscillation: LoopOscillation, x: FloatArray | None, ts: float
+                        ) -> float | None:
+    """:func:`~analytics.oscillation.envelope_variation` of the detected oscillation in
+    ``x``; None without one or with fewer than eight periods."""
+    if not oscillation.detected or oscillation.period_s is None or x is None:
+        return None
+    try:
+        return envelope_variation(x, oscillation.period_s / ts)
+    except DataError:
+        return None
+
+
 def _set_aside(evidence: MethodEvidence, why: str) -> MethodEvidence:
     return MethodEvidence.undecided(evidence.method, why, evidence.index, evidence.details)
 
@@ -579,4 +599,5 @@ def diagnose_loop(
         samples, ts, quality, oscillation, process_type, source, period_s, verdict, estimate,
         ellipse, pattern, episodes, travel,
         episode_stick_band(episodes) if verdict.verdict == STICTION else None,
+        _envelope_variation(oscillation, op_clean if op_clean is not None else pv_clean, ts),
     )

@@ -87,6 +87,7 @@ from analytics.limit_cycle import (
     simulate_limit_cycle,
 )
 from analytics.lti import TransferFunction
+from analytics.oscillation import LIMIT_CYCLE_ENVELOPE_CV, RAYLEIGH_ENVELOPE_CV
 from analytics.simulation import ClosedLoopModel, PIDController
 from analytics.valves import IdealValve, ValveModel
 
@@ -1636,6 +1637,41 @@ class CycleAgreement:
 #: Gain margins offered by :func:`detune` (Astrom & Hagglund 2006, sec. 4.8 [2]_:
 #: 2-5 is the usual range).
 DETUNING_GAIN_MARGINS = (2.0, 3.0)
+
+
+#: Share of the window OP sat at a limit from which a steady cycle may be a linear
+#: loop past its stability limit, its amplitude held by saturation.
+SATURATED_SHARE = 0.05
+
+
+def forced_cycle_reason(envelope_variation: float | None, saturation: float | None
+                        ) -> str | None:
+    """Why a cycle with a healthy valve is not the loop's own, or None when it may be.
+
+    A loop that cycles by its own tuning is a lightly damped linear loop driven
+    by noise: its cycle waxes and wanes, the envelope Rayleigh-distributed
+    (coefficient of variation 0.52, Rice 1945).  A cycle that keeps its
+    amplitude (:data:`~analytics.oscillation.LIMIT_CYCLE_ENVELOPE_CV`) is forced
+    from outside -- a disturbance, another loop's cycle -- or kept by a
+    nonlinearity, and detuning does not remove it, unless OP saturates
+    (:data:`SATURATED_SHARE`): a loop past its stability limit is held at a
+    steady amplitude by its output limits.  In the synthetic library external
+    sines give 0.01-0.02, over-tuned loops 0.46-0.50.
+
+    >>> forced_cycle_reason(0.48, 0.0) is None, forced_cycle_reason(0.01, 0.3) is None
+    (True, True)
+    >>> forced_cycle_reason(0.01, 0.0)[:50]
+    'the cycle keeps its amplitude (envelope variation '
+    """
+    if envelope_variation is None or envelope_variation >= LIMIT_CYCLE_ENVELOPE_CV:
+        return None
+    if saturation is not None and saturation >= SATURATED_SHARE:
+        return None
+    return (f"the cycle keeps its amplitude (envelope variation {envelope_variation:.2f}; "
+            f"a loop cycling by its own tuning waxes and wanes, about "
+            f"{RAYLEIGH_ENVELOPE_CV:.2f}), and OP does not saturate: it is forced from "
+            "outside (a disturbance or another loop's cycle) or kept by another "
+            "nonlinearity, and detuning would not remove it; look for its source")
 
 
 def detune(tuning: Tuning, period_s: float,

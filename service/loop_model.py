@@ -70,7 +70,12 @@ def identified_loop(config: dict[str, Any], diagnosis: dict[str, Any] | None) ->
             f"the identified process gain {process['K']:.3g} and the controller action "
             f"'{action}' make positive feedback"
         )
-    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
+    # A lag shorter than the identification's resolution comes out as tau = 0; the
+    # sampled loop still rolls off (hold, transmitter), so it is taken as one
+    # sampling interval: negligible at the cycle, and the loop stays strictly proper
+    # for the Nyquist count (a PI controller on a pure gain and delay is not).
+    tau = process["tau"] if process["tau"] > 0 else float(config["ts"])
+    lag = (tau, 1.0)
     den = (*lag, 0.0) if process["integrating"] else lag
     return IdentifiedLoop(
         process=TransferFunction((gain,), den, process["theta"]),

@@ -51,10 +51,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
-from scipy import signal
 
 from analytics.errors import DataError
-from analytics.oscillation import Oscillation, bandpass, detect_oscillations
+from analytics.oscillation import (
+    RAYLEIGH_ENVELOPE_CV,
+    Oscillation,
+    detect_oscillations,
+    envelope_variation,
+)
 
 __all__ = [
     "RAYLEIGH_ENVELOPE_CV",
@@ -65,10 +69,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-
-RAYLEIGH_ENVELOPE_CV = math.sqrt(4.0 / math.pi - 1.0)
-"""Coefficient of variation of a Rayleigh variable (0.523): the envelope of a
-narrow-band Gaussian process, e.g. a lightly damped loop driven by noise [3]."""
 
 FAST_PERIOD_BAND_RATIO = 1.05
 """Band edges of the second, fast-period pass (``fc / 1.05 .. fc * 1.05``)."""
@@ -133,42 +133,6 @@ class OscillationGroup:
     def signals(self) -> tuple[str, ...]:
         """Names of the member signals."""
         return tuple(m.signal for m in self.members)
-
-
-def envelope_variation(x: ArrayLike, period_samples: float, *, band_ratio: float = 1.2) -> float:
-    """Coefficient of variation of the envelope of the oscillation at ``period_samples``.
-
-    The signal is band-passed around the period
-    (:func:`analytics.oscillation.bandpass`), its envelope is the magnitude
-    of the analytic signal (Hilbert transform), and the result is
-    ``std(envelope) / mean(envelope)`` over the window without two periods
-    at either end.  A limit cycle keeps its amplitude: near 0.  The envelope
-    of a resonance driven by noise is Rayleigh-distributed: about
-    :data:`RAYLEIGH_ENVELOPE_CV` = 0.523 (Rice 1945).
-
-    Raises
-    ------
-    DataError
-        If the window holds fewer than eight periods.
-
-    Examples
-    --------
-    >>> k = np.arange(4000)
-    >>> rng = np.random.default_rng(1)
-    >>> cycle = np.sign(np.sin(2 * np.pi * k / 40)) + 0.3 * rng.standard_normal(k.size)
-    >>> round(envelope_variation(cycle, 40.0), 2)
-    0.03
-    """
-    xa = np.asarray(x, dtype=np.float64)
-    if xa.size < 8 * period_samples:
-        raise DataError(
-            f"{xa.size / period_samples:.1f} periods in the window, the envelope needs 8"
-        )
-    component = bandpass(xa, period_samples, band_ratio=band_ratio)
-    margin = math.ceil(2 * period_samples)
-    envelope = np.abs(signal.hilbert(component))[margin:-margin]
-    mean = float(envelope.mean())
-    return float(envelope.std() / mean) if mean > 0 else 0.0
 
 
 def _power_spectrum(x: FloatArray) -> FloatArray:

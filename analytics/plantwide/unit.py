@@ -41,7 +41,7 @@ the figures).
 A cycle of only a few samples per period (a limit cycle at the scan rate, or
 aliased by slow sampling) is too fast for shapes, surrogates or a Hammerstein
 fit.  When such a cycle is confined to the signals of one loop and keeps a
-constant amplitude (:func:`~analytics.plantwide.groups.envelope_variation`
+constant amplitude (:func:`~analytics.oscillation.envelope_variation`
 well below the Rayleigh value of a noise-driven resonance), the loop itself
 holds the nonlinearity that sustains it, and its valve is named with a
 lower confidence.
@@ -71,7 +71,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from analytics.diagnosis import HAMMERSTEIN_GAIN_SCALE
 from analytics.errors import DataError
-from analytics.oscillation import MIN_SAMPLES
+from analytics.oscillation import LIMIT_CYCLE_ENVELOPE_CV, MIN_SAMPLES
 from analytics.plantwide.decomposition import ShapeDecomposition, decompose_cycles
 from analytics.plantwide.fingerprint import (
     LinearCheck,
@@ -81,7 +81,6 @@ from analytics.plantwide.fingerprint import (
     locate_sticky_valves,
 )
 from analytics.plantwide.groups import (
-    RAYLEIGH_ENVELOPE_CV,
     GroupMember,
     OscillationGroup,
     envelope_variation,
@@ -103,12 +102,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-
-LIMIT_CYCLE_ENVELOPE_CV = 0.5 * RAYLEIGH_ENVELOPE_CV
-"""Envelope variation below which a fast oscillation counts as a sustained limit
-cycle: half the Rayleigh value of a noise-driven resonance (0.26).  The sticky
-reactor cooling valve of the Tennessee Eastman process gives 0.08; normal
-operation of the same loop 0.45-0.55."""
 
 MODEL_NOTE = ("diagnosed from the data alone; the unit's process matrix and controller "
               "tunings would make it stronger: with them every sticky set is tested "

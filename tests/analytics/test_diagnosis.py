@@ -44,6 +44,17 @@ def test_an_external_disturbance_is_not_blamed_on_the_valve():
     assert d.process_type_source in {"assumed", "inferred"}
 
 
+@pytest.mark.parametrize(("name", "low", "high"), [
+    ("temp-sine200s-ts2", 0.0, 0.05),  # a periodic forcing keeps its amplitude
+    ("flow-kano-S8-J4-ts1", 0.0, 0.1),  # so does a stiction limit cycle
+    ("flow-aggressive-ts1", 0.35, 0.65),  # a noise-driven resonance: Rayleigh, 0.52
+])
+def test_the_oscillation_says_how_steady_its_amplitude_is(name, low, high):
+    _, d = run(name)
+    assert low <= d.envelope_variation <= high
+    assert d.to_dict()["oscillation"]["envelope_variation"] == d.envelope_variation
+
+
 def test_on_a_regular_cycle_only_clear_slips_count():
     """A slow external sine is cut by the hold band at its peaks into holds two
     bands apart that look like small slips (flow-sine150s-ts1 has 8 of them);
