@@ -147,8 +147,9 @@ SINGLE_LOOPS = (
               "sticky valve (Kano S=4 %, J=2 %): alarm and ticket"),
     PlantLoop("FIC-102", "Reflux flow", None, "flow-aggressive-ts1", "FV-102", "medium",
               "over-tuned controller: oscillation alarm, no ticket"),
-    PlantLoop("TIC-201", "Reactor temperature", None, "temp-sine500s-ts2", "TV-201", "high",
-              "upstream disturbance (500 s): oscillation alarm, no ticket"),
+    PlantLoop("TIC-201", "Reactor temperature", None, "temp-sine200s-ts2", "TV-201", "high",
+              "upstream disturbance (200 s, 18 cycles an hour: enough to tell it from its "
+              "own tuning): oscillation alarm, no ticket, no detuning"),
     PlantLoop("LIC-301", "Drum level", None, "level-noise-ts1", "LV-301", "medium", "healthy"),
     PlantLoop("FIC-105", "Steam flow", None, "flow-he-S8-J4-ts1", "FV-105", "critical",
               "sticky valve (He fs=6 %, fd=2 %): alarm and ticket"),

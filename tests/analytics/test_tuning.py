@@ -18,11 +18,13 @@ import pytest
 from numpy.typing import NDArray
 
 from analytics.describing import choudhury_df
+from analytics.diagnosis import diagnose_loop
 from analytics.errors import ModelSpecError
 from analytics.limit_cycle import predict_limit_cycles, simulate_limit_cycle
 from analytics.lti import TransferFunction
 from analytics.scenarios import chapter4, level_loop, temperature_loop
 from analytics.simulation import ClosedLoopModel, Loop, PIDController
+from analytics.synthetic_cases import synthetic_library
 from analytics.tuning import (
     TABLE_5_11,
     FirstOrderProcess,
@@ -31,6 +33,7 @@ from analytics.tuning import (
     Tuning,
     advise,
     analyse_single_loop,
+    cycle_origin,
     excited_model,
     safe_tuning_map,
     table_5_11_rule,
@@ -564,3 +567,19 @@ def test_effects_from_prediction() -> None:
     unstable = predict_limit_cycles(FOPDT, PIDController.ideal(5.0, 10.0), VALVE)
     assert math.isinf(OscillationEffect.predicted(unstable).travel_rate)
     assert isinstance(safe_tuning_map(FOPDT, VALVE, [1.0]), SafeTuningMap)
+
+
+@pytest.mark.parametrize(("name", "origin"), [
+    ("temp-sine200s-ts2", "forced"), ("flow-sine60s-ts1", "forced"),
+    ("flow-aggressive-ts1", "own"), ("temp-aggressive-ts2", "own"),
+    ("level-aggressive-ts1", "own"),
+    ("temp-sine1000s-ts2", "unknown"),  # 3.6 cycles: too few to judge
+])
+def test_a_forced_cycle_is_told_from_the_loops_own(name, origin):
+    """Sines entering healthy loops keep their amplitude; over-tuned loops driven by noise
+    wax and wane (the synthetic library's ground truth, through the whole diagnosis)."""
+    case = next(c for c in synthetic_library() if c.name == name)
+    sim = case.simulate()
+    d = diagnose_loop(ts=case.ts, op=sim.op[0], pv=sim.pv[0])
+    cycles = d.samples * d.ts / d.oscillation.period_s
+    assert cycle_origin(d.envelope_variation, cycles, 0.0)[0] == origin

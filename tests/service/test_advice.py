@@ -85,6 +85,7 @@ def test_the_over_tuned_loop_gets_detuning_with_its_gain_margin(demo):
     body = answer.json()
     assert body["kind"] == "detuning"
     assert body["current"] == [{"Kc": 3.0, "Ti": 4.0}]
+    assert "its amplitude waxes and wanes" in body["notes"][-1]  # its own resonance
     offers = body["recommendations"]
     assert [(o["tunings"][0]["Kc"], o["gain_margin"]) for o in offers] == [(1.5, 2.0), (1.0, 3.0)]
     # checked against the simulated plant's own process, controller and sampling (a
@@ -110,7 +111,7 @@ def test_loops_the_advice_cannot_serve_get_a_409_with_the_reason(demo):
         assert answer.status_code == 409, answer.text
         assert "cycles because FV-502 sticks" in answer.json()["detail"]
     assert advice(client, "LIC-301").status_code == 409  # healthy and quiet
-    # TIC-201 cycles with a healthy valve because a 500 s disturbance enters it: its
+    # TIC-201 cycles with a healthy valve because a 200 s disturbance enters it: its
     # cycle keeps its amplitude, so it is not the tuning, and detuning is not offered
     answer = advice(client, "TIC-201")
     assert answer.status_code == 409, answer.text

@@ -9,7 +9,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
-from analytics.tuning import CycleAgreement, Tuning, advise, detune, forced_cycle_reason
+from analytics.tuning import CycleAgreement, Tuning, advise, cycle_origin, detune
 from service.api.deps import Analyst, SessionDep, StateDep, error_responses
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
@@ -56,7 +56,7 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
     margin.  404 for an unknown loop; 409 with the reason and what to
     configure when the loop has no controller, no analysis, no cycle, a valve
     cleared by its unit's diagnosis, a cycle of steady amplitude with a healthy
-    valve (forced from outside: :func:`analytics.tuning.forced_cycle_reason`), or
+    valve (forced from outside: :func:`analytics.tuning.cycle_origin`), or
     a model the advice cannot analyse.
     """
     loop = session.get(Loop, loop_id)
@@ -84,11 +84,16 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
         if verdict != "no_stiction":
             raise HTTPException(409, "Advice not available: the loop cycles but whether its "
                                      f"valve sticks is {verdict}; no model to advise from")
-        forced = forced_cycle_reason(result["oscillation"].get("envelope_variation"),
-                                     (result.get("kpis") or {}).get("saturation"))
-        if forced is not None:
-            raise HTTPException(409, f"Advice not available: {forced}")
-        return {"loop_id": loop_id, "run_id": run.id, **_detuning(loop.config, result)}
+        oscillation = result["oscillation"]
+        origin, why = cycle_origin(
+            oscillation.get("envelope_variation"),
+            result["samples"] * result["ts"] / oscillation["period_s"],
+            (result.get("kpis") or {}).get("saturation"))
+        if origin == "forced":
+            raise HTTPException(409, f"Advice not available: {why}")
+        detuning = _detuning(loop.config, result)
+        return {"loop_id": loop_id, "run_id": run.id, **detuning,
+                "notes": [*detuning["notes"], why]}
     try:
         identified_loop(loop.config, result)
     except ModelUnavailableError as exc:
