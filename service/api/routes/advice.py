@@ -11,6 +11,7 @@ from fastapi import APIRouter, HTTPException
 from analytics.errors import AnalyticsError
 from analytics.tuning import CycleAgreement, Tuning, advise, cycle_origin, detune
 from service.api.deps import Analyst, SessionDep, StateDep, error_responses
+from service.api.schemas.advice import LoopAdvice
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
 from service.tickets import latest_loop_run
@@ -43,7 +44,7 @@ def _detuning(config: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     return detune(tuning, float(result["oscillation"]["period_s"]))
 
 
-@router.get("/loops/{loop_id}/advice")
+@router.get("/loops/{loop_id}/advice", response_model=LoopAdvice)
 def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) -> dict[str, Any]:
     """What to retune, from a model checked against the loop's measured cycle.
 

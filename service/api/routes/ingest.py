@@ -11,12 +11,19 @@ from fastapi.responses import JSONResponse
 from pydantic import TypeAdapter
 
 from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
+from service.api.schemas.ingest import IngestAnswer
 from service.ingest import IngestError, IngestReport, PiStream, PiStreams, TagItems
 
 router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"], responses=ERROR_RESPONSES)
 Historian = Annotated[Principal, Depends(require("ingest"))]
 
 MAX_CSV_BYTES = 20 * 1024 * 1024
+
+INGEST_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"model": IngestAnswer, "description": "every item stored or already stored"},
+    207: {"model": IngestAnswer,
+          "description": "part of the batch refused; see the per-tag report"},
+}
 
 
 def _response(report: IngestReport) -> JSONResponse:
@@ -43,8 +50,7 @@ BATCH_SCHEMA = _inlined(TypeAdapter(list[TagItems] | PiStreams | list[PiStream])
 
 @router.post(
     "",
-    responses={200: {"description": "every item stored or already stored"},
-               207: {"description": "part of the batch refused; see the per-tag report"}},
+    responses=INGEST_RESPONSES,
     openapi_extra={"requestBody": {"required": True, "content": {
         "application/json": {"schema": BATCH_SCHEMA}}}},
 )
@@ -71,6 +77,7 @@ async def ingest(request: Request, state: StateDep, _: Historian) -> JSONRespons
 
 @router.post(
     "/csv",
+    responses=INGEST_RESPONSES,
     openapi_extra={"requestBody": {"content": {"text/csv": {"schema": {"type": "string"}}}}},
 )
 async def ingest_csv(request: Request, state: StateDep, _: Historian) -> JSONResponse:

@@ -24,6 +24,7 @@ from service.api.deps import (
     require,
 )
 from service.api.routes import advice, unit_diagnosis
+from service.api.schemas.diagnosis import LoopDiagnosisPublic
 from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.config import LoopConfig
 from service.logs import audit
@@ -154,7 +155,7 @@ class HealthPublic(BaseModel):
     loop_id: str
     health: float | None
     latest: RunPublic | None
-    diagnosis: dict[str, Any] | None
+    diagnosis: LoopDiagnosisPublic | None
     trend: list[tuple[float, float | None]]
     stiction_pattern: str | None = None
     episodes: list[dict[str, float]] = []
@@ -451,7 +452,7 @@ def get_loop(loop_id: str, session: SessionDep, _: Reader) -> LoopPublic:
     return _loop_rows(session, loop_id=loop_id)[0][0]
 
 
-@router.get("/loops/{loop_id}/config")
+@router.get("/loops/{loop_id}/config", response_model=LoopConfig)
 def get_loop_config(loop_id: str, session: SessionDep, _: Reader) -> dict[str, Any]:
     """The loop's configuration as in the plant file."""
     return _loop_or_404(session, loop_id).config
@@ -504,7 +505,8 @@ def list_analyses(
     return RunsPublic(data=[_run_public(r) for r in runs], count=count)
 
 
-@router.get("/loops/{loop_id}/health", response_model=HealthPublic)
+@router.get("/loops/{loop_id}/health", response_model=HealthPublic,
+            response_model_exclude_unset=True)
 def loop_health(
     loop_id: str, session: SessionDep, _: Reader,
     trend: Annotated[int, Query(ge=1, le=1000)] = 50,
@@ -522,7 +524,7 @@ def loop_health(
         loop_id=loop_id,
         health=latest.health if latest else None,
         latest=_run_public(latest) if latest else None,
-        diagnosis=diagnosis,
+        diagnosis=None if diagnosis is None else LoopDiagnosisPublic.model_validate(diagnosis),
         trend=[(r.started_at, r.health) for r in reversed(runs)],
         stiction_pattern=(stiction_pattern_text(stiction.get("pattern"), stiction.get("op_travel"))
                           if latest is not None and latest.verdict == "stiction" else None),

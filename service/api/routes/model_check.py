@@ -27,6 +27,7 @@ from service.api.deps import (
     StateDep,
     error_responses,
 )
+from service.api.schemas.model_check import ModelCheckPublic
 from service.config import LoopConfig
 from service.store.models import Loop
 
@@ -69,7 +70,7 @@ def _check(op: NDArray[np.float64], pv: NDArray[np.float64], ts: float,
     return check_model(op, pv, ts, sp=sp, model=model).to_dict(overlay=True)
 
 
-@router.post("/loops/{loop_id}/model-check")
+@router.post("/loops/{loop_id}/model-check", response_model=ModelCheckPublic)
 def loop_model_check(
     loop_id: str,
     session: SessionDep,

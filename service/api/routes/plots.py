@@ -52,6 +52,7 @@ from service.api.deps import (
     require,
 )
 from service.api.routes.loops import loop_data
+from service.api.schemas.files import BINARY, TEXT
 from service.buffer import LoopBuffers, LoopWindowData
 from service.config import LoopConfig
 from service.loop_model import ModelUnavailableError, identified_loop
@@ -64,6 +65,8 @@ Reader = Annotated[Principal, Depends(require("read"))]
 PlotKind = Literal["trend", "signature", "spectrum", "nyquist", "history"]
 PlotFormat = Literal["svg", "png"]
 MEDIA_TYPES: dict[str, str] = {"svg": "image/svg+xml", "png": "image/png"}
+IMAGE_CONTENT = {MEDIA_TYPES["svg"]: TEXT, MEDIA_TYPES["png"]: BINARY}
+"""The OpenAPI content of a plot: SVG text or PNG bytes."""
 HISTORY_RUNS = 200
 """Analyses shown by the ``history`` plot (the newest)."""
 TREND_POINTS = 2000
@@ -293,7 +296,7 @@ def _image(figure: plots.Figure, loop_id: str, kind: str, image_format: str) -> 
 @router.post(
     "/{loop_id}/plots/model-check",
     response_class=Response,
-    responses={200: {"content": {"image/svg+xml": {}, "image/png": {}},
+    responses={200: {"content": IMAGE_CONTENT,
                      "description": "measured against simulated PV, and the errors"},
                404: {"description": "unknown loop"},
                422: {"description": "overlay series of different lengths"}},
@@ -324,7 +327,7 @@ def model_check_plot(
 @router.get(
     "/{loop_id}/plots/{kind}",
     response_class=Response,
-    responses={200: {"content": {"image/svg+xml": {}, "image/png": {}},
+    responses={200: {"content": IMAGE_CONTENT,
                      "description": "the plot"},
                404: {"description": "unknown loop, or the plot cannot be drawn yet (why)"}},
 )

@@ -15,13 +15,15 @@ from fastapi.responses import Response
 
 from service.api.deps import ERROR_RESPONSES, SessionDep, StateDep
 from service.api.routes.loops import PERIOD_PATTERN, Reader, period_seconds
+from service.api.schemas.files import BINARY, TEXT
 from service.report import build_report, report_csv, report_pdf
 
 router = APIRouter(prefix="/api/v1/reports", tags=["reports"], responses=ERROR_RESPONSES)
 
 
-@router.get("/bad-actors", responses={200: {"content": {"text/csv": {},
-                                                         "application/pdf": {}}}})
+@router.get("/bad-actors", response_class=Response,
+            responses={200: {"content": {"text/csv": TEXT, "application/pdf": BINARY},
+                             "description": "the report as a file"}})
 def bad_actor_report(
     session: SessionDep, state: StateDep, _: Reader,
     period: Annotated[str, Query(pattern=PERIOD_PATTERN)] = "7d",

@@ -9,14 +9,15 @@ from fastapi.responses import PlainTextResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
+from service.api.schemas.system import Liveness
 
 router = APIRouter(tags=["system"])
 
 
 @router.get("/healthz")
-def liveness() -> dict[str, str]:
+def liveness() -> Liveness:
     """Liveness probe (no key needed)."""
-    return {"status": "ok"}
+    return Liveness(status="ok")
 
 
 @router.get("/metrics", response_class=PlainTextResponse, responses=ERROR_RESPONSES)

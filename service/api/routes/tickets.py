@@ -17,6 +17,7 @@ from service.api.deps import (
     require,
     row_id,
 )
+from service.api.schemas.tickets import CmmsExport
 from service.logs import audit
 from service.store.models import Ticket
 from service.tickets import (
@@ -123,7 +124,7 @@ def detail(ticket_id: TicketId, session: SessionDep, _: Reader) -> TicketDetail:
     return _detail(_get(session, ticket_id))
 
 
-@router.get("/{ticket_id}/cmms")
+@router.get("/{ticket_id}/cmms", response_model=CmmsExport, response_model_exclude_unset=True)
 def cmms(ticket_id: TicketId, session: SessionDep, state: StateDep,
          _: Reader) -> dict[str, Any]:
     """The ticket as a SAP PM M2 notification and a Maximo work order, with the CMMS fields

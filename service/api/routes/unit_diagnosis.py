@@ -10,6 +10,7 @@ from sqlalchemy import select
 from analytics.errors import AnalyticsError
 from service.analysis import UnitWindowsError, analyse_unit, unit_windows
 from service.api.deps import Analyst, SessionDep, StateDep, error_responses
+from service.api.schemas.units import UnitDiagnosisPublic
 from service.config import LoopConfig
 from service.store.models import Loop, Unit
 from service.tickets import latest_unit_run
@@ -19,7 +20,8 @@ from service.verdicts import named_valves
 router = APIRouter(tags=["units"], responses=error_responses(404))
 
 
-@router.get("/units/{unit_id}/diagnosis")
+@router.get("/units/{unit_id}/diagnosis", response_model=UnitDiagnosisPublic,
+            response_model_exclude_unset=True)
 def unit_diagnosis(unit_id: str, session: SessionDep, state: StateDep,
                    _: Analyst) -> dict[str, Any]:
     """Which valves of the unit stick: oscillation groups, the shape decomposition, the

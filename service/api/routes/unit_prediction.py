@@ -23,6 +23,7 @@ from service.api.deps import (
     StateDep,
     error_responses,
 )
+from service.api.schemas.prediction import UnitPrediction
 from service.prediction import ModelError, predict_spec
 from service.store.models import Loop, Unit
 from service.tickets import latest_loop_run
@@ -91,7 +92,8 @@ def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
     return entry, None
 
 
-@router.get("/units/{unit_id}/prediction")
+@router.get("/units/{unit_id}/prediction", response_model=UnitPrediction,
+            response_model_exclude_unset=True)
 def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                     _: Analyst) -> dict[str, Any]:
     """The unit's stiction limit cycles: describing-function prediction and simulation.

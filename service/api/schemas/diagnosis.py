@@ -1,0 +1,120 @@
+"""A loop's diagnosis as the latest analysis run stored it (``diagnosis`` of
+``GET /api/v1/loops/{id}/health``): :meth:`analytics.diagnosis.LoopDiagnosis.to_dict`
+plus what the service adds (health, first sample, KPIs, the valve's final verdict, the
+stretch judged when the loop was in manual).
+
+The models keep keys they do not name: stored diagnoses were written by other
+versions of the analysis.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from service.api.schemas.base import OpenSchema
+
+
+class QualityPublic(OpenSchema):
+    """Whether the window's data could be analysed."""
+
+    usable: bool | None = None
+    issues: list[dict[str, Any]] | None = None
+    """Each problem found: ``code``, ``signal``, ``severity``, ``message``, ``value``."""
+
+
+class OscillationPublic(OpenSchema):
+    """The loop's oscillation (:class:`analytics.oscillation.LoopOscillation`)."""
+
+    detected: bool | None = None
+    period_s: float | None = None
+    """Period, s."""
+    regularity: float | None = None
+    """Thornhill's regularity r (above 1: a regular oscillation)."""
+    amplitude_op: float | None = None
+    """OP amplitude, % of span."""
+    amplitude_pv: float | None = None
+    """PV amplitude, % of span."""
+    analysed_period_s: float | None = None
+    """The period the cycle shapes were analysed at, s."""
+    oscillations: list[dict[str, Any]] | None = None
+    """Every oscillation of OP and PV: ``signal``, ``period_s``, ``amplitude``,
+    ``regularity``, ``presence`` and its span ``present_from_s``..``present_to_s``,
+    ``method``."""
+
+
+class StictionPublic(OpenSchema):
+    """The loop's own stiction verdict and the evidence of every method."""
+
+    verdict: str | None = None
+    """``stiction``, ``no_stiction`` or ``undecided``."""
+    confidence: float | None = None
+    """0 to 1."""
+    score: float | None = None
+    """The weighted vote of the methods."""
+    reason: str | None = None
+    """The verdict in one sentence."""
+    pattern: str | None = None
+    """How the sticky valve shows: ``limit_cycle``, ``irregular_cycle``, ``stick_jump``
+    or ``stuck``; null unless the verdict is stiction."""
+    op_travel: float | None = None
+    """OP travel beyond noise over the window, % of span."""
+    episode_stick_band: float | None = None
+    """Stick band read off the stick-jump episodes, % of span."""
+    episodes: list[dict[str, Any]] | None = None
+    """The stick-jump episodes, s from the window's first sample: ``start_s``,
+    ``jump_s``, ``end_s``, ``op_travel``, ``pv_jump``, ``op_during_jump``."""
+    methods: dict[str, dict[str, Any]] | None = None
+    """Each method's ``decision``, ``index``, ``confidence``, ``note`` and ``details``."""
+
+
+class ValveVerdictPublic(OpenSchema):
+    """The final verdict on the loop's valve, the one every page and rule reads
+    (:func:`service.verdicts.valve_verdict`): the loop's own, or its unit's."""
+
+    verdict: str | None = None
+    confidence: float | None = None
+    S: float | None = None
+    """Stick band, % of valve span."""
+    J: float | None = None
+    """Slip jump, % of valve span."""
+    reason: str | None = None
+    decided_by: str | None = None
+    """``loop`` or ``unit``."""
+    own_verdict: str | None = None
+    """The loop's own verdict."""
+    unit_id: str | None = None
+    unit_run_id: int | None = None
+    """The unit diagnosis run that decided."""
+    sticky_valves: list[str] | None = None
+    """The unit's sticky valves that make this loop cycle."""
+
+
+class LoopDiagnosisPublic(OpenSchema):
+    """Everything the analysis found in one window of one loop."""
+
+    samples: int | None = None
+    """Window length, samples."""
+    ts: float | None = None
+    """Sampling interval, s."""
+    process_type: str | None = None
+    """``self-regulating``, ``integrating`` or null."""
+    process_type_source: str | None = None
+    """``given``, ``inferred``, ``assumed`` or ``unknown``."""
+    quality: QualityPublic | None = None
+    oscillation: OscillationPublic | None = None
+    stiction: StictionPublic | None = None
+    quantification: dict[str, Any] | None = None
+    """Hammerstein estimate of S, J (% of OP span), fs, fd with its fit and process;
+    null unless the verdict is stiction."""
+    apparent_stiction: dict[str, Any] | None = None
+    """Apparent stiction from the valve signature's ellipse (Choudhury et al. 2008)."""
+    health: float | None = None
+    """Health score, 0 (worst) to 100."""
+    first_sample_at: float | None = None
+    """First sample judged, UNIX s."""
+    kpis: dict[str, Any] | None = None
+    """The loop's KPIs over the window (:meth:`analytics.kpi.LoopKpis.to_dict`)."""
+    valve: ValveVerdictPublic | None = None
+    manual: dict[str, Any] | None = None
+    """Present when the loop was in manual: its share of the window and the stretch in
+    auto or cascade that was judged."""

@@ -1,0 +1,111 @@
+"""The multi-loop stiction diagnosis of a unit (``GET /api/v1/units/{id}/diagnosis``):
+:meth:`analytics.plantwide.UnitDiagnosis.to_dict` with the valves named by their tags
+(:func:`service.verdicts.named_valves`) and where the diagnosis comes from.
+
+The models keep keys they do not name: the unit diagnosis grows, and stored
+diagnoses were written by earlier versions.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from service.api.schemas.base import OpenSchema
+
+
+class UnitValveFinding(OpenSchema):
+    """A valve named sticky (:class:`analytics.plantwide.ValveFinding`)."""
+
+    loop: str
+    """The loop whose valve sticks."""
+    valve: str
+    """The valve's tag (its loop's ``valve_asset``, or the loop id)."""
+    confidence: float | None = None
+    """0 to 1."""
+    period_s: float | None = None
+    """Period of the oscillation it drives, s."""
+    S: float | None = None
+    """Identified stick band, % of OP span; null for a fast cycle."""
+    J: float | None = None
+    """Identified slip jump, % of OP span; null for a fast cycle."""
+    reason: str | None = None
+    """The evidence in one sentence."""
+
+
+class OscillationGroup(OpenSchema):
+    """One plant-wide oscillation and its diagnosis
+    (:class:`analytics.plantwide.GroupDiagnosis`)."""
+
+    period_s: float | None = None
+    """Period of the common oscillation, s."""
+    cycles: float | None = None
+    """Cycles of it in the window."""
+    loops: list[str] | None = None
+    """The loops that share it."""
+    members: list[dict[str, Any]] | None = None
+    """The signals that oscillate with it: ``signal``, ``period_s``, ``regularity``,
+    ``power_fraction``, ``amplitude``, ``similarity``."""
+    shape_decomposition: dict[str, Any] | None = None
+    """The decomposition of the oscillation's shapes into sources (thesis chapter 2):
+    ``k`` sources of ``n`` signals, held-out errors, structures and cycles."""
+    ranking: list[dict[str, Any]] | None = None
+    """Every OP and PV by surrogate nonlinearity index, most nonlinear first:
+    ``signal``, ``nonlinearity``."""
+    evidence: list[dict[str, Any]] | None = None
+    """Per loop: OP and PV nonlinearity, the gain of a stiction model of its own valve,
+    S and J, whether it sticks, and a note."""
+    sticky_valves: list[str]
+    """Tags of the valves named sticky for this oscillation."""
+    sticky_loops: list[str]
+    """Their loops."""
+    envelope_cv: float | None = None
+    """Coefficient of variation of the oscillation's envelope."""
+    note: str | None = None
+    """The group's verdict in words."""
+    model: dict[str, Any] | None = None
+    """What the unit's model predicts for the group (null without a model)."""
+
+
+class LinearCheckPublic(OpenSchema):
+    """The unit's model with healthy valves under the configured tunings."""
+
+    stable: bool | None = None
+    margin: float | None = None
+    """Stability margin."""
+    margin_omega: float | None = None
+    """Frequency of the margin, rad/s."""
+    note: str | None = None
+
+
+class UnitDiagnosisPublic(OpenSchema):
+    """Which valves of the unit stick: oscillation groups, the shape decomposition, the
+    surrogate ranking of every OP and PV, and the named valves with their confidence."""
+
+    unit_id: str
+    source: Literal["scheduler", "on_demand"]
+    """The scheduler's latest diagnosis, or one computed now from each loop's latest
+    window."""
+    round_end: float | None
+    """End of the scheduler's round that diagnosed it, UNIX s (null on demand)."""
+    window_end: float | None
+    """End of the windows diagnosed, UNIX s."""
+    loops_without_complete_window: list[str]
+    """Loops of the unit left out: no complete OP and PV window."""
+    loops: list[str] | None = None
+    """The loops analysed."""
+    samples: int | None = None
+    """Window length, samples."""
+    ts: float | None = None
+    """Sampling interval, s."""
+    k: int | None = None
+    """Number of sticky valves found."""
+    sticky_valves: list[UnitValveFinding]
+    """The valves named sticky, most confident first; empty when no valve is to blame."""
+    groups: list[OscillationGroup]
+    """Every plant-wide oscillation found, with its diagnosis."""
+    model_used: bool | None = None
+    """Whether the unit's process matrix and tunings were used."""
+    linear: LinearCheckPublic | None = None
+    """The model's check with healthy valves (null without a model)."""
+    note: str | None = None
+    """What the diagnosis rests on."""

@@ -1,0 +1,133 @@
+"""The response models of ``service.api.schemas`` document the answers without changing them.
+
+FastAPI validates a route's answer against its ``response_model`` and serializes what
+the model has: a key the model lacked would be dropped silently.  Each answer of the
+demo plant (advice of both kinds, loop and unit diagnosis, model check, CMMS export,
+configuration) and of a unit with a process matrix (prediction) is compared with the
+JSON of the dict its route builds, as the API sent it before the models.  And every 2xx
+answer of ``/openapi.json`` has a named schema or is a file.
+"""
+
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+from fastapi.encoders import jsonable_encoder
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from service.api.app import openapi_with_json_errors
+from service.api.routes import advice, loops, model_check, tickets, unit_diagnosis, unit_prediction
+from service.config import PlantConfig, Settings
+from service.server import build_service
+from service.store.models import AnalysisRun, Ticket
+from tests.service.test_advice import HEADERS, demo
+from tests.service.test_api import ADMIN, T0
+from tests.service.test_unit_prediction import plant_data, store_run
+
+__all__ = ["demo"]  # the fixture, imported
+
+
+def assert_unchanged(client: TestClient, method: str, url: str,
+                     route: Callable[..., Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
+    """The API's answer to ``method url`` is the JSON of what ``route(*args, **kwargs)``
+    builds (called with a session and the state, as FastAPI calls it)."""
+    answer = client.request(method, url, headers=HEADERS)
+    assert answer.status_code == 200, answer.text
+    state = client.app.state.loopwatch  # type: ignore[attr-defined]
+    with state.store.session() as session:
+        built = route(*args, session=session, state=state, _=None, **kwargs)
+    assert answer.json() == jsonable_encoder(built)
+    body: dict[str, Any] = answer.json()
+    return body
+
+
+@pytest.mark.parametrize(("loop_id", "kind"), [("FIC-101", "stiction"), ("FIC-102", "detuning")])
+def test_the_advice_is_unchanged(demo, loop_id, kind) -> None:
+    client, _ = demo
+    body = assert_unchanged(client, "GET", f"/api/v1/loops/{loop_id}/advice", advice.loop_advice,
+                            loop_id)
+    assert body["kind"] == kind
+
+
+def test_the_unit_diagnosis_is_unchanged(demo) -> None:
+    client, _ = demo
+    for unit in client.get("/api/v1/units", headers=HEADERS).json()["data"]:
+        body = assert_unchanged(client, "GET", f"/api/v1/units/{unit['id']}/diagnosis",
+                                unit_diagnosis.unit_diagnosis, unit["id"])
+        assert body["source"] == "scheduler"
+
+
+def test_the_model_check_is_unchanged(demo) -> None:
+    client, _ = demo
+    assert_unchanged(client, "POST", "/api/v1/loops/FIC-101/model-check",
+                     model_check.loop_model_check, "FIC-101")
+
+
+def test_the_cmms_export_and_the_configuration_are_unchanged(demo) -> None:
+    client, _ = demo
+    state = client.app.state.loopwatch
+    with state.store.session() as session:
+        ticket_ids = list(session.scalars(select(Ticket.id)))
+    assert ticket_ids
+    for ticket_id in ticket_ids:
+        assert_unchanged(client, "GET", f"/api/v1/tickets/{ticket_id}/cmms", tickets.cmms,
+                         ticket_id)
+    for loop in client.get("/api/v1/loops", headers=HEADERS).json()["data"]:
+        answer = client.get(f"/api/v1/loops/{loop['id']}/config", headers=HEADERS)
+        with state.store.session() as session:
+            assert answer.json() == loops.get_loop_config(loop["id"], session, None)
+
+
+def test_the_loop_diagnosis_of_health_is_the_stored_one(demo) -> None:
+    client, _ = demo
+    state = client.app.state.loopwatch
+    for loop in client.get("/api/v1/loops", headers=HEADERS).json()["data"]:
+        body = client.get(f"/api/v1/loops/{loop['id']}/health", headers=HEADERS).json()
+        if body["latest"] is None:
+            continue
+        with state.store.session() as session:
+            stored = session.get(AnalysisRun, body["latest"]["id"])
+            assert stored is not None
+            assert body["diagnosis"] == stored.result
+
+
+@pytest.fixture
+def unit_client(tmp_path) -> Iterator[TestClient]:
+    """The units of :func:`tests.service.test_unit_prediction.plant_data` on SQLite."""
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'p.db'}", api_key=ADMIN)
+    svc = build_service(settings, PlantConfig.model_validate(plant_data()),
+                        executor=ThreadPoolExecutor(1), clock=lambda: T0)
+    yield TestClient(svc.app)
+    svc.executor.shutdown()
+    svc.state.store.close()
+
+
+def test_the_prediction_is_unchanged(unit_client) -> None:
+    store_run(unit_client, "TIC-3", "no_stiction")
+    none = assert_unchanged(unit_client, "GET", "/api/v1/units/u3/prediction",
+                            unit_prediction.unit_prediction, "u3")
+    assert none["limit_cycles"] == [] and "linear_stable" not in none
+    store_run(unit_client, "TIC-1", "stiction", {"S": 4.0, "J": 2.0, "fs": 3.0, "fd": 1.0})
+    store_run(unit_client, "FIC-2", "undecided", {"fs": 3.0, "fd": 1.0})
+    body = assert_unchanged(unit_client, "GET", "/api/v1/units/u1/prediction",
+                            unit_prediction.unit_prediction, "u1")
+    assert body["limit_cycles"] and body["comparison"] is not None
+
+
+def test_every_answer_of_the_api_has_a_named_schema_or_is_a_file(unit_client) -> None:
+    schema = openapi_with_json_errors(unit_client.app)  # type: ignore[arg-type]
+    unnamed = []
+    for path, operations in schema["paths"].items():
+        for method, operation in operations.items():
+            for status, response in operation["responses"].items():
+                if not status.startswith("2"):
+                    continue
+                for media_type, content in response.get("content", {}).items():
+                    body = content.get("schema", {})
+                    named = "$ref" in body or (media_type == "application/json" and all(
+                        "$ref" in option for option in body.get("oneOf", [None])))
+                    if not (named or body.get("type") == "string"):
+                        unnamed.append(f"{method.upper()} {path} {status} {media_type}")
+    assert unnamed == []
