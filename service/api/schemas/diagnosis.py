@@ -36,6 +36,10 @@ class OscillationPublic(OpenSchema):
     """PV amplitude, % of span."""
     analysed_period_s: float | None = None
     """The period the cycle shapes were analysed at, s."""
+    envelope_variation: float | None = None
+    """How steady the oscillation's amplitude is: near 0 for a limit cycle or a periodic
+    forcing, about 0.52 for a loop cycling by its own tuning (noise-driven resonance);
+    null without an oscillation or with fewer than eight periods."""
     oscillations: list[dict[str, Any]] | None = None
     """Every oscillation of OP and PV: ``signal``, ``period_s``, ``amplitude``,
     ``regularity``, ``presence`` and its span ``present_from_s``..``present_to_s``,
