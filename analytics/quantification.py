@@ -65,6 +65,12 @@ References
    Eng. Chem. Res. 46:4549-4560.
 .. [5] M. Kano, H. Maruta, H. Kugemoto & K. Shimizu (2004), "Practical model
    and detection algorithm for valve stiction", IFAC DYCOPS.
+.. [6] M. A. Newton & A. E. Raftery (1994), "Approximate Bayesian inference
+   with the weighted likelihood bootstrap", J. R. Stat. Soc. B 56:3-48.
+.. [7] H. R. Kuensch (1989), "The jackknife and the bootstrap for general
+   stationary observations", Ann. Statist. 17:1217-1241.
+.. [8] Particle Data Group (2022), "Review of Particle Physics", Prog. Theor.
+   Exp. Phys. 083C01, Introduction Sec. 5.2.2 (averaging with a scale factor).
 """
 
 from __future__ import annotations
@@ -78,6 +84,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize_scalar
+from scipy.stats import norm
 
 from analytics.errors import DataError
 from analytics.oscillation import bandpass, detect_loop_oscillation
@@ -87,11 +94,14 @@ __all__ = [
     "MIN_FIT_R2",
     "MIN_R2_GAIN",
     "VALVE_MODELS",
+    "INTERVAL_LEVEL",
+    "CombinedValue",
     "FitTrace",
     "ProcessModel",
     "ProcessType",
     "SearchSummary",
     "StictionEstimate",
+    "combine_windows",
     "quantify_stiction",
 ]
 
@@ -110,6 +120,8 @@ TAU_FRACTIONS = np.geomspace(0.02, 3.0, 7)
 
 MIN_FIT_R2 = 0.6
 """Output-error R^2 below which an estimate is flagged as a poor fit."""
+INTERVAL_LEVEL = 0.95
+"""Confidence level of the intervals of S and J (:func:`_cycle_bootstrap`)."""
 MIN_R2_GAIN = 0.02
 """R^2 a stiction model must add over a healthy valve for ``stiction_found``
 (stiction cases of the synthetic library gain 0.05-0.3, linear loops at most 0.011)."""
@@ -238,6 +250,10 @@ class StictionEstimate:
         Why the estimate is missing or not to be trusted: no oscillation, too
         few cycles, a poor fit, S at the search bound, a model valve that
         hardly moves, J undetermined.
+    S_interval, J_interval : (float, float) or None
+        Confidence intervals of S and J at :data:`INTERVAL_LEVEL`, from a
+        bootstrap over the oscillation cycles (:func:`_cycle_bootstrap`);
+        None without an estimate.
     """
 
     S: float | None
@@ -252,6 +268,8 @@ class StictionEstimate:
     stiction_found: bool
     trustworthy: bool
     issues: tuple[str, ...]
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
 
     def to_dict(self) -> dict[str, Any] | None:
         """JSON form ``{S, J, fs, fd, fit_r2, ...}``; None when nothing was estimated."""
@@ -266,6 +284,9 @@ class StictionEstimate:
             "stiction_found": self.stiction_found,
             "trustworthy": self.trustworthy,
             "issues": list(self.issues),
+            "S_interval": None if self.S_interval is None else list(self.S_interval),
+            "J_interval": None if self.J_interval is None else list(self.J_interval),
+            "interval_level": INTERVAL_LEVEL,
             "valve_model": self.search.valve_model,
             "process": {
                 "K": self.model.K,
@@ -274,6 +295,90 @@ class StictionEstimate:
                 "integrating": self.model.integrating,
             },
         }
+
+
+@dataclass(frozen=True)
+class CombinedValue:
+    """One parameter combined over the windows of a valve (:func:`combine_windows`).
+
+    Attributes
+    ----------
+    value : float
+        Weighted median of the windows' estimates.
+    interval : (float, float)
+        Confidence interval at :data:`INTERVAL_LEVEL`, not below 0.
+    windows : int
+        Estimates combined.
+    """
+
+    value: float
+    interval: tuple[float, float]
+    windows: int
+
+
+def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
+    """The value where the cumulative weight of the sorted values reaches half (the mean
+    of the two values on either side when it does so exactly between them)."""
+    order = np.argsort(values)
+    v, cum = values[order], np.cumsum(weights[order])
+    half = 0.5 * cum[-1]
+    k = int(np.searchsorted(cum, half))
+    if k + 1 < v.size and math.isclose(cum[k], half):
+        return float(0.5 * (v[k] + v[k + 1]))
+    return float(v[k])
+
+
+def combine_windows(
+    values: Sequence[float], intervals: Sequence[tuple[float, float]]
+) -> CombinedValue:
+    """Combine estimates of one parameter (S or J) from windows that do not overlap.
+
+    Each window's estimate gets the weight ``1 / sigma^2``, ``sigma`` its
+    interval's width over ``2 z`` (``z`` the normal quantile of
+    :data:`INTERVAL_LEVEL``), but at least the median ``sigma`` of the windows
+    and 1 % of the estimate: a window whose interval is wider than usual
+    counts less, and none counts more than a typical one (a window fitted
+    in a wrong basin of the rough search surface can have a narrow interval
+    around its wrong value).  The combined value is the weighted median,
+    which a minority of such windows cannot drag.  Its standard error is that of the
+    weighted mean, ``1 / sqrt(sum w)``, scaled up when the windows scatter
+    more than their intervals say: the Particle Data Group's scale factor
+    [8]_ in a robust form, ``sigma = max(1 / sqrt(sum w), 1.4826 MAD_w /
+    sqrt(N))`` with ``MAD_w`` the weighted median absolute deviation from the
+    combined value.  The interval is the value plus or minus ``z sigma``.
+
+    Raises
+    ------
+    ValueError
+        If there is no estimate, the lengths differ, or an interval does not
+        hold its estimate.
+
+    Examples
+    --------
+    Three windows agree, a fourth fell into another basin of the fit:
+
+    >>> c = combine_windows([4.0, 4.1, 3.9, 2.7],
+    ...                     [(3.8, 4.2), (3.9, 4.3), (3.7, 4.1), (2.6, 2.8)])
+    >>> round(c.value, 2), c.windows
+    (3.95, 4)
+    >>> c.interval[0] < 3.95 < c.interval[1]
+    True
+    """
+    x = np.asarray(values, dtype=np.float64)
+    bounds = np.asarray(intervals, dtype=np.float64).reshape(-1, 2)
+    if x.size == 0 or bounds.shape[0] != x.size:
+        raise ValueError(f"need one interval per estimate, got {x.size} estimates and "
+                         f"{bounds.shape[0]} intervals")
+    if np.any(bounds[:, 0] > x) or np.any(x > bounds[:, 1]):
+        raise ValueError("every interval must hold its estimate")
+    z = float(norm.ppf(0.5 + 0.5 * INTERVAL_LEVEL))
+    sigma = (bounds[:, 1] - bounds[:, 0]) / (2.0 * z)
+    sigma = np.maximum(sigma, np.maximum(float(np.median(sigma)), 0.01 * np.abs(x)))
+    weights = 1.0 / np.maximum(sigma, 1e-9) ** 2
+    value = _weighted_median(x, weights)
+    scatter = 1.4826 * _weighted_median(np.abs(x - value), weights) / math.sqrt(x.size)
+    spread = z * max(1.0 / math.sqrt(float(weights.sum())), scatter)
+    return CombinedValue(value, (max(value - spread, 0.0), value + spread), int(x.size))
 
 
 # ----------------------------------------------------------------------------
@@ -764,6 +869,59 @@ def _refine(
         step /= 2.0
 
 
+def _cycle_bootstrap(
+    window: _Window,
+    valve_model: str,
+    row: int,
+    table: dict[tuple[float, float], Score],
+    level: float,
+    candidates: int = 40,
+    resamples: int = 400,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Intervals of S and J from a bootstrap over the oscillation cycles.
+
+    The scored window is cut into its cycles.  Each of the ``candidates``
+    best ``(S, J)`` of ``table`` (the coarse grid and the pattern searches,
+    so other basins of the rough surface take part) is fitted once with its
+    best pole and delay, and its output-error residual is summed per cycle.
+    A resample draws the cycles with replacement and picks the candidate
+    with the least residual over the drawn cycles: the estimate the search
+    would give on those cycles, with the linear part kept (the weighted
+    likelihood bootstrap of Newton & Raftery 1994 [6]_, resampling whole
+    cycles as the moving-block bootstrap resamples blocks, Kuensch 1989
+    [7]_).  The intervals are the central ``level`` percentiles of the
+    resamples' S and J, widened to hold the best candidate.  A candidate
+    whose gain would give positive feedback fits nothing (residual = target).
+    Resampling is seeded: the same window gives the same interval.
+    """
+    ranked = sorted(table.items(), key=lambda item: item[1][0])[:candidates]
+    target = window.targets[row]
+    m = target.size
+    n_cycles = max(int(m // window.period_blocks), 1)
+    edges = np.linspace(0, m, n_cycles + 1).astype(np.int64)[:-1]
+    t = np.arange(m, dtype=np.float64)
+    costs = np.empty((len(ranked), n_cycles))
+    for k, ((S, J), (_, pole, delay)) in enumerate(ranked):
+        cm = window.valve_cumsum(valve_model, S, J)
+        u = _delayed_block_means(cm, window.factor, delay, window.start + m)
+        x = _lag_response(u, float(window.poles[pole]))[window.start :]
+        regressors = np.column_stack([np.ones(m), t, x])
+        coef = np.linalg.lstsq(regressors, target, rcond=None)[0]
+        residual = target if coef[2] * window.gain_sign < 0 else target - regressors @ coef
+        costs[k] = np.add.reduceat(residual**2, edges)
+    draws = np.random.default_rng(0).multinomial(
+        n_cycles, np.full(n_cycles, 1.0 / n_cycles), size=resamples
+    )
+    picked = np.array([ranked[i][0] for i in np.argmin(draws @ costs.T, axis=1)])
+    tail = 50.0 * (1.0 - level)
+    best = ranked[0][0]
+    intervals = []
+    for column in (0, 1):
+        lo, hi = np.percentile(picked[:, column], [tail, 100.0 - tail])
+        intervals.append((min(float(lo), best[column]), max(float(hi), best[column])))
+    return intervals[0], intervals[1]
+
+
 def _final_fit(
     window: _Window, cm: FloatArray, row: int, pole: int, delay: int
 ) -> tuple[float, float, FloatArray]:
@@ -805,10 +963,10 @@ def quantify_stiction(
     samples_per_cycle: int = 25,
     max_samples: int = 1000,
     max_delay_fraction: float = 0.5,
-    grid: tuple[int, int] = (30, 3),
-    starts: int = 3,
+    grid: tuple[int, int] = (24, 8),
+    starts: int = 6,
     step: float = 0.04,
-    refine_rounds: int = 4,
+    refine_rounds: int = 5,
     min_cycles: float = 3.0,
     min_fit_r2: float = MIN_FIT_R2,
     min_stick_band: float = 0.1,
@@ -974,6 +1132,7 @@ def quantify_stiction(
     valve_model, row = min(chosen, key=unexplained)
     table = tables[valve_model, row]
     (S, J), (sse, pole, delay) = min(table.items(), key=lambda item: item[1][0])
+    S_interval, J_interval = _cycle_bootstrap(window, valve_model, row, table, INTERVAL_LEVEL)
 
     cm = window.valve_cumsum(valve_model, S, J)
     a, gain, fitted_detrended = _final_fit(window, cm, row, pole, delay)
@@ -1040,4 +1199,6 @@ def quantify_stiction(
         ),
         trustworthy=not issues,
         issues=tuple(issues),
+        S_interval=S_interval,
+        J_interval=J_interval,
     )
