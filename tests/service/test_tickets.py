@@ -119,7 +119,7 @@ def test_ticket_opens_on_the_third_confirmation_on_separate_windows(store):
             "confidence": 0.9, "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
             "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
             "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
-            "episodes_found": 0,
+            "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
             "plots": {
                 "trend": "/api/v1/loops/FIC-101/plots/trend",
                 "signature": "/api/v1/loops/FIC-101/plots/signature",
@@ -214,6 +214,36 @@ def test_one_open_ticket_per_valve_updated_by_new_evidence(store):
             f"evidence updated: run {other.id}, priority 2 -> 3",
         ]
         assert events(ticket)[1:] == [("open", "open", "analysis")] * 2
+
+
+def sized(run, S_interval, J_interval, windows=2):
+    """``run`` with the valve's combined size as :func:`service.verdicts.settle_run` stores
+    it: its S and J with their intervals, over ``windows`` windows."""
+    run.result = {**run.result, "valve": {
+        "S": run.S, "J": run.J, "S_interval": S_interval, "J_interval": J_interval,
+        "size_windows": [{"window_start": 0.0, "window_end": 1.0}] * windows}}
+    return run
+
+
+def test_the_evidence_is_updated_only_when_the_size_moves_beyond_its_interval(store):
+    """Issue 19: a sticky valve analysed every round added an event every round (about
+    5,800 a day on the demo); now only a size outside the ticket's interval does."""
+    with store.session() as s:
+        add_loop(s)
+        first = sized(add_run(s, at=T0 + WINDOW_S, S=4.0, J=2.0), [3.8, 4.2], [1.7, 2.3])
+        ticket = analyse(s, first, needed=1)
+        assert "combined over 2 windows" in ticket.description
+        assert "intervals S 3.80 to 4.20 %, J 1.70 to 2.30 %" in ticket.description
+        for k in range(1, 30):  # within the interval: nothing changes
+            run = sized(add_run(s, at=T0 + WINDOW_S + 60 * k, S=4.0 + 0.005 * k, J=2.1),
+                        [3.8, 4.3], [1.8, 2.4])
+            assert analyse(s, run, needed=1) is None
+        assert ticket.evidence["run_id"] == first.id and len(ticket.events) == 1
+        moved = sized(add_run(s, at=T0 + 3 * WINDOW_S, S=4.6, J=2.1), [4.4, 4.8], [1.8, 2.4], 3)
+        assert analyse(s, moved, needed=1) is ticket
+        assert ticket.evidence["S_interval"] == [4.4, 4.8]
+        assert ticket.evidence["size_windows"] == 3
+        assert [e.note for e in ticket.events][1:] == [f"evidence updated: run {moved.id}"]
 
 
 def test_a_closed_ticket_does_not_block_a_new_one(store):
@@ -437,7 +467,8 @@ def test_a_ticket_stored_before_patterns_still_reads_exports_and_updates(store):
         evidence = ticket_to_dict(ticket)["evidence"]
         assert evidence == old_evidence | {"pattern": None, "op_travel": None,
                                            "episode_stick_band": None, "episodes": [],
-                                           "episodes_found": 0}
+                                           "episodes_found": 0, "S_interval": None,
+                                           "J_interval": None, "size_windows": None}
         assert to_cmms_notification(ticket)["sap_pm"]["LONG_TEXT"] == [
             "Malfunction start: 2023-11-14T22:13:20+00:00",
             "Valve stiction confirmed by 1 analyses."]
