@@ -91,10 +91,10 @@ from analytics.oscillation import bandpass, detect_loop_oscillation
 from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
 __all__ = [
+    "INTERVAL_LEVEL",
     "MIN_FIT_R2",
     "MIN_R2_GAIN",
     "VALVE_MODELS",
-    "INTERVAL_LEVEL",
     "CombinedValue",
     "FitTrace",
     "ProcessModel",

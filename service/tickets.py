@@ -16,11 +16,12 @@ the evidence of that ticket and records an ``evidence updated`` event instead
 of opening another, but only when the valve's combined size has moved beyond
 the interval the ticket holds (:func:`size_moved`) or the priority changes:
 a sticky valve analysed every minute does not add an event every minute
-(about 5,800 a day on the demo before, issue 19).  A ticket that is ``done`` or ``cancelled`` does not block
-a new one.  A verdict other than stiction never closes a ticket: maintenance
-does that.  Every stiction pattern of the diagnosis counts alike: a valve that
-sticks without a sustained cycle (``stick_jump``, ``stuck``) gets a ticket too,
-whose long text names the pattern and lists the stick-jump episodes.
+(about 5,800 a day on the demo before, issue 19).  A ticket that is ``done``
+or ``cancelled`` does not block a new one.  A verdict other than stiction
+never closes a ticket: maintenance does that.  Every stiction pattern of the
+diagnosis counts alike: a valve that sticks without a sustained cycle
+(``stick_jump``, ``stuck``) gets a ticket too, whose long text names the
+pattern and lists the stick-jump episodes.
 
 Units.  In a unit of interacting loops one sticky valve makes its neighbours
 cycle, and their own analyses then find stiction too (thesis chapter 2).  The
@@ -75,12 +76,12 @@ __all__ = [
     "change_ticket_state",
     "check_transition",
     "evidence_from_run",
-    "size_moved",
     "get_ticket",
     "latest_loop_run",
     "latest_unit_run",
     "list_tickets",
     "run_episodes",
+    "size_moved",
     "ticket_payload",
     "ticket_priority",
     "ticket_to_dict",

@@ -95,6 +95,8 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
                  within_s=30, state=verdicts)
         prediction = answers[-1]
         ticketed = tickets()
+        sizes = {loop: client.get(f"/api/v1/loops/{loop}/health", headers=HEADERS)
+                 .json()["diagnosis"]["valve"] for loop in ("FIC-101", "FIC-105", "AIC-502")}
         pic_kpis = client.get("/api/v1/loops/PIC-401/kpis", headers=HEADERS).json()["data"]
     assert plant.origin is not None
     # PIC-401 is in manual from 30 to 75 min of plant time: each run's service factor is
@@ -128,6 +130,14 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert polled >= 5
 
     assert ticketed == {"FV-101", "FV-105", "FV-502"}  # no healthy valve has a ticket
+    # each sticky valve's size is combined over the two windows of the history rounds that
+    # do not overlap, with its interval (issue 19).  Not yet within 15 % of the simulated
+    # valves (FV-101 Kano S 4, J 2; FV-105 He S 8, J 4; FV-502 He S 4, J 2): measured
+    # 2.93/0.25, 6.79/2.03 and 3.79/0.24 (see the issue's notes)
+    for size in sizes.values():
+        assert len(size["size_windows"]) == 2
+        assert size["S_interval"][0] <= size["S"] <= size["S_interval"][1]
+        assert size["J_interval"][0] <= size["J"] <= size["J_interval"][1]
     # the unit's prediction takes the sticky valve's estimate, and the cleared valves as healthy
     assert prediction.status_code == 200, prediction.text
     valves = {v["loop"]: v for v in prediction.json()["valves"]}

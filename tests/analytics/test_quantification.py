@@ -7,6 +7,7 @@ are checked for consistency only.
 """
 
 import math
+import statistics
 from typing import Any
 
 import numpy as np
@@ -14,8 +15,6 @@ import pytest
 from numpy.typing import NDArray
 
 from analytics.errors import DataError
-import statistics
-
 from analytics.oscillation import detect_loop_oscillation
 from analytics.quantification import (
     ProcessType,
