@@ -3,6 +3,9 @@
 
 import pytest
 
+from analytics.oscillation import detect_loop_oscillation
+from analytics.quantification import combine_windows, quantify_stiction
+from analytics.synthetic_cases import synthetic_library
 from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent
 from service.tickets import (
     MAX_TICKET_EPISODES,
@@ -13,6 +16,7 @@ from service.tickets import (
     evidence_from_run,
     get_ticket,
     list_tickets,
+    size_moved,
     ticket_priority,
     ticket_to_dict,
     to_cmms_notification,
@@ -244,6 +248,35 @@ def test_the_evidence_is_updated_only_when_the_size_moves_beyond_its_interval(st
         assert ticket.evidence["S_interval"] == [4.4, 4.8]
         assert ticket.evidence["size_windows"] == 3
         assert [e.note for e in ticket.events][1:] == [f"evidence updated: run {moved.id}"]
+
+
+def combined_size(name: str, hours: range) -> dict[str, object]:
+    """The evidence's size of a simulated valve combined over hour-long windows at 1 s."""
+    case = next(c for c in synthetic_library(6 * 3600) if c.name == name)
+    run = case.simulate()
+    values: dict[str, list[float]] = {"S": [], "J": []}
+    intervals: dict[str, list[tuple[float, float]]] = {"S": [], "J": []}
+    for hour in hours:
+        op, pv = run.op[0][hour * 3600:(hour + 1) * 3600], run.pv[0][hour * 3600:(hour + 1) * 3600]
+        period = detect_loop_oscillation(op, pv, case.ts).period_s
+        est = quantify_stiction(op, pv, case.ts, process_type=case.process_type, period_s=period)
+        for key in ("S", "J"):
+            values[key].append(getattr(est, key))
+            intervals[key].append(getattr(est, f"{key}_interval"))
+    size: dict[str, object] = {}
+    for key in ("S", "J"):
+        combined = combine_windows(values[key], intervals[key])
+        size[key], size[f"{key}_interval"] = combined.value, list(combined.interval)
+    return size
+
+
+def test_the_intervals_of_simulated_valves_see_a_doubling_and_not_the_next_windows():
+    # Issue 19: the intervals carry the search's model error, so they are wide (S 4 +- 0.65
+    # in one window); combined over three windows they still see the valve double
+    # (Kano S 4, J 2 -> S 8, J 4) and do not move over the next three windows of one valve.
+    first = combined_size("flow-kano-S4-J2-ts1", range(3))
+    assert size_moved(first, combined_size("flow-kano-S8-J4-ts1", range(3)))
+    assert not size_moved(first, combined_size("flow-kano-S4-J2-ts1", range(3, 6)))
 
 
 def test_a_closed_ticket_does_not_block_a_new_one(store):
