@@ -899,6 +899,19 @@ def _neighbour_limits(window: _Window, pole: int, delay: int) -> tuple[int, int,
     )
 
 
+def _score_into(
+    table: dict[tuple[float, float], Score],
+    window: _Window,
+    valve_model: str,
+    row: int,
+    candidates: Sequence[tuple[float, float]],
+    limits: tuple[int, int, int, int],
+) -> None:
+    """Score ``candidates`` on target ``row`` within ``limits`` into ``table``."""
+    scores = window.evaluate(valve_model, candidates, [row], limits)
+    table.update((c, s[0]) for c, s in zip(candidates, scores, strict=True))
+
+
 def _refine(
     window: _Window,
     valve_model: str,
@@ -923,8 +936,7 @@ def _refine(
                 candidate = (s_new, min(max(J + j * step, 0.0), s_new))
                 if candidate not in table and candidate not in around:
                     around.append(candidate)
-        scores = window.evaluate(valve_model, around, [row], _neighbour_limits(window, pole, delay))
-        table.update((c, s[0]) for c, s in zip(around, scores, strict=True))
+        _score_into(table, window, valve_model, row, around, _neighbour_limits(window, pole, delay))
         point = min([point, *around], key=lambda c: table[c][0])
         step /= 2.0
 
@@ -955,8 +967,7 @@ def _line_search_j(
 
     def score(values: Sequence[float]) -> None:
         new = [(S, J) for J in values if (S, J) not in table]
-        scores = window.evaluate(valve_model, new, [row], limits)
-        table.update((c, s[0]) for c, s in zip(new, scores, strict=True))
+        _score_into(table, window, valve_model, row, new, limits)
 
     def best() -> tuple[float, float]:
         return min((c for c in table if c[0] == S), key=lambda c: table[c][0])
