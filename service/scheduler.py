@@ -78,7 +78,7 @@ from service.plant import PlantRegistry
 from service.store.db import Store
 from service.store.models import AnalysisRun, IngestLog, Sample, UnitAnalysisRun
 from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
-from service.verdicts import latest_unit_decision, settle_run
+from service.verdicts import latest_unit_decision, previous_size_windows, settle_run
 
 __all__ = ["MAX_TRIES", "SYNC_OVERLAP_S", "AnalysisScheduler", "RunSummary"]
 
@@ -545,7 +545,7 @@ class AnalysisScheduler:
                 run.oscillating = diagnosis["oscillation"]["detected"]
                 run.period_s = diagnosis["oscillation"]["period_s"]
                 run.result = diagnosis
-                settle_run(run, None)
+                settle_run(run, None, previous_size_windows(session, run))
             session.add(run)
             session.flush()
             ticket_id = None
@@ -620,7 +620,8 @@ class AnalysisScheduler:
                     run = session.get(AnalysisRun, runs[loop.id])
                     if run is None or run.result is None:
                         continue
-                    settle_run(run, latest_unit_decision(session, unit_id, valves))
+                    settle_run(run, latest_unit_decision(session, unit_id, valves),
+                               previous_size_windows(session, run))
                     ticket_id = self._decide(session, loop, run, now)
                     decided[loop.id] = run.verdict, ticket_id
         return [replace(s, verdict=decided[s.loop_id][0], ticket_id=decided[s.loop_id][1])

@@ -13,11 +13,15 @@ them a minute apart.  A new installation confirms from the history it finds
 (:meth:`service.scheduler.AnalysisScheduler.due_rounds`).  There
 is at most one active ticket per valve asset: a further confirmation updates
 the evidence of that ticket and records an ``evidence updated`` event instead
-of opening another.  A ticket that is ``done`` or ``cancelled`` does not block
-a new one.  A verdict other than stiction never closes a ticket: maintenance
-does that.  Every stiction pattern of the diagnosis counts alike: a valve that
-sticks without a sustained cycle (``stick_jump``, ``stuck``) gets a ticket too,
-whose long text names the pattern and lists the stick-jump episodes.
+of opening another, but only when the valve's combined size has moved beyond
+the interval the ticket holds (:func:`size_moved`) or the priority changes:
+a sticky valve analysed every minute does not add an event every minute
+(about 5,800 a day on the demo before, issue 19).  A ticket that is ``done``
+or ``cancelled`` does not block a new one.  A verdict other than stiction
+never closes a ticket: maintenance does that.  Every stiction pattern of the
+diagnosis counts alike: a valve that sticks without a sustained cycle
+(``stick_jump``, ``stuck``) gets a ticket too, whose long text names the
+pattern and lists the stick-jump episodes.
 
 Units.  In a unit of interacting loops one sticky valve makes its neighbours
 cycle, and their own analyses then find stiction too (thesis chapter 2).  The
@@ -77,6 +81,7 @@ __all__ = [
     "latest_unit_run",
     "list_tickets",
     "run_episodes",
+    "size_moved",
     "ticket_payload",
     "ticket_priority",
     "ticket_to_dict",
@@ -117,6 +122,9 @@ EVIDENCE_KEYS: dict[str, bool] = {
     "op_travel": False,
     "episode_stick_band": False,
     "episodes": False,
+    "S_interval": False,
+    "J_interval": False,
+    "size_windows": False,
 }
 """Keys of the ``evidence`` argument; True for required, False for None-when-unknown.
 
@@ -129,7 +137,10 @@ in % of span; ``pattern``: how the sticky valve shows, one of
 (% of span); ``episode_stick_band``: the stick band read off the episodes (%
 of span), the size estimate of a valve that sticks without a cycle;
 ``episodes``: the stick-jump episodes, a list of dicts with the keys
-:data:`EPISODE_KEYS` (None or missing: none).  The stored evidence adds
+:data:`EPISODE_KEYS` (None or missing: none); ``S_interval``,
+``J_interval``: ``[low, high]``, the 95 % intervals of S and J, which are the
+valve's size combined over ``size_windows`` windows that do not overlap
+(:func:`service.verdicts.valve_size`).  The stored evidence adds
 ``loop_id``, ``valve_asset``, ``fs``, ``fd`` (He's parameters, % of span),
 ``confirmations``, ``plots`` and ``episodes_found``, the number of episodes
 the analysis found; it keeps only the latest :data:`MAX_TICKET_EPISODES` of
@@ -146,11 +157,11 @@ MAX_TICKET_EPISODES = 20
 """Episodes a ticket keeps and lists (the latest ones): enough to show the pattern
 without burying the long text of a valve that slips every minute."""
 
-_NON_NUMERIC_KEYS = ("pattern", "episodes")
+_NON_NUMERIC_KEYS = ("pattern", "episodes", "S_interval", "J_interval")
 _NO_CYCLE_PATTERNS = ("stick_jump", "stuck")
 _DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
     "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
-    "episodes_found": 0,
+    "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
 }
 """What stored evidence older than these keys reads as."""
 
@@ -250,6 +261,7 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
     result = run.result or {}
     oscillation = result.get("oscillation") or {}
     stiction = result.get("stiction") or {}
+    valve = result.get("valve") or {}
     return {
         "run_id": run.id,
         "window_start": run.window_start,
@@ -264,6 +276,9 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
         "op_travel": stiction.get("op_travel"),
         "episode_stick_band": stiction.get("episode_stick_band"),
         "episodes": run_episodes(run),
+        "S_interval": valve.get("S_interval"),
+        "J_interval": valve.get("J_interval"),
+        "size_windows": len(valve.get("size_windows") or []) or None,
     }
 
 
@@ -330,6 +345,15 @@ def _checked_evidence(
         raise ValueError(f"{where}: 'pattern' must be one of {', '.join(PATTERNS)} or None, "
                          f"got {pattern!r}")
     episodes = _checked_episodes(where, evidence.get("episodes"))
+    for key in ("S_interval", "J_interval"):
+        interval = evidence.get(key)
+        if interval is not None and not (
+                isinstance(interval, list | tuple) and len(interval) == 2
+                and all(_is_finite_number(x) for x in interval)
+                and evidence.get(key[0]) is not None
+                and interval[0] <= evidence[key[0]] <= interval[1]):
+            raise ValueError(f"{where}: {key!r} must be [low, high] around {key[0]}, "
+                             f"got {interval!r}")
     S, J = evidence.get("S"), evidence.get("J")
     fs = fd = None
     if S is not None and J is not None:
@@ -341,6 +365,8 @@ def _checked_evidence(
         "loop_id": loop_id,
         "valve_asset": valve_asset,
         **{key: evidence.get(key) for key in EVIDENCE_KEYS},
+        **{key: list(evidence[key]) for key in ("S_interval", "J_interval")
+           if evidence.get(key) is not None},
         "episodes": episodes[-MAX_TICKET_EPISODES:],
         "episodes_found": len(episodes),
         "fs": fs,
@@ -417,8 +443,32 @@ def _describe_size(e: dict[str, Any]) -> str:
     if e["S"] is None and e["episode_stick_band"] is not None:
         return (f"Stiction: S about {e['episode_stick_band']:.2f} % of valve span (from the "
                 f"episodes), J = {_pct(e['J'])}.")
-    return (f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
-            f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])}).")
+    size = (f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
+            f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])})")
+    if e["S_interval"] is None or e["J_interval"] is None:
+        return size + "."
+    (s_lo, s_hi), (j_lo, j_hi) = e["S_interval"], e["J_interval"]
+    return (f"{size}, combined over {e['size_windows']} windows that do not overlap; 95 % "
+            f"intervals S {s_lo:.2f} to {s_hi:.2f} %, J {j_lo:.2f} to {j_hi:.2f} %.")
+
+
+def size_moved(old: dict[str, Any], new: dict[str, Any]) -> bool:
+    """Whether the valve's size in evidence ``new`` lies beyond the uncertainty of the
+    size in ``old``: S or J outside the interval stored, or, where ``old`` has none, a
+    different value (evidence stored before the intervals: one update adopts them).
+
+    >>> old = {"S": 4.0, "J": 2.0, "S_interval": [3.8, 4.2], "J_interval": [1.7, 2.3]}
+    >>> size_moved(old, {"S": 4.1, "J": 1.8}), size_moved(old, {"S": 4.5, "J": 2.0})
+    (False, True)
+    """
+    for key in ("S", "J"):
+        interval, value = old.get(f"{key}_interval"), new.get(key)
+        if interval is None:
+            if value != old.get(key):
+                return True
+        elif value is None or not interval[0] <= value <= interval[1]:
+            return True
+    return False
 
 
 def _describe_episodes(e: dict[str, Any]) -> list[str]:
@@ -522,7 +572,8 @@ def update_ticket_from_analysis(
                  f"(run {stored['run_id']}{pattern}, priority {priority})",
         ))
         session.add(ticket)
-    elif ticket.evidence.get("run_id") == stored["run_id"]:
+    elif ticket.evidence.get("run_id") == stored["run_id"] or (
+            priority == ticket.priority and not size_moved(ticket.evidence, stored)):
         return None
     else:
         note = f"evidence updated: run {stored['run_id']}"

@@ -11,22 +11,36 @@ loop list, the loop page, the overview, the alarms, the unit page, the
 tickets and the bad-actor ranking all read the same decision.  The loop's
 own findings stay in ``result["stiction"]`` and ``result["quantification"]``
 as evidence.
+
+Sizes.  One window's S and J jump with the window (issue 19: FV-101, a Kano
+valve S = 4, J = 2, read 2.94/0.25 in one window and 4.01/1.92 in another).
+The size every page shows is the valve's combined estimate
+(:func:`analytics.quantification.combine_windows`) over the windows of its
+current streak of stiction verdicts that do not overlap, each with its
+interval (:func:`valve_size`): ``S`` and ``J`` of the final verdict, with
+``S_interval``, ``J_interval`` and the windows combined in ``size_windows``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from analytics.quantification import combine_windows
 from service.analysis import health_score, valve_decisions
 from service.store.models import AnalysisRun, UnitAnalysisRun
 from service.tickets import latest_unit_run
 
-__all__ = ["UnitDecision", "latest_unit_decision", "named_valves", "settle_run",
-           "unit_decision", "valve_verdict"]
+__all__ = ["MAX_SIZE_WINDOWS", "UnitDecision", "latest_unit_decision", "named_valves",
+           "previous_size_windows", "settle_run", "unit_decision", "valve_size",
+           "valve_verdict"]
+
+MAX_SIZE_WINDOWS = 24
+"""Windows a valve's combined size keeps, the latest (a day of hour-long windows)."""
 
 
 @dataclass(frozen=True)
@@ -136,13 +150,83 @@ def valve_verdict(loop_id: str, diagnosis: Mapping[str, Any],
     return verdict
 
 
-def settle_run(run: AnalysisRun, unit: UnitDecision | None) -> None:
+def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
+               window: tuple[float, float], previous: Sequence[Mapping[str, Any]]
+               ) -> dict[str, Any]:
+    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``
+    and ``size_windows``.
+
+    ``previous`` are the windows combined after the loop's run before (its
+    ``size_windows``; empty when that run did not find the valve sticky: the streak
+    starts over).  A sticky valve adds its own estimate of this ``window``
+    (``(start, end)``) when the estimate is the loop's own, with intervals
+    (``diagnosis["quantification"]``), and the window starts no earlier than the
+    last one combined ends: the windows do not share data.  The latest
+    :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
+    sizes stand, without intervals.
+
+    >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
+    >>> first = valve_size({"verdict": "stiction", "S": 4.2, "J": 1.9},
+    ...                    {"quantification": own}, (0.0, 3600.0), [])
+    >>> first["S"], first["S_interval"], len(first["size_windows"])
+    (4.2, [4.0, 4.4], 1)
+    >>> later = valve_size({"verdict": "stiction", "S": 3.0, "J": 0.2},
+    ...                    {"quantification": {**own, "S": 3.0, "J": 0.2,
+    ...                     "S_interval": [2.9, 3.1], "J_interval": [0.1, 0.3]}},
+    ...                    (60.0, 3660.0), first["size_windows"])  # overlaps: not combined
+    >>> later["S"], later["J"]
+    (4.2, 1.9)
+    """
+    size: dict[str, Any] = {"S": verdict["S"], "J": verdict["J"], "S_interval": None,
+                            "J_interval": None, "size_windows": []}
+    if verdict["verdict"] != "stiction":
+        return size
+    windows = list(previous)
+    own = diagnosis.get("quantification") or {}
+    own_is_size = own.get("S") is not None and own.get("S") == verdict["S"]
+    if own_is_size and own.get("S_interval") and own.get("J_interval") and (
+            not windows or window[0] >= windows[-1]["window_end"]):
+        windows.append({"window_start": window[0], "window_end": window[1],
+                        "S": own["S"], "S_interval": list(own["S_interval"]),
+                        "J": own["J"], "J_interval": list(own["J_interval"])})
+    windows = windows[-MAX_SIZE_WINDOWS:]
+    if not windows:
+        return size
+    for key in ("S", "J"):
+        combined = combine_windows([w[key] for w in windows],
+                                   [tuple(w[f"{key}_interval"]) for w in windows])
+        size[key], size[f"{key}_interval"] = combined.value, list(combined.interval)
+    size["size_windows"] = windows
+    return size
+
+
+def previous_size_windows(session: Session, run: AnalysisRun) -> list[dict[str, Any]]:
+    """The windows combined into the valve's size by the loop's run before ``run`` (by
+    start time); empty when that run is not an ``ok`` stiction finding."""
+    row = session.execute(
+        select(AnalysisRun.status, AnalysisRun.verdict,
+               AnalysisRun.result[("valve", "size_windows")])
+        .where(AnalysisRun.loop_id == run.loop_id, AnalysisRun.started_at < run.started_at)
+        .order_by(AnalysisRun.started_at.desc(), AnalysisRun.id.desc()).limit(1)
+    ).first()
+    if row is None or row[0] != "ok" or row[1] != "stiction":
+        return []
+    return list(row[2] or [])
+
+
+def settle_run(run: AnalysisRun, unit: UnitDecision | None,
+               previous: Sequence[Mapping[str, Any]] = ()) -> None:
     """Store the final verdict (:func:`valve_verdict`) in an ``ok`` run: its columns and
-    ``result["valve"]``, and the health that follows from it.  Settling again with the
-    same decision changes nothing."""
+    ``result["valve"]``, and the health that follows from it; its ``S`` and ``J`` are the
+    valve's combined size (:func:`valve_size`) after the windows ``previous``
+    (:func:`previous_size_windows`).  Settling again with the same decision changes
+    nothing."""
     if run.result is None:
         return
     verdict = valve_verdict(run.loop_id, run.result, unit)
+    window = (run.started_at if run.window_start is None else run.window_start,
+              run.started_at if run.window_end is None else run.window_end)
+    verdict.update(valve_size(verdict, run.result, window, previous))
     result = {**run.result, "valve": verdict}
     result["health"] = health_score(result)
     run.result = result

@@ -616,6 +616,13 @@ function estimateFacts(diagnosis) {
   if (!q && !apparent && (band === null || band === undefined)) return h("p", { class: "empty" },
     "No stiction estimate: S and J are estimated for sticky valves only.");
   const pairs = [];
+  const size = (diagnosis || {}).valve;
+  if (size && size.S_interval) {
+    // the valve's size combined over the windows of its streak (issue 19), 95 % intervals
+    pairs.push([`Valve size, ${size.size_windows.length} windows combined`,
+      `S ${num(size.S)} % (${num(size.S_interval[0])} to ${num(size.S_interval[1])}), `
+      + `J ${num(size.J)} % (${num(size.J_interval[0])} to ${num(size.J_interval[1])})`]);
+  }
   if (q) {
     pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
       ["J (slip jump)", `${num(q.J)} % of span`],

@@ -3,6 +3,9 @@
 
 import pytest
 
+from analytics.oscillation import detect_loop_oscillation
+from analytics.quantification import combine_windows, quantify_stiction
+from analytics.synthetic_cases import synthetic_library
 from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent
 from service.tickets import (
     MAX_TICKET_EPISODES,
@@ -13,6 +16,7 @@ from service.tickets import (
     evidence_from_run,
     get_ticket,
     list_tickets,
+    size_moved,
     ticket_priority,
     ticket_to_dict,
     to_cmms_notification,
@@ -119,7 +123,7 @@ def test_ticket_opens_on_the_third_confirmation_on_separate_windows(store):
             "confidence": 0.9, "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
             "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
             "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
-            "episodes_found": 0,
+            "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
             "plots": {
                 "trend": "/api/v1/loops/FIC-101/plots/trend",
                 "signature": "/api/v1/loops/FIC-101/plots/signature",
@@ -214,6 +218,65 @@ def test_one_open_ticket_per_valve_updated_by_new_evidence(store):
             f"evidence updated: run {other.id}, priority 2 -> 3",
         ]
         assert events(ticket)[1:] == [("open", "open", "analysis")] * 2
+
+
+def sized(run, S_interval, J_interval, windows=2):
+    """``run`` with the valve's combined size as :func:`service.verdicts.settle_run` stores
+    it: its S and J with their intervals, over ``windows`` windows."""
+    run.result = {**run.result, "valve": {
+        "S": run.S, "J": run.J, "S_interval": S_interval, "J_interval": J_interval,
+        "size_windows": [{"window_start": 0.0, "window_end": 1.0}] * windows}}
+    return run
+
+
+def test_the_evidence_is_updated_only_when_the_size_moves_beyond_its_interval(store):
+    """Issue 19: a sticky valve analysed every round added an event every round (about
+    5,800 a day on the demo); now only a size outside the ticket's interval does."""
+    with store.session() as s:
+        add_loop(s)
+        first = sized(add_run(s, at=T0 + WINDOW_S, S=4.0, J=2.0), [3.8, 4.2], [1.7, 2.3])
+        ticket = analyse(s, first, needed=1)
+        assert "combined over 2 windows" in ticket.description
+        assert "intervals S 3.80 to 4.20 %, J 1.70 to 2.30 %" in ticket.description
+        for k in range(1, 30):  # within the interval: nothing changes
+            run = sized(add_run(s, at=T0 + WINDOW_S + 60 * k, S=4.0 + 0.005 * k, J=2.1),
+                        [3.8, 4.3], [1.8, 2.4])
+            assert analyse(s, run, needed=1) is None
+        assert ticket.evidence["run_id"] == first.id and len(ticket.events) == 1
+        moved = sized(add_run(s, at=T0 + 3 * WINDOW_S, S=4.6, J=2.1), [4.4, 4.8], [1.8, 2.4], 3)
+        assert analyse(s, moved, needed=1) is ticket
+        assert ticket.evidence["S_interval"] == [4.4, 4.8]
+        assert ticket.evidence["size_windows"] == 3
+        assert [e.note for e in ticket.events][1:] == [f"evidence updated: run {moved.id}"]
+
+
+def combined_size(name: str, hours: range) -> dict[str, object]:
+    """The evidence's size of a simulated valve combined over hour-long windows at 1 s."""
+    case = next(c for c in synthetic_library(6 * 3600) if c.name == name)
+    run = case.simulate()
+    values: dict[str, list[float]] = {"S": [], "J": []}
+    intervals: dict[str, list[tuple[float, float]]] = {"S": [], "J": []}
+    for hour in hours:
+        op, pv = run.op[0][hour * 3600:(hour + 1) * 3600], run.pv[0][hour * 3600:(hour + 1) * 3600]
+        period = detect_loop_oscillation(op, pv, case.ts).period_s
+        est = quantify_stiction(op, pv, case.ts, process_type=case.process_type, period_s=period)
+        for key in ("S", "J"):
+            values[key].append(getattr(est, key))
+            intervals[key].append(getattr(est, f"{key}_interval"))
+    size: dict[str, object] = {}
+    for key in ("S", "J"):
+        combined = combine_windows(values[key], intervals[key])
+        size[key], size[f"{key}_interval"] = combined.value, list(combined.interval)
+    return size
+
+
+def test_the_intervals_of_simulated_valves_see_a_doubling_and_not_the_next_windows():
+    # Issue 19: the intervals carry the search's model error, so they are wide (S 4 +- 0.65
+    # in one window); combined over three windows they still see the valve double
+    # (Kano S 4, J 2 -> S 8, J 4) and do not move over the next three windows of one valve.
+    first = combined_size("flow-kano-S4-J2-ts1", range(3))
+    assert size_moved(first, combined_size("flow-kano-S8-J4-ts1", range(3)))
+    assert not size_moved(first, combined_size("flow-kano-S4-J2-ts1", range(3, 6)))
 
 
 def test_a_closed_ticket_does_not_block_a_new_one(store):
@@ -437,7 +500,8 @@ def test_a_ticket_stored_before_patterns_still_reads_exports_and_updates(store):
         evidence = ticket_to_dict(ticket)["evidence"]
         assert evidence == old_evidence | {"pattern": None, "op_travel": None,
                                            "episode_stick_band": None, "episodes": [],
-                                           "episodes_found": 0}
+                                           "episodes_found": 0, "S_interval": None,
+                                           "J_interval": None, "size_windows": None}
         assert to_cmms_notification(ticket)["sap_pm"]["LONG_TEXT"] == [
             "Malfunction start: 2023-11-14T22:13:20+00:00",
             "Valve stiction confirmed by 1 analyses."]
