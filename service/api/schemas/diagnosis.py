@@ -78,9 +78,17 @@ class ValveVerdictPublic(OpenSchema):
     verdict: str | None = None
     confidence: float | None = None
     S: float | None = None
-    """Stick band, % of valve span."""
+    """Stick band, % of valve span: combined over the windows of the valve's stiction
+    streak (:func:`analytics.quantification.combine_windows`)."""
     J: float | None = None
-    """Slip jump, % of valve span."""
+    """Slip jump, % of valve span, combined as S is."""
+    S_interval: list[float] | None = None
+    """Interval of S (nominal 95 %; on the synthetic library it holds the true S in
+    about 84 % of cases)."""
+    J_interval: list[float] | None = None
+    """Interval of J, as for S."""
+    size_windows: list[dict[str, Any]] | None = None
+    """The windows combined: each one's ``window_start``, ``window_end`` and sizes."""
     reason: str | None = None
     decided_by: str | None = None
     """``loop`` or ``unit``."""
