@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 LOOP_VIEW_TABLES = ("loops", "analysis_runs", "alarms")
-"""The tables the loop list and the bad-actor ranking are read from."""
+"""The tables the loop list, the bad-actor ranking and the alarm list are read from."""
 
 ANALYSIS_NICENESS = 10
 """The analysis processes run at a lower CPU priority: on a busy machine the requests
@@ -146,7 +146,8 @@ class AppState:
     def __post_init__(self) -> None:
         self.metrics.register(ServiceCollector(self.store, lambda: self.sources, self.clock))
         self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)
-        self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
+        self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s,
+                                cache_s=self.settings.auth_cache_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
                                    burst=self.settings.rate_limit_burst)
         self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
