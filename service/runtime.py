@@ -29,7 +29,7 @@ from connectors.base import DeliveryCounters, Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
-from service.executors import end_executor
+from service.executors import ANALYSIS_NICENESS, end_executor
 from service.ingest import (
     REFUSAL_REASONS,
     IngestError,
@@ -62,10 +62,6 @@ T = TypeVar("T")
 
 LOOP_VIEW_TABLES = ("loops", "analysis_runs", "alarms")
 """The tables the loop list, the bad-actor ranking and the alarm list are read from."""
-
-ANALYSIS_NICENESS = 10
-"""The analysis processes run at a lower CPU priority: on a busy machine the requests
-(and ingest) of the API process go first, the analyses take longer."""
 
 
 class AnalysisUnavailableError(RuntimeError):

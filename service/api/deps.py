@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 from collections.abc import AsyncIterator, Callable, Hashable, Iterator
 from dataclasses import dataclass
@@ -131,16 +132,21 @@ async def shared_answer(request: Request, state: AppState, key: Hashable,
 
     A current answer is sent from the event loop; only a missing or stale one is
     computed (or waited for) in the thread pool, where ``compute`` opens its own
-    session.  A request whose ``If-None-Match`` names the answer's ETag gets 304
-    without a body.  Twenty dashboards polling the loop list, the ranking and the
-    alarms each second made sixty trips a second through the thread pool, each
-    waiting for the interpreter lock behind the ingest, for answers already at hand.
+    session.  One half as old as ``LOOPWATCH_READ_CACHE_S`` is computed again in
+    the background (:meth:`service.read_cache.ReadCache.refresh`).  A request whose
+    ``If-None-Match`` names the answer's ETag gets 304 without a body.  Twenty
+    dashboards polling the loop list, the ranking and the alarms each second made
+    sixty trips a second through the thread pool, each waiting for the interpreter
+    lock behind the ingest, for answers already at hand.
     """
     check = None if valid is None else (lambda view: valid(view.answer))
-    view: JsonView | None = state.loop_views.peek(key, check)
+    views = state.loop_views
+    view: JsonView | None = views.peek(key, check)
     if view is None:
-        view = await run_in_threadpool(state.loop_views.get, key,
-                                       lambda: JsonView.of(compute()), check)
+        view = await run_in_threadpool(views.get, key, lambda: JsonView.of(compute()), check)
+    elif views.refresh_ahead(key):
+        asyncio.get_running_loop().run_in_executor(
+            None, views.refresh, key, lambda: JsonView.of(compute()), check)
     headers = {"ETag": view.etag}
     if view.etag in (tag.strip() for tag in request.headers.get("if-none-match", "").split(",")):
         return Response(status_code=304, headers=headers)

@@ -100,6 +100,35 @@ def test_peek_takes_a_current_answer_only_and_an_answer_made_of_kept_ones_is_as_
     assert cache.peek("page") is None  # written
 
 
+def test_an_answer_half_as_old_as_allowed_is_refreshed_once_with_its_parts(store):
+    now = [0.0]
+    cache = ReadCache(store, ("loops",), max_age_s=2.0, clock=lambda: now[0])
+
+    def page() -> str:
+        return f"page of {cache.get('rows', lambda: f'rows of t={now[0]}')}"
+
+    assert cache.get("page", page) == "page of rows of t=0.0"
+    now[0] = 0.5
+    assert not cache.refresh_ahead("page")
+    assert not cache.refresh_ahead("missing")
+    now[0] = 1.5
+    assert cache.refresh_ahead("page")
+    assert not cache.refresh_ahead("page")  # claimed by the first caller
+    assert cache.peek("page") == "page of rows of t=0.0"  # requests meanwhile take it
+    cache.refresh("page", page)
+    assert cache.peek("page") == "page of rows of t=1.5"
+    now[0] = 2.2  # 0.7 s old: not due
+    assert (cache.peek("page"), cache.refresh_ahead("page")) == ("page of rows of t=1.5", False)
+
+    def broken() -> str:
+        raise RuntimeError("store gone")
+
+    now[0] = 2.8
+    assert cache.refresh_ahead("page")
+    cache.refresh("page", broken)  # logged; the kept answer stays until it expires
+    assert cache.peek("page") == "page of rows of t=1.5"
+
+
 @pytest.fixture
 def clock():
     return Clock(T0)
