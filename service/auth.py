@@ -19,13 +19,19 @@ historian                           x
 admin        x      x       x       x       x
 ==========  ====  ======  =======  ======  =====
 
-Requests are authenticated by :class:`KeyVerifier`, which asks the store on
-every request (a revoked key is refused at once).  While the store cannot be
-reached it still admits the keys it confirmed within ``grace_s``, so that a
-historian's batches reach the ingest spool during a database outage; other
-keys get :class:`~service.spool.StoreUnavailableError` (HTTP 503).  A key
-revoked by another API replica just before an outage may thus be admitted
-for up to ``grace_s`` more.  Keys and their hashes are never logged.
+Requests are authenticated by :class:`KeyVerifier`.  A key the store
+confirmed within ``cache_s`` (``LOOPWATCH_AUTH_CACHE_S``) is admitted without
+asking it again (:meth:`KeyVerifier.cached`: twenty dashboards polling each
+second asked the store eighty times a second, each from a worker thread).  A
+key revoked through this process is refused by it at once
+(:meth:`KeyVerifier.revoked`); one revoked by another API replica, or in the
+database, is refused by this process at most ``cache_s`` later.  While the
+store cannot be reached it still admits the keys it confirmed within
+``grace_s``, so that a historian's batches reach the ingest spool during a
+database outage; other keys get :class:`~service.spool.StoreUnavailableError`
+(HTTP 503).  A key revoked by another API replica just before an outage may
+thus be admitted for up to ``grace_s`` more.  Keys and their hashes are never
+logged.
 """
 
 from __future__ import annotations
@@ -230,17 +236,40 @@ class KeyVerifier:
     grace_s : float
         While the store is unreachable, a key confirmed by the store within
         the last ``grace_s`` seconds is still admitted (0: none is).
+    cache_s : float
+        A key confirmed by the store within the last ``cache_s`` seconds is
+        admitted by :meth:`cached` without asking the store (0: never).
     clock : callable
         Monotonic seconds (injectable for tests).
     """
 
-    def __init__(self, store: Store, *, grace_s: float,
+    def __init__(self, store: Store, *, grace_s: float, cache_s: float = 0.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.store = store
         self.grace_s = grace_s
+        self.cache_s = cache_s
         self.clock = clock
         self._confirmed: dict[str, tuple[Principal, float]] = {}  # digest -> (who, when)
+        self._revoked: set[int] = set()  # row ids of keys revoked through this process
         self._lock = threading.Lock()
+
+    def _known(self, digest: str, within_s: float) -> Principal | None:
+        with self._lock:
+            known = self._confirmed.get(digest)
+            if known is None or known[0].id in self._revoked:
+                return None
+        return known[0] if self.clock() - known[1] <= within_s else None
+
+    def cached(self, key: str) -> Principal | None:
+        """The principal of ``key`` if the store confirmed it within ``cache_s`` and it
+        was not revoked through this process since; else None (ask :meth:`verify`).
+        Does no I/O: safe on the event loop."""
+        return self._known(hash_key(key), self.cache_s) if self.cache_s > 0 else None
+
+    def revoked(self, key_id: int) -> None:
+        """Key row ``key_id`` was revoked: no longer admitted from memory."""
+        with self._lock:
+            self._revoked.add(key_id)
 
     def verify(self, key: str) -> Principal | None:
         """The principal of an active ``key``, or None if it is unknown or revoked.
@@ -252,6 +281,7 @@ class KeyVerifier:
             ``grace_s``.
         """
         digest = hash_key(key)
+        asked = self.clock()  # the confirmation dates from before the store was read
         try:
             with self.store.session() as session:
                 row = authenticate(session, key)
@@ -264,14 +294,13 @@ class KeyVerifier:
             if principal is None:
                 self._confirmed.pop(digest, None)
             else:
-                self._confirmed[digest] = (principal, self.clock())
+                self._confirmed[digest] = (principal, asked)
         return principal
 
     def _during_outage(self, digest: str) -> Principal:
-        with self._lock:
-            known = self._confirmed.get(digest)
-        if known is not None and self.clock() - known[1] <= self.grace_s:
-            return known[0]
+        known = self._known(digest, self.grace_s)
+        if known is not None:
+            return known
         raise StoreUnavailableError(
             "The store is unreachable, so the API key cannot be checked; try again later"
         )

@@ -539,9 +539,16 @@ class Settings(BaseSettings):
         description="open connections (and requests) at once; beyond, new requests get 503")
     read_cache_s: float = Field(
         default=2.0, ge=0,
-        description="longest the loop list and the bad-actor ranking computed for one "
-                    "request are given to others, s (this process's writes show at once; "
+        description="longest the loop list, the bad-actor ranking and the alarm list "
+                    "computed for one request are given to others, s (this process's "
+                    "writes show at once; "
                     "0: every request reads the store)",
+    )
+    auth_cache_s: float = Field(
+        default=5.0, ge=0,
+        description="a key the store confirmed this recently is admitted without asking it "
+                    "again, s; a key revoked through this process is refused at once, one "
+                    "revoked by another replica within this time (0: every request asks)",
     )
     auth_outage_grace_s: float = Field(
         default=3600.0, ge=0,

@@ -19,6 +19,7 @@ cannot be killed from the client.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from typing import ParamSpec, TypeVar
@@ -26,6 +27,7 @@ from typing import ParamSpec, TypeVar
 from service.config import Settings
 
 __all__ = [
+    "ANALYSIS_NICENESS",
     "DaskExecutor",
     "ExecutorError",
     "end_executor",
@@ -94,13 +96,23 @@ class DaskExecutor(Executor):
         self.client.close()
 
 
+ANALYSIS_NICENESS = 10
+"""The analysis processes run at a lower CPU priority: on a busy machine the requests
+(and ingest) of the API process go first, the analyses take longer."""
+
+
 def make_executor(settings: Settings) -> Executor:
-    """The executor ``settings`` select: ``process`` (``workers`` local processes) or
-    ``dask`` (the cluster at ``dask_scheduler``)."""
+    """The executor ``settings`` select: ``process`` (``workers`` local processes, at
+    :data:`ANALYSIS_NICENESS`) or ``dask`` (the cluster at ``dask_scheduler``).
+
+    The scheduler's rounds ran at the API's priority: the first round of 2,000 loops
+    took both cores from the requests for its first 10-30 s (issue 20's load benchmark).
+    """
     if settings.executor == "dask":
         assert settings.dask_scheduler is not None  # checked by Settings
         return DaskExecutor(settings.dask_scheduler)
-    return ProcessPoolExecutor(max_workers=settings.workers)
+    return ProcessPoolExecutor(max_workers=settings.workers, initializer=os.nice,
+                               initargs=(ANALYSIS_NICENESS,))
 
 
 def executor_slots(executor: Executor, default: int) -> int:

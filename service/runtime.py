@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeoutError
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from importlib import import_module
 from multiprocessing import get_context
 from typing import Any, Protocol, TypeVar, cast
 
@@ -29,7 +30,7 @@ from connectors.base import DeliveryCounters, Outage
 from service.auth import KeyVerifier
 from service.buffer import LoopBuffers
 from service.config import LoopConfig, Settings
-from service.executors import end_executor
+from service.executors import ANALYSIS_NICENESS, end_executor
 from service.ingest import (
     REFUSAL_REASONS,
     IngestError,
@@ -61,11 +62,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 LOOP_VIEW_TABLES = ("loops", "analysis_runs", "alarms")
-"""The tables the loop list and the bad-actor ranking are read from."""
-
-ANALYSIS_NICENESS = 10
-"""The analysis processes run at a lower CPU priority: on a busy machine the requests
-(and ingest) of the API process go first, the analyses take longer."""
+"""The tables the loop list, the bad-actor ranking and the alarm list are read from."""
 
 
 class AnalysisUnavailableError(RuntimeError):
@@ -146,7 +143,8 @@ class AppState:
     def __post_init__(self) -> None:
         self.metrics.register(ServiceCollector(self.store, lambda: self.sources, self.clock))
         self.spool = IngestSpool(max_samples=self.settings.spool_max_samples)
-        self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s)
+        self.keys = KeyVerifier(self.store, grace_s=self.settings.auth_outage_grace_s,
+                                cache_s=self.settings.auth_cache_s)
         self.limiter = RateLimiter(rate_per_s=self.settings.rate_limit_per_s,
                                    burst=self.settings.rate_limit_burst)
         self.auth_failures = RateLimiter(rate_per_s=self.settings.auth_failure_per_s,
@@ -161,6 +159,26 @@ class AppState:
         self._answers: OrderedDict[Hashable, Any] = OrderedDict()
         self._flushing = threading.Lock()
         self._next_flush = -math.inf  # time.monotonic() of the next attempt to write the spool
+
+    def _pool(self) -> ProcessPoolExecutor:
+        with self._pool_lock:
+            if self._analysis_pool is None:
+                # spawned, not forked: a fork would inherit this process's sockets and
+                # pipes and hold them open (a client's connection, a child's stdin)
+                self._analysis_pool = ProcessPoolExecutor(
+                    self.settings.analysis_processes, mp_context=get_context("spawn"),
+                    initializer=os.nice, initargs=(ANALYSIS_NICENESS,))
+            return self._analysis_pool
+
+    def start_analyses(self) -> None:
+        """Start the analysis process(es) now, each importing the API's modules (whose
+        functions the analyses run), without waiting for them: else the first analysis
+        waits while a process at :data:`ANALYSIS_NICENESS` starts and imports, which on
+        a busy machine took the load benchmark's first model check 34-58 s of its
+        LOOPWATCH_ANALYSIS_TIMEOUT_S (60 s).  ``loopwatch serve`` calls it at start."""
+        pool = self._pool()
+        for _ in range(self.settings.analysis_processes):
+            pool.submit(import_module, "service.api.app")
 
     def analyse(self, function: Callable[..., T], *args: Any) -> T:
         """``function(*args)`` in the API's analysis process(es), waited for here.
@@ -177,14 +195,7 @@ class AppState:
             The process died, or the analysis outlived ``analysis_timeout_s``
             (its process is then killed; the next analysis starts a new one).
         """
-        with self._pool_lock:
-            if self._analysis_pool is None:
-                # spawned, not forked: a fork would inherit this process's sockets and
-                # pipes and hold them open (a client's connection, a child's stdin)
-                self._analysis_pool = ProcessPoolExecutor(
-                    self.settings.analysis_processes, mp_context=get_context("spawn"),
-                    initializer=os.nice, initargs=(ANALYSIS_NICENESS,))
-            pool = self._analysis_pool
+        pool = self._pool()
         try:
             return pool.submit(function, *args).result(timeout=self.settings.analysis_timeout_s)
         except (BrokenProcessPool, FutureTimeoutError) as exc:

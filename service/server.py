@@ -438,6 +438,7 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
     async def lifespan(_: FastAPI) -> Any:
         with running(service):
             tune_interpreter()
+            service.state.start_analyses()
             yield
 
     service.app.router.lifespan_context = lifespan

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import asyncio
+import hashlib
+from collections.abc import AsyncIterator, Callable, Hashable, Iterator
+from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Path, Query, Request, Security
+from anyio import CancelScope, CapacityLimiter, to_thread
+from fastapi import Depends, HTTPException, Path, Query, Request, Response, Security
 from fastapi.security import APIKeyHeader
 from pydantic import BaseModel, Field
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from service.auth import Permission, Principal
 from service.runtime import AppState
@@ -18,6 +23,7 @@ __all__ = [
     "ERROR_RESPONSES",
     "MAX_DB_INT",
     "MAX_TIME_S",
+    "NOT_MODIFIED",
     "Analyst",
     "AppState",
     "Error",
@@ -31,6 +37,7 @@ __all__ = [
     "error_responses",
     "require",
     "row_id",
+    "shared_answer",
 ]
 
 MAX_DB_INT = 2 ** 63 - 1
@@ -96,6 +103,56 @@ ERROR_RESPONSES = error_responses(400, 401, 403, 413, 422, 429, 503)
 """Errors any route behind a key may answer (route-specific: 404 and 409)."""
 
 
+NOT_MODIFIED: dict[int | str, dict[str, Any]] = {304: {
+    "description": "the answer is still the one whose ETag the request sent in "
+                   "If-None-Match (no body)"}}
+"""The extra response of the routes that answer through :func:`shared_answer`."""
+
+
+@dataclass(frozen=True)
+class JsonView:
+    """An answer kept by the read cache with its JSON text and the text's ETag."""
+
+    answer: BaseModel
+    body: bytes
+    etag: str
+
+    @classmethod
+    def of(cls, answer: BaseModel) -> JsonView:
+        body = answer.model_dump_json().encode()
+        return cls(answer, body, f'"{hashlib.blake2b(body, digest_size=16).hexdigest()}"')
+
+
+async def shared_answer(request: Request, state: AppState, key: Hashable,
+                        compute: Callable[[], BaseModel],
+                        valid: Callable[[Any], bool] | None = None) -> Response:
+    """The answer of ``compute()`` (a model of the loop, run and alarm tables) shared
+    by the requests through :attr:`AppState.loop_views` (:mod:`service.read_cache`) as
+    JSON text with an ``ETag``; ``valid(answer)``, when given, must hold too.
+
+    A current answer is sent from the event loop; only a missing or stale one is
+    computed (or waited for) in the thread pool, where ``compute`` opens its own
+    session.  One half as old as ``LOOPWATCH_READ_CACHE_S`` is computed again in
+    the background (:meth:`service.read_cache.ReadCache.refresh`).  A request whose
+    ``If-None-Match`` names the answer's ETag gets 304 without a body.  Twenty
+    dashboards polling the loop list, the ranking and the alarms each second made
+    sixty trips a second through the thread pool, each waiting for the interpreter
+    lock behind the ingest, for answers already at hand.
+    """
+    check = None if valid is None else (lambda view: valid(view.answer))
+    views = state.loop_views
+    view: JsonView | None = views.peek(key, check)
+    if view is None:
+        view = await run_in_threadpool(views.get, key, lambda: JsonView.of(compute()), check)
+    elif views.refresh_ahead(key):
+        asyncio.get_running_loop().run_in_executor(
+            None, views.refresh, key, lambda: JsonView.of(compute()), check)
+    headers = {"ETag": view.etag}
+    if view.etag in (tag.strip() for tag in request.headers.get("if-none-match", "").split(",")):
+        return Response(status_code=304, headers=headers)
+    return Response(view.body, media_type="application/json", headers=headers)
+
+
 async def get_state(request: Request) -> AppState:
     """The application's :class:`AppState` (async: it does no I/O, and a plain def
     would cost every request a trip through the thread pool)."""
@@ -106,10 +163,28 @@ async def get_state(request: Request) -> AppState:
 StateDep = Annotated[AppState, Depends(get_state)]
 
 
-def get_session(state: StateDep) -> Iterator[Session]:
-    """One transaction per request: committed when the route returns normally."""
-    with state.store.session() as session:
+async def get_session(state: StateDep) -> AsyncIterator[Session]:
+    """One transaction per request: committed when the route returns normally, rolled
+    back when it raises.
+
+    The session is opened on the event loop (no I/O: its connection is taken at its
+    first statement, in the route's thread) and committed and closed in the thread
+    pool: one trip through the pool per request instead of two (a plain generator is
+    entered and left there).  As FastAPI leaves a plain generator, the commit cannot be
+    cancelled and does not wait for the pool's capacity (a full pool of requests waiting
+    for connections that sessions waiting to close hold would never drain)."""
+    transaction = state.store.session()
+    session = transaction.__enter__()
+    try:
         yield session
+    except BaseException as exc:
+        with CancelScope(shield=True):
+            await to_thread.run_sync(transaction.__exit__, type(exc), exc, exc.__traceback__,
+                                     limiter=CapacityLimiter(1))
+        raise
+    with CancelScope(shield=True):
+        await to_thread.run_sync(transaction.__exit__, None, None, None,
+                                 limiter=CapacityLimiter(1))
 
 
 SessionDep = Annotated[Session, Depends(get_session)]
@@ -126,13 +201,17 @@ class RequireKey:
     up; over the key's rate limit: 429 with ``Retry-After``; a role without
     the permission: 403.  The route-table test reads ``permission`` to check
     every route's access.
+
+    A key the store confirmed within ``LOOPWATCH_AUTH_CACHE_S`` is admitted on the
+    event loop (:meth:`service.auth.KeyVerifier.cached`); only the others are looked up,
+    in the thread pool.
     """
 
     def __init__(self, permission: Permission | None) -> None:
         self.permission = permission
 
-    def __call__(self, request: Request, state: StateDep,
-                 key: Annotated[str | None, Security(_key_header)]) -> Principal:
+    async def __call__(self, request: Request, state: StateDep,
+                       key: Annotated[str | None, Security(_key_header)]) -> Principal:
         address = request.client.host if request.client else "unknown"
         failures = state.auth_failures
         blocked = failures.wait(address)
@@ -140,7 +219,9 @@ class RequireKey:
             raise HTTPException(
                 429, f"Too many failed authentications from {address}; retry later",
                 headers={"Retry-After": retry_after(blocked)})
-        principal = state.keys.verify(key) if key else None
+        principal = state.keys.cached(key) if key else None
+        if key and principal is None:
+            principal = await run_in_threadpool(state.keys.verify, key)
         if principal is None:
             failures.acquire(address)
             raise HTTPException(401, "Missing API key (header X-API-Key)" if not key

@@ -80,6 +80,55 @@ def test_an_answer_is_shared_until_its_tables_are_written_or_it_is_too_old(store
     assert ReadCache(store, ("loops",), max_age_s=0).get("k", compute) == 6  # no sharing
 
 
+def test_peek_takes_a_current_answer_only_and_an_answer_made_of_kept_ones_is_as_old(store):
+    now = [0.0]
+    cache = ReadCache(store, ("loops",), max_age_s=2.0, clock=lambda: now[0])
+    assert cache.peek("rows") is None  # nothing kept: peek neither computes nor waits
+    assert cache.get("rows", lambda: "rows of t=0") == "rows of t=0"
+    assert cache.peek("rows") == "rows of t=0"
+    assert cache.peek("rows", valid=lambda answer: answer.endswith("t=1")) is None
+    now[0] = 1.5
+    # a page computed at t=1.5 from the rows of t=0 is as old as they are
+    page = cache.get("page", lambda: "page of " + cache.get("rows", lambda: "rows of t=1.5"))
+    assert page == "page of rows of t=0"
+    now[0] = 2.5
+    assert (cache.peek("rows"), cache.peek("page")) == (None, None)
+    assert cache.get("page", lambda: "page of " + cache.get("rows", lambda: "rows of t=2.5")) \
+        == "page of rows of t=2.5"
+    with store.session() as session:
+        session.add(Loop(id="L9", name="nine", config={}, created_at=T0, updated_at=T0))
+    assert cache.peek("page") is None  # written
+
+
+def test_an_answer_half_as_old_as_allowed_is_refreshed_once_with_its_parts(store):
+    now = [0.0]
+    cache = ReadCache(store, ("loops",), max_age_s=2.0, clock=lambda: now[0])
+
+    def page() -> str:
+        return f"page of {cache.get('rows', lambda: f'rows of t={now[0]}')}"
+
+    assert cache.get("page", page) == "page of rows of t=0.0"
+    now[0] = 0.5
+    assert not cache.refresh_ahead("page")
+    assert not cache.refresh_ahead("missing")
+    now[0] = 1.5
+    assert cache.refresh_ahead("page")
+    assert not cache.refresh_ahead("page")  # claimed by the first caller
+    assert cache.peek("page") == "page of rows of t=0.0"  # requests meanwhile take it
+    cache.refresh("page", page)
+    assert cache.peek("page") == "page of rows of t=1.5"
+    now[0] = 2.2  # 0.7 s old: not due
+    assert (cache.peek("page"), cache.refresh_ahead("page")) == ("page of rows of t=1.5", False)
+
+    def broken() -> str:
+        raise RuntimeError("store gone")
+
+    now[0] = 2.8
+    assert cache.refresh_ahead("page")
+    cache.refresh("page", broken)  # logged; the kept answer stays until it expires
+    assert cache.peek("page") == "page of rows of t=1.5"
+
+
 @pytest.fixture
 def clock():
     return Clock(T0)
@@ -136,3 +185,27 @@ def test_dashboards_share_the_ranking_and_see_every_write_at_once(service, clock
     # a different period is its own ranking
     day = client.get("/api/v1/plant/bad-actors", headers=viewer, params={"period": "1d"})
     assert (day.json()["period"], day.json()["until"]) == ("1d", T0 + 100)
+
+
+def test_shared_answers_carry_an_etag_and_answer_304_until_they_change(service):
+    client = TestClient(service.app)
+    viewer = key(client, "viewer")
+    paths = ("/api/v1/loops", "/api/v1/plant/bad-actors", "/api/v1/alarms")
+    etags = {}
+    for path in paths:
+        first = client.get(path, headers=viewer)
+        assert first.status_code == 200, first.text
+        etags[path] = first.headers["etag"]
+        again = client.get(path, headers={**viewer, "If-None-Match": f'"x", {etags[path]}'})
+        assert (again.status_code, again.content, again.headers["etag"]) == (
+            304, b"", etags[path]), path
+    with service.state.store.session() as session:
+        session.add(Alarm(loop_id="FIC-2", kind="oscillation", priority="high",
+                          state="unack_active", condition_active=True, raised_at=T0,
+                          updated_at=T0))
+    for path in paths:  # an alarm raised: every answer changed
+        changed = client.get(path, headers={**viewer, "If-None-Match": etags[path]})
+        assert changed.status_code == 200, path
+        assert changed.headers["etag"] != etags[path]
+        assert changed.json() == client.get(path, headers=viewer).json()
+    assert client.get("/api/v1/alarms", headers=viewer).json()["count"] == 1

@@ -8,6 +8,7 @@ an entry fails :func:`test_every_route_is_in_the_access_table`.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import logging
 import re
@@ -17,7 +18,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select, text
+from sqlalchemy import event, select, text
 
 from service.api.deps import RequireKey
 from service.api.routes.dashboard import STATIC_FILES
@@ -176,6 +177,49 @@ def test_every_keyed_route_refuses_a_missing_unknown_or_revoked_key(make_service
                 (method, path)
     for method, path in PUBLIC:
         assert call(client, method, path, None).status_code == 200, path
+
+
+def test_a_key_is_refused_at_once_when_revoked_here_and_within_the_cache_time_elsewhere(
+        service):
+    client = TestClient(service.app)
+    now = [0.0]
+    service.state.keys.clock = lambda: now[0]
+    cache_s = service.state.settings.auth_cache_s
+    here, elsewhere = new_key(client, "viewer", "revoked here"), new_key(client, "viewer")
+    ids = {k["name"]: k["id"] for k in client.get(
+        "/api/v1/keys", headers={"X-API-Key": ADMIN}).json()["data"]}
+    for key in (here, elsewhere):  # both confirmed by the store, and kept
+        assert client.get("/api/v1/me", headers={"X-API-Key": key}).status_code == 200
+    assert client.delete(f"/api/v1/keys/{ids['revoked here']}",
+                         headers={"X-API-Key": ADMIN}).status_code == 200
+    assert client.get("/api/v1/me", headers={"X-API-Key": here}).status_code == 401
+    with service.state.store.session() as session:  # as another API replica revokes it
+        session.get(ApiKey, ids["viewer key"]).revoked_at = T0
+    now[0] = cache_s  # still kept: admitted
+    assert client.get("/api/v1/me", headers={"X-API-Key": elsewhere}).status_code == 200
+    now[0] = cache_s + 0.1
+    assert client.get("/api/v1/me", headers={"X-API-Key": elsewhere}).status_code == 401
+
+
+def test_no_route_queries_the_store_on_the_event_loop(make_service):
+    """A statement run by the event loop's thread holds up every request meanwhile."""
+    service = make_service(auth_failure_burst=10_000)
+    client = TestClient(service.app)
+    on_loop = []
+
+    def note(_connection: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        try:
+            asyncio.get_running_loop()
+        except RuntimeError:  # a worker thread
+            return
+        on_loop.append(statement)
+
+    event.listen(service.state.store.engine, "before_cursor_execute", note)
+    viewer = new_key(client, "viewer")
+    for method, path in ACCESS:
+        for key in (ADMIN, viewer, "lw_not-a-key"):
+            assert call(client, method, path, key).status_code < 500, (method, path)
+    assert not on_loop, on_loop
 
 
 def test_the_schema_needs_a_key_and_the_docs_pages_load_only_loopwatch_files(client):

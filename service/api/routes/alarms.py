@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Depends, HTTPException, Query
+from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from sqlalchemy.orm import Session
 
@@ -22,6 +22,7 @@ from service.alarms import (
 )
 from service.api.deps import (
     ERROR_RESPONSES,
+    NOT_MODIFIED,
     AppState,
     Offset,
     Principal,
@@ -30,6 +31,7 @@ from service.api.deps import (
     error_responses,
     require,
     row_id,
+    shared_answer,
 )
 from service.logs import audit
 from service.store.models import Alarm
@@ -116,26 +118,35 @@ def _acted(session: Session, state: AppState, alarm: Alarm) -> AlarmDetail:
     return _detail(alarm)
 
 
-@router.get("", response_model=AlarmsPublic)
-def list_all(
-    session: SessionDep,
+@router.get("", response_model=AlarmsPublic, responses=NOT_MODIFIED)
+async def list_all(
+    request: Request,
+    app: StateDep,
     _: Reader,
     loop_id: str | None = None,
     unit: str | None = None,
     state: Annotated[str | None, Query(description=f"one of {', '.join(ALARM_STATES)}")] = None,
     offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-) -> AlarmsPublic:
+) -> Response:
     """Alarms, highest priority and newest first: without ``state`` every alarm that is
-    not normal (the operator's list), with it exactly the alarms in that state."""
+    not normal (the operator's list), with it exactly the alarms in that state.
+
+    A page is read once for the requests that ask within ``LOOPWATCH_READ_CACHE_S``
+    while no alarm or loop is written (:mod:`service.read_cache`), and carries an
+    ``ETag`` (304 when ``If-None-Match`` names it)."""
     if state is not None and state not in ALARM_STATES:
         raise HTTPException(422, f"state must be one of {', '.join(ALARM_STATES)}")
-    alarms, count = list_alarms(session, loop_id=loop_id, unit_id=unit,
-                                state=state,
-                                limit=limit, offset=offset)
-    return AlarmsPublic(
-        data=[AlarmPublic.model_validate(a, from_attributes=True) for a in alarms], count=count
-    )
+
+    def page() -> AlarmsPublic:
+        with app.store.session() as session:
+            alarms, count = list_alarms(session, loop_id=loop_id, unit_id=unit,
+                                        state=state, limit=limit, offset=offset)
+            return AlarmsPublic(data=[AlarmPublic.model_validate(a, from_attributes=True)
+                                      for a in alarms], count=count)
+
+    return await shared_answer(request, app, ("alarms page", loop_id, unit, state, offset,
+                                              limit), page)
 
 
 def _get(session: SessionDep, alarm_id: int) -> Alarm:

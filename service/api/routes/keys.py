@@ -88,6 +88,7 @@ def revoke(key_id: Annotated[int, row_id("the key's row id (`id`)")], session: S
         raise HTTPException(409, str(exc)) from None
     except AuthError:
         raise HTTPException(404, "API key not found") from None
+    state.keys.revoked(row.id)
     audit(admin.actor, "revoked API key", f"{row.key_id} ({row.name})",
           role=row.role)
     return _public(row)

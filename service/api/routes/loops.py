@@ -6,7 +6,7 @@ from itertools import pairwise
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
 from sqlalchemy.orm import Session
@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from service.analysis import stiction_pattern_text
 from service.api.deps import (
     ERROR_RESPONSES,
+    NOT_MODIFIED,
     AppState,
     Offset,
     Principal,
@@ -22,6 +23,7 @@ from service.api.deps import (
     TimeQuery,
     error_responses,
     require,
+    shared_answer,
 )
 from service.api.routes import advice, unit_diagnosis
 from service.api.schemas.diagnosis import LoopDiagnosisPublic
@@ -290,23 +292,31 @@ def loop_states(session: SessionDep, app: AppState) -> list[LoopPublic]:
     return app.loop_views.get(("loops",), lambda: _loop_rows(session, trusted=True)[0])
 
 
-@router.get("/loops", response_model=LoopsPublic)
-def list_loops(
-    session: SessionDep,
+@router.get("/loops", response_model=LoopsPublic, responses=NOT_MODIFIED)
+async def list_loops(
+    request: Request,
     app: StateDep,
     _: Reader,
     unit: str | None = None,
     state: Annotated[str | None, Query(pattern="^(oscillating|stiction|healthy|unknown)$")] = None,
     offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-) -> LoopsPublic:
-    """Loops with their latest state; filter by unit and state, page with offset/limit."""
-    rows = loop_states(session, app)
-    if unit is not None:
-        rows = [r for r in rows if r.unit == unit]
-    if state is not None:
-        rows = list(filter(_STATE_TESTS[state], rows))
-    return LoopsPublic(data=rows[offset:offset + limit], count=len(rows))
+) -> Response:
+    """Loops with their latest state; filter by unit and state, page with offset/limit.
+
+    A page is computed once for the requests that ask within ``LOOPWATCH_READ_CACHE_S``
+    while no loop, run or alarm is written, and carries an ``ETag`` (304 when
+    ``If-None-Match`` names it)."""
+    def page() -> LoopsPublic:
+        with app.store.session() as session:
+            rows = loop_states(session, app)
+        if unit is not None:
+            rows = [r for r in rows if r.unit == unit]
+        if state is not None:
+            rows = list(filter(_STATE_TESTS[state], rows))
+        return LoopsPublic(data=rows[offset:offset + limit], count=len(rows))
+
+    return await shared_answer(request, app, ("loops page", unit, state, offset, limit), page)
 
 
 PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
@@ -408,12 +418,12 @@ def bad_actor_rows(session: Session, since: float, until: float, period: str,
     return ranked
 
 
-@router.get("/plant/bad-actors", response_model=BadActorsPublic)
-def bad_actors(
-    session: SessionDep, state: StateDep, _: Reader,
+@router.get("/plant/bad-actors", response_model=BadActorsPublic, responses=NOT_MODIFIED)
+async def bad_actors(
+    request: Request, state: StateDep, _: Reader,
     limit: Annotated[int, Query(ge=1, le=1000)] = 20,
     period: Annotated[str, Query(pattern=PERIOD_PATTERN)] = "7d",
-) -> BadActorsPublic:
+) -> Response:
     """Loops ranked by their bad-actor score over ``period`` (``7d``, ``36h``; at most 92
     days): KPI severity x loop importance x time spent bad (:mod:`service.bad_actors`),
     each with ``why``; then by latest health, worst first; loops not analysed last.  One
@@ -421,21 +431,28 @@ def bad_actors(
 
     The ranking is computed once for the requests that ask within
     ``LOOPWATCH_READ_CACHE_S`` while no loop, run or alarm is written
-    (:mod:`service.read_cache`); ``since`` and ``until`` say which period it covers."""
+    (:mod:`service.read_cache`); ``since`` and ``until`` say which period it covers.
+    The answer carries an ``ETag`` (304 when ``If-None-Match`` names it)."""
     seconds = period_seconds(period)
 
-    def rank() -> tuple[float, list[BadActorPublic]]:
+    def rank(session: Session) -> tuple[float, list[BadActorPublic]]:
         until = state.clock()
         return until, bad_actor_rows(session, until - seconds, until, period,
                                      state.settings.window_s,
                                      loops=loop_states(session, state))
 
-    def recent(answer: tuple[float, list[BadActorPublic]]) -> bool:
-        return abs(state.clock() - answer[0]) <= state.settings.read_cache_s
+    def recent(until: float) -> bool:
+        return abs(state.clock() - until) <= state.settings.read_cache_s
 
-    until, ranked = state.loop_views.get(("bad-actors", period), rank, recent)
-    return BadActorsPublic(data=ranked[:limit], count=len(ranked), period=period,
-                           since=until - seconds, until=until)
+    def page() -> BadActorsPublic:
+        with state.store.session() as session:
+            until, ranked = state.loop_views.get(
+                ("bad-actors", period), lambda: rank(session), lambda answer: recent(answer[0]))
+        return BadActorsPublic(data=ranked[:limit], count=len(ranked), period=period,
+                               since=until - seconds, until=until)
+
+    return await shared_answer(request, state, ("bad-actors page", period, limit), page,
+                               lambda answer: recent(answer.until))
 
 
 def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
