@@ -39,15 +39,13 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.errors import ModelSpecError
 from analytics.lti import DiscreteEntry, TransferFunction, discretise
 from analytics.scenarios import chapter4
 from analytics.simulation import Loop, PIDController
+from analytics.types import FloatArray
 from analytics.valves import HeValve, ValveStepper
-
-FloatArray = NDArray[np.float64]
 
 #: How far past the static-friction band an input is placed to make a He valve
 #: slip by exactly its minimum jump ``fs - fd`` (``u - y > fs`` is strict).

@@ -39,6 +39,7 @@ import scipy.interpolate
 from numpy.typing import ArrayLike, NDArray
 
 from analytics.errors import ModelSpecError, ValveModelError
+from analytics.types import ComplexArray, FloatArray
 from analytics.valves import (
     ChoudhuryValve,
     DeadbandValve,
@@ -48,8 +49,6 @@ from analytics.valves import (
     ValveModel,
 )
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 DescribingChoice = Literal["model", "equivalent"]
 """Which describing function a sticky valve gets (:func:`analytic_sj`)."""
 

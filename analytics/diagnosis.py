@@ -46,7 +46,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from analytics.errors import DataError
 from analytics.oscillation import LoopOscillation, detect_loop_oscillation, envelope_variation
@@ -83,6 +83,7 @@ from analytics.stiction.stick_jump import (
     analyse_window,
     op_travel,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "NONLINEARITY_METHODS",
@@ -93,7 +94,6 @@ __all__ = [
     "transient_verdict",
 ]
 
-FloatArray = NDArray[np.float64]
 
 NONLINEARITY_METHODS = ("bicoherence", "surrogate")
 """Methods that quantisation and historian compression make unreliable."""

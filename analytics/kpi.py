@@ -49,6 +49,7 @@ from analytics.stiction.stick_jump import (
     robust_noise,
     travel_increments,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "ErrorStatistics",
@@ -69,7 +70,6 @@ __all__ = [
     "valve_travel_per_day",
 ]
 
-FloatArray = NDArray[np.float64]
 Mode = Literal["auto", "cascade", "manual"]
 DAY_S = 86400.0
 

@@ -96,13 +96,12 @@ from analytics.describing import (
 from analytics.errors import ModelSpecError
 from analytics.lti import TransferFunction
 from analytics.simulation import ClosedLoopModel, PIDController
+from analytics.types import ComplexArray, FloatArray
 from analytics.valves import (
     IdealValve,
     ValveModel,
 )
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 ProcessMatrix = Sequence[Sequence[TransferFunction | None]]
 
 #: Points of the dense frequency grid per decade (crossing brackets).
@@ -692,7 +691,6 @@ def _minor_coefficients(
     factors = np.where(members[None], gains[:, None, :], 1.0)
     factors[:, :, loop] = 1.0
     return np.asarray(factors.prod(axis=2), dtype=np.complex128)
-
 
 
 def _edge_solution(

@@ -31,8 +31,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from analytics.errors import ModelSpecError
-
-FloatArray = NDArray[np.float64]
+from analytics.types import FloatArray
 
 #: Relative tolerance under which ``delay / dt`` is taken to be an integer.
 _INTEGER_DELAY_RTOL = 1e-9

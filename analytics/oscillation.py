@@ -68,6 +68,7 @@ from scipy.stats import f as f_dist
 
 from analytics.errors import DataError
 from analytics.signals import zero_crossings
+from analytics.types import FloatArray
 
 __all__ = [
     "LIMIT_CYCLE_ENVELOPE_CV",
@@ -93,7 +94,6 @@ GRID_REFERENCE_FRACTION = 0.3
 #: Ratio of the 90th to the 10th percentile of a Rayleigh distribution, the
 #: envelope of band-limited Gaussian noise: ``sqrt(ln 10 / ln(10 / 9))``.
 RAYLEIGH_SPREAD = float(np.sqrt(np.log(10.0) / np.log(10.0 / 9.0)))
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -93,6 +93,7 @@ from scipy.stats import chi2, norm
 
 from analytics.errors import DataError
 from analytics.oscillation import bandpass, detect_loop_oscillation
+from analytics.types import FloatArray, ProcessType
 from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
 __all__ = [
@@ -110,8 +111,6 @@ __all__ = [
     "quantify_stiction",
 ]
 
-FloatArray = NDArray[np.float64]
-ProcessType = Literal["self-regulating", "integrating"]
 
 VALVE_MODELS: dict[str, Callable[[float, float], ValveModel]] = {
     "he": lambda S, J: HeValve(*sj_to_fsfd(S, J)),

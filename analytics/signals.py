@@ -9,11 +9,11 @@ dashboard's ACF plot use them.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from analytics.types import FloatArray
 
 __all__ = ["autocorrelation", "upward_crossings", "zero_crossings"]
-
-FloatArray = NDArray[np.float64]
 
 
 def zero_crossings(y: FloatArray) -> FloatArray:

@@ -35,14 +35,13 @@ from numpy.typing import NDArray
 
 from analytics.errors import ModelSpecError
 from analytics.lti import TransferFunction, discretise
+from analytics.types import FloatArray
 from analytics.valves import (
     IdealValve,
     ValveModel,
     valve_from_dict,
     valve_step,
 )
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

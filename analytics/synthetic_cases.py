@@ -41,10 +41,10 @@ from dataclasses import dataclass
 from typing import Literal, TypedDict
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.lti import TransferFunction
 from analytics.simulation import Disturbance, Loop, PIDController, SimulationResult, simulate
+from analytics.types import FloatArray, ProcessType
 from analytics.valves import HeValve, IdealValve, KanoValve, ValveModel
 
 __all__ = [
@@ -57,8 +57,6 @@ __all__ = [
 ]
 
 Label = Literal["stiction", "no_stiction"]
-ProcessKind = Literal["self-regulating", "integrating"]
-FloatArray = NDArray[np.float64]
 
 WARM_UP = 0.2
 """Default fraction of each simulation dropped as start-up transient."""
@@ -69,7 +67,7 @@ class _Process:
     """A process with a PI tuning that is well damped with a healthy valve."""
 
     model: TransferFunction
-    kind: ProcessKind
+    kind: ProcessType
     Kc: float
     Ti: float
     aggressive_Kc: float  # PI tuning with a gain margin of about 1.35
@@ -152,7 +150,7 @@ class SyntheticCase:
     name: str
     label: Label
     cause: str
-    process_type: ProcessKind
+    process_type: ProcessType
     ts: float
     S: float | None
     J: float | None
@@ -294,7 +292,6 @@ def synthetic_library(samples: int = 4000) -> tuple[SyntheticCase, ...]:
     return tuple(cases)
 
 
-
 @dataclass(frozen=True)
 class _TransientProcess:
     """A loop of :func:`transient_library` with a loose, slow tuning.
@@ -307,7 +304,7 @@ class _TransientProcess:
     """
 
     model: TransferFunction
-    kind: ProcessKind
+    kind: ProcessType
     Kc: float
     Ti: float
     p_only_Kc: float

@@ -69,7 +69,7 @@ from typing import Any, Literal
 
 import numpy as np
 import scipy.optimize
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from analytics.describing import (
     DescribingChoice,
@@ -89,13 +89,9 @@ from analytics.limit_cycle import (
 from analytics.lti import TransferFunction
 from analytics.oscillation import RAYLEIGH_ENVELOPE_CV
 from analytics.simulation import ClosedLoopModel, PIDController
+from analytics.types import BoolArray, ComplexArray, FloatArray, IntArray, ProcessType
 from analytics.valves import IdealValve, ValveModel
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.int64]
-ProcessType = Literal["self-regulating", "integrating"]
 Control = Literal["P", "PI"]
 Action = Literal["raise Ti", "lower Kc", "Ti below theta"]
 Outcome = Literal["removed", "reduced", "not improved", "unstable"]

@@ -21,6 +21,7 @@ from analytics.kpi import longest_normal_stretch, loop_kpis, manual_samples
 from analytics.lti import TransferFunction
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
+from analytics.types import FloatArray
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
@@ -40,8 +41,6 @@ __all__ = [
     "unit_windows",
     "valve_decisions",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def to_percent_of_span(x: FloatArray | None, span: tuple[float, float] | None) -> FloatArray | None:

@@ -16,16 +16,16 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from analytics.types import FloatArray
 from service.config import LoopConfig, PlantConfig
 from service.store.models import Sample
 
 __all__ = ["CAPACITY_MARGIN", "LoopBuffers", "LoopWindowData", "RingBuffer"]
 
-FloatArray = NDArray[np.float64]
 
 CAPACITY_MARGIN = 1.1
 """Slots per tag as a multiple of ``horizon_s / ts``, for jitter and late samples."""

@@ -59,6 +59,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
 from analytics.kpi import Mode
+from analytics.types import ProcessType
 from service.prediction import ModelError, check_matrix
 
 __all__ = [
@@ -221,7 +222,7 @@ class LoopConfig(_Strict):
     )
     ts: float = Field(gt=0, description="sampling interval, s")
     controller: ControllerConfig | None = None
-    process_type: Literal["self-regulating", "integrating"] | None = None
+    process_type: ProcessType | None = None
     process_model: dict[str, Any] | None = None
     pv_limits: tuple[float, float] | None = Field(
         default=None, description="PV's operating limits (PV units): the KPIs count the "

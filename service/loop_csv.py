@@ -20,13 +20,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
+from analytics.types import FloatArray
 from connectors.replay import read_historian_export
 
 __all__ = ["LoopCsvError", "LoopData", "read_loop_csv"]
 
-FloatArray = NDArray[np.float64]
 
 SIGNALS = ("op", "pv", "sp", "mv")
 

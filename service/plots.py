@@ -46,13 +46,14 @@ from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 import resvg_py
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
 from analytics.lti import TransferFunction, simulate_open_loop
 from analytics.signals import autocorrelation
 from analytics.stiction.signature import EllipseFit
+from analytics.types import FloatArray
 from analytics.valves import ValveModel
 
 __all__ = [
@@ -79,7 +80,6 @@ __all__ = [
     "trend_figure",
 ]
 
-FloatArray = NDArray[np.float64]
 AxisFormat = Literal["number", "time"]
 
 PLOT_WIDTH = 760

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from sqlalchemy.exc import DBAPIError, OperationalError
 
+from analytics.types import FloatArray
 from service.ingest import IngestReport, TagItems, TagReport, parse_timestamp
 
 __all__ = [
@@ -37,8 +38,6 @@ __all__ = [
     "StoreUnavailableError",
     "is_store_outage",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 class StoreUnavailableError(RuntimeError):

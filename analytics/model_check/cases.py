@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.model_check.effects import EFFECTS
 from analytics.model_check.model import (
@@ -50,11 +49,11 @@ from analytics.model_check.model import (
     friction_of,
     friction_valve,
 )
+from analytics.types import FloatArray
 from analytics.valves import ChoudhuryValve, HeValve
 
 __all__ = ["CATALOGUE", "HiddenEffectCase", "hidden_effect_case"]
 
-FloatArray = NDArray[np.float64]
 
 CATALOGUE = ("none", *EFFECTS)
 """Every effect a case can hide, ``none`` first."""

@@ -42,7 +42,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.model_check.cases import CATALOGUE, HiddenEffectCase
 from analytics.model_check.model import (
@@ -52,6 +51,7 @@ from analytics.model_check.model import (
     Valve,
     friction_valve,
 )
+from analytics.types import FloatArray
 from analytics.valves import (
     HE,
     LAST_INPUT,
@@ -64,7 +64,6 @@ from analytics.valves import (
 
 __all__ = ["POSITIONAL", "independent_case"]
 
-FloatArray = NDArray[np.float64]
 
 POSITIONAL = ("valve_characteristic", "position_dependent_stiction")
 """Effects that only show when the valve works at several positions (self-regulating loops)."""

@@ -66,7 +66,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.stats import t as student_t
 
 from analytics.errors import DataError, ModelSpecError
@@ -83,6 +83,7 @@ from analytics.model_check.identify import identify_controller, identify_model
 from analytics.model_check.model import LoopModel, Quantiser, friction_of
 from analytics.oscillation import bandpass, detect_loop_oscillation
 from analytics.signals import autocorrelation
+from analytics.types import BoolArray, FloatArray
 
 __all__ = [
     "MIN_SAMPLES",
@@ -98,8 +99,6 @@ __all__ = [
     "valve_synchronisation",
 ]
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 MIN_SAMPLES = 300
 """Fewest samples a check accepts (eight blocks of a few dozen samples each)."""

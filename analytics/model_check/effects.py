@@ -80,6 +80,7 @@ from analytics.model_check.model import (
     friction_parameters,
     friction_valve,
 )
+from analytics.types import BoolArray, FloatArray
 
 __all__ = [
     "EFFECTS",
@@ -92,8 +93,6 @@ __all__ = [
     "pv_grid",
 ]
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 HeldOut = Literal["odd", "even", "none"]
 
 EFFECTS = (

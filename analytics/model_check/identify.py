@@ -30,17 +30,15 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.errors import DataError
 from analytics.model_check.effects import ReplayData
 from analytics.model_check.model import LoopModel, PIController, Process, ProcessKind, Valve
 from analytics.quantification import quantify_stiction
+from analytics.types import FloatArray
 from analytics.valves import HeValve, KanoValve
 
 __all__ = ["ControllerFit", "identify_controller", "identify_model"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -54,10 +54,11 @@ from typing import Any, Literal
 
 import numpy as np
 from numba import njit
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.special import erfc
 
 from analytics.errors import DataError, ModelSpecError, ValveModelError
+from analytics.types import FloatArray
 from analytics.valves import (
     HE,
     LAST_INPUT,
@@ -86,7 +87,6 @@ __all__ = [
     "friction_valve",
 ]
 
-FloatArray = NDArray[np.float64]
 ProcessKind = Literal["fopdt", "integrating"]
 FrictionValve = HeValve | ChoudhuryValve | KanoValve
 

@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.stiction.evidence import (
     INTEGRATING,
@@ -61,10 +60,10 @@ from analytics.stiction.shape_rules import (
     shape_filter,
     window_problem,
 )
+from analytics.types import FloatArray
 
 __all__ = ["POINTS_PER_HALF_CYCLE", "AreaRatioDetector", "half_cycle_areas"]
 
-FloatArray = NDArray[np.float64]
 
 #: Points at which each half cycle is integrated.
 POINTS_PER_HALF_CYCLE = 128

@@ -82,6 +82,7 @@ from analytics.stiction.evidence import (
     margin_confidence,
 )
 from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, resample_whole_cycles
+from analytics.types import FloatArray
 
 __all__ = [
     "BicoherenceDetector",
@@ -89,8 +90,6 @@ __all__ = [
     "bicoherence_indices",
     "squared_bicoherence",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def _principal_domain(segment_length: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:

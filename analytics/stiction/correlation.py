@@ -52,7 +52,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import fft as sfft
 
 from analytics.oscillation import bandpass
@@ -66,10 +65,9 @@ from analytics.stiction.evidence import (
     margin_confidence,
 )
 from analytics.stiction.shape_rules import window_problem
+from analytics.types import FloatArray
 
 __all__ = ["CrossCorrelationDetector", "ccf_zero_crossings"]
-
-FloatArray = NDArray[np.float64]
 
 
 def ccf_zero_crossings(u: FloatArray, y: FloatArray, max_lag: int) -> tuple[float, float]:

@@ -46,7 +46,6 @@ from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.stiction.evidence import (
     INTEGRATING,
@@ -62,10 +61,10 @@ from analytics.stiction.shape_rules import (
     shape_filter,
     window_problem,
 )
+from analytics.types import FloatArray
 
 __all__ = ["POINTS_PER_HALF_CYCLE", "CurveFitDetector", "half_cycle_fit_errors"]
 
-FloatArray = NDArray[np.float64]
 
 #: Points at which each half cycle is fitted.
 POINTS_PER_HALF_CYCLE = 32

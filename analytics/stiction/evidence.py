@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.errors import DataError
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 
 __all__ = [
     "INTEGRATING",
@@ -34,16 +34,11 @@ __all__ = [
     "margin_confidence",
 ]
 
-FloatArray = NDArray[np.float64]
 
 Decision = Literal["stiction", "no_stiction", "undecided"]
 STICTION: Decision = "stiction"
 NO_STICTION: Decision = "no_stiction"
 UNDECIDED: Decision = "undecided"
-
-ProcessType = Literal["self-regulating", "integrating"]
-SELF_REGULATING: ProcessType = "self-regulating"
-INTEGRATING: ProcessType = "integrating"
 
 
 def _as_signal(x: object, name: str) -> FloatArray | None:

@@ -61,6 +61,7 @@ from analytics.stiction.evidence import (
     ProcessType,
     margin_confidence,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "SHAPES",
@@ -74,7 +75,6 @@ __all__ = [
     "window_problem",
 ]
 
-FloatArray = NDArray[np.float64]
 
 Shape = Literal["square", "triangular", "sinusoidal"]
 SHAPES: tuple[Shape, ...] = ("square", "triangular", "sinusoidal")

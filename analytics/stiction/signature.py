@@ -72,6 +72,7 @@ from analytics.stiction.evidence import (
     margin_confidence,
 )
 from analytics.stiction.shape_rules import window_problem
+from analytics.types import FloatArray
 
 __all__ = [
     "EllipseDetector",
@@ -80,7 +81,6 @@ __all__ = [
     "fit_signature_ellipse",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: ``1 - r^2`` below which the filtered cloud counts as a straight line (r: the
 #: correlation of the filtered signals), i.e. MV = OP exactly.

@@ -86,6 +86,7 @@ from analytics.stiction.evidence import (
     ProcessType,
     margin_confidence,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "MIN_TRAVEL",
@@ -103,7 +104,6 @@ __all__ = [
     "valve_travel",
 ]
 
-FloatArray = NDArray[np.float64]
 
 MIN_TRAVEL = 2.0
 """OP travel beyond noise (OP units, % of span) below which a window shows too

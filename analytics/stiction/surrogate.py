@@ -64,6 +64,7 @@ from analytics.stiction.evidence import (
     MethodEvidence,
     margin_confidence,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "MIN_PERIOD_SAMPLES",
@@ -74,7 +75,6 @@ __all__ = [
     "surrogate_nonlinearity_index",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Shortest period (in raw samples) whose second harmonic is still sampled.
 MIN_PERIOD_SAMPLES = 4.0

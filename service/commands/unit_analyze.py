@@ -21,19 +21,17 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
-from numpy.typing import NDArray
 
 from analytics.errors import AnalyticsError
 from analytics.plantwide import GroupDiagnosis, UnitDiagnosis, UnitModel, diagnose_unit
 from analytics.plantwide.unit import MODEL_NOTE
 from analytics.simulation import ClosedLoopModel
+from analytics.types import FloatArray
 from connectors.base import read_csv_rows
 from service.commands import CliError, read_json_file, read_loop_file
 from service.loop_csv import LoopCsvError
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
-
-FloatArray = NDArray[np.float64]
 
 
 def register(commands: Any) -> None:
