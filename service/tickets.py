@@ -40,7 +40,7 @@ Every change is a :class:`~service.store.models.TicketEvent` with its actor.
 Invalid transitions raise :class:`TicketStateError` (HTTP 409 at the API edge).
 
 Priority, 1 (very high) .. 4 (low) as in SAP PM, see :func:`ticket_priority`.
-CMMS fields, see :func:`to_cmms_notification`.  New and changed tickets are
+CMMS fields, see :func:`service.cmms.to_cmms_notification`.  New and changed tickets are
 notified by webhook and e-mail through the outbox (:mod:`service.notifications`).
 """
 
@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import math
-import textwrap
 from datetime import UTC, datetime
 from typing import Any, Literal, get_args
 
@@ -58,6 +57,7 @@ from sqlalchemy.orm import Session, selectinload
 from analytics.diagnosis import PATTERNS
 from analytics.valves import sj_to_fsfd
 from service.analysis import stiction_pattern_text
+from service.cmms import short_text, to_cmms_notification
 from service.config import CmmsConfig, Importance
 from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
 
@@ -85,7 +85,6 @@ __all__ = [
     "ticket_payload",
     "ticket_priority",
     "ticket_to_dict",
-    "to_cmms_notification",
     "update_ticket_from_analysis",
 ]
 
@@ -168,11 +167,6 @@ _DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
 RUNS_READ_PER_BATCH = 100
 """Runs fetched at a time while looking back for confirmations (one window of minute
 rounds is 60 of them)."""
-
-SHORT_TEXT_CHARS = 40
-"""SAP PM notification short text (QMTXT) length."""
-LONG_TEXT_LINE_CHARS = 132
-"""SAP long-text line (TLINE) length."""
 
 # Severity classes: 0 minor, 1 moderate, 2 severe.  Either a badly sticking
 # valve or a large process cycle makes the repair urgent, so the larger class
@@ -426,10 +420,6 @@ def _utc(t: float) -> datetime:
     return datetime.fromtimestamp(t, UTC)
 
 
-def _short_text(text: str) -> str:
-    return text if len(text) <= SHORT_TEXT_CHARS else text[: SHORT_TEXT_CHARS - 3] + "..."
-
-
 def _pct(value: float | None) -> str:
     return "not quantified" if value is None else f"{value:.2f} %"
 
@@ -561,7 +551,7 @@ def update_ticket_from_analysis(
         pattern = "" if stored["pattern"] is None else f", pattern {stored['pattern']}"
         ticket = Ticket(
             valve_asset=asset, loop_id=loop_id, state="open", priority=priority,
-            title=_short_text(f"Sticky valve {asset}, loop {loop_id}"),
+            title=short_text(f"Sticky valve {asset}, loop {loop_id}"),
             description=_describe(stored), location=location,
             malfunction_start=_window(oldest)[0],
             evidence=stored, created_at=now, updated_at=now,
@@ -642,91 +632,6 @@ def get_ticket(session: Session, ticket_id: int) -> Ticket:
     if ticket is None:
         raise TicketNotFoundError(f"ticket {ticket_id} not found")
     return ticket
-
-
-def to_cmms_notification(ticket: Ticket, cmms: CmmsConfig | None = None) -> dict[str, Any]:
-    """The ticket as a SAP PM M2 notification and as a Maximo work order.
-
-    ``sap_pm``: the header fields of ``BAPI_ALM_NOTIF_CREATE`` (NOTIFHEADER)
-    with notification type ``M2`` (malfunction report): ``FUNCT_LOC`` the
-    loop's location, ``EQUIPMENT`` the valve asset, ``PRIORITY`` "1".."4",
-    ``SHORT_TEXT`` (at most 40 characters), ``STRMLFNDATE``/``STRMLFNTIME``
-    the malfunction start (YYYYMMDD/HHMMSS in UTC), ``BREAKDOWN`` empty (the
-    valve still works); ``LONG_TEXT`` the lines of the long text (at most 132
-    characters each, the LONGTEXTS table).
-
-    ``maximo``: the ``mxwo`` object structure of the Maximo REST API:
-    ``description`` (the short text), ``description_longdescription``,
-    ``assetnum``, ``location``, ``wopriority`` (1 = highest; Maximo's scale is
-    site-defined, map it there if it differs), ``worktype`` "CM"
-    (corrective), ``status`` "WAPPR", ``reportdate`` (ISO 8601), and
-    ``externalrefid``/``sourcesysid`` identifying the ticket here.  A work
-    order has no malfunction-start field: the long text carries it.
-
-    ``cmms`` (the plant file's settings of the ticket's loop,
-    :meth:`service.config.PlantConfig.cmms_of`) adds what is set of:
-    ``PLANPLANT``, ``WORK_CNTR`` and the coding ``CODE_GROUP``/``CODING`` to the
-    SAP header, the damage (``D_CODEGRP``/``D_CODE``) and object part
-    (``DL_CODEGRP``/``DL_CODE``) codes as ``ITEM``, the cause codes
-    (``CAUSE_CODEGRP``/``CAUSE_CODE``) as ``CAUSE``; ``siteid`` and ``orgid`` to
-    the Maximo work order.
-    """
-    start = _utc(ticket.malfunction_start)
-    long_text = (
-        f"Malfunction start: {start.isoformat(timespec='seconds')}\n{ticket.description}"
-    )
-    lines = [
-        line
-        for paragraph in long_text.split("\n")
-        for line in textwrap.wrap(paragraph, LONG_TEXT_LINE_CHARS)
-    ]
-    notification: dict[str, Any] = {
-        "sap_pm": {
-            "NOTIF_TYPE": "M2",
-            "SHORT_TEXT": _short_text(ticket.title),
-            "FUNCT_LOC": ticket.location,
-            "EQUIPMENT": ticket.valve_asset,
-            "PRIORITY": str(ticket.priority),
-            "STRMLFNDATE": start.strftime("%Y%m%d"),
-            "STRMLFNTIME": start.strftime("%H%M%S"),
-            "BREAKDOWN": "",
-            "LONG_TEXT": lines,
-        },
-        "maximo": {
-            "description": _short_text(ticket.title),
-            "description_longdescription": long_text,
-            "assetnum": ticket.valve_asset,
-            "location": ticket.location,
-            "wopriority": ticket.priority,
-            "worktype": "CM",
-            "status": "WAPPR",
-            "reportdate": _utc(ticket.created_at).isoformat(timespec="seconds"),
-            "externalrefid": f"loopwatch-ticket-{ticket.id}",
-            "sourcesysid": "LOOPWATCH",
-        },
-    }
-    if cmms is not None:
-        _add_settings(notification, cmms)
-    return notification
-
-
-SAP_HEADER_FIELDS = {"planning_plant": "PLANPLANT", "work_center": "WORK_CNTR",
-                     "code_group": "CODE_GROUP", "coding": "CODING"}
-SAP_ITEM_FIELDS = {"damage_code_group": "D_CODEGRP", "damage_code": "D_CODE",
-                   "object_part_code_group": "DL_CODEGRP", "object_part_code": "DL_CODE"}
-SAP_CAUSE_FIELDS = {"cause_code_group": "CAUSE_CODEGRP", "cause_code": "CAUSE_CODE"}
-"""Plant-file SAP PM settings -> BAPI_ALM_NOTIF_CREATE fields (header, item, cause)."""
-
-
-def _add_settings(notification: dict[str, Any], cmms: CmmsConfig) -> None:
-    """Add the fields ``cmms`` sets to ``notification``."""
-    sap = cmms.sap_pm.model_dump(exclude_none=True)
-    header = {SAP_HEADER_FIELDS[k]: v for k, v in sap.items() if k in SAP_HEADER_FIELDS}
-    item = {SAP_ITEM_FIELDS[k]: v for k, v in sap.items() if k in SAP_ITEM_FIELDS}
-    cause = {SAP_CAUSE_FIELDS[k]: v for k, v in sap.items() if k in SAP_CAUSE_FIELDS}
-    notification["sap_pm"] |= header | ({"ITEM": item} if item else {}) | (
-        {"CAUSE": cause} if cause else {})
-    notification["maximo"] |= cmms.maximo.model_dump(exclude_none=True)
 
 
 def ticket_to_dict(ticket: Ticket) -> dict[str, Any]:

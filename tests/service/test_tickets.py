@@ -6,6 +6,7 @@ import pytest
 from analytics.oscillation import detect_loop_oscillation
 from analytics.quantification import combine_windows, quantify_stiction
 from analytics.synthetic_cases import synthetic_library
+from service.cmms import to_cmms_notification
 from service.store.models import AnalysisRun, Loop, Ticket, TicketEvent
 from service.tickets import (
     MAX_TICKET_EPISODES,
@@ -19,7 +20,6 @@ from service.tickets import (
     size_moved,
     ticket_priority,
     ticket_to_dict,
-    to_cmms_notification,
     update_ticket_from_analysis,
 )
 

@@ -18,6 +18,7 @@ from service.api.deps import (
     row_id,
 )
 from service.api.schemas.tickets import CmmsExport
+from service.cmms import to_cmms_notification
 from service.logs import audit
 from service.store.models import Ticket
 from service.tickets import (
@@ -29,7 +30,6 @@ from service.tickets import (
     list_tickets,
     ticket_payload,
     ticket_to_dict,
-    to_cmms_notification,
 )
 
 router = APIRouter(prefix="/api/v1/tickets", tags=["tickets"],

@@ -1,5 +1,5 @@
 """A ticket's CMMS export (``GET /api/v1/tickets/{id}/cmms``,
-:func:`service.tickets.to_cmms_notification`): a SAP PM M2 notification and a Maximo
+:func:`service.cmms.to_cmms_notification`): a SAP PM M2 notification and a Maximo
 work order.  Fields the plant file's CMMS settings do not set are absent."""
 
 from __future__ import annotations
