@@ -65,6 +65,7 @@ from analytics.stiction.shape_rules import (
     classify_cycle_shape,
     resample_segments,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "SHAPE_DUTIES",
@@ -75,7 +76,6 @@ __all__ = [
     "fit_cycle",
 ]
 
-FloatArray = NDArray[np.float64]
 
 SHAPE_DUTIES = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
 """Duty cycles of the square waves (a duty ``d`` and ``1 - d`` differ only in sign)."""

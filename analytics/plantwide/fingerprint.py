@@ -67,12 +67,13 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from analytics.describing import choudhury_df
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import ProcessMatrix, _predictor, predict_limit_cycles
 from analytics.simulation import PIDController
+from analytics.types import ComplexArray, FloatArray
 from analytics.valves import ChoudhuryValve, IdealValve, ValveModel
 
 __all__ = [
@@ -91,8 +92,6 @@ __all__ = [
     "measure_fingerprint",
 ]
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 
 MODEL_ERROR = 0.2
 """Relative error of a predicted PV phasor allowed for the model (a process

@@ -49,7 +49,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import fft as sfft
 
 from analytics.errors import DataError
@@ -59,6 +59,7 @@ from analytics.oscillation import (
     detect_oscillations,
     envelope_variation,
 )
+from analytics.types import FloatArray
 
 __all__ = [
     "RAYLEIGH_ENVELOPE_CV",
@@ -68,7 +69,6 @@ __all__ = [
     "find_oscillation_groups",
 ]
 
-FloatArray = NDArray[np.float64]
 
 FAST_PERIOD_BAND_RATIO = 1.05
 """Band edges of the second, fast-period pass (``fc / 1.05 .. fc * 1.05``)."""

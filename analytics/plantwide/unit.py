@@ -67,7 +67,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from analytics.diagnosis import HAMMERSTEIN_GAIN_SCALE
 from analytics.errors import DataError
@@ -89,6 +89,7 @@ from analytics.plantwide.groups import (
 from analytics.quantification import MIN_FIT_R2, MIN_R2_GAIN, StictionEstimate, quantify_stiction
 from analytics.stiction.evidence import margin_confidence
 from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinearity_index
+from analytics.types import FloatArray
 
 __all__ = [
     "LIMIT_CYCLE_ENVELOPE_CV",
@@ -101,7 +102,6 @@ __all__ = [
     "diagnose_unit",
 ]
 
-FloatArray = NDArray[np.float64]
 
 MODEL_NOTE = ("diagnosed from the data alone; the unit's process matrix and controller "
               "tunings would make it stronger: with them every sticky set is tested "
