@@ -43,7 +43,7 @@ import numpy as np
 from analytics.errors import ModelSpecError
 from analytics.lti import DiscreteEntry, TransferFunction, discretise
 from analytics.scenarios import chapter4
-from analytics.simulation import Loop, PIDController
+from analytics.simulation import Loop
 from analytics.types import FloatArray
 from analytics.valves import HeValve, ValveStepper
 
@@ -562,46 +562,6 @@ class ModelBasedRun(CompensatorRun):
 
 
 # ---------------------------------------------------------------- closed loop
-class _PIController:
-    """One sample of :class:`PIDController` as the compiled simulator computes it.
-
-    Same recursion as ``analytics.simulation._closed_loop`` (integral from
-    ``op_bias``, derivative on the filtered measurement, anti-windup by
-    tracking the output limits), plus tracking of an externally held output.
-    """
-
-    def __init__(self, controller: PIDController, dt: float, pv0: float) -> None:
-        self.c = controller
-        self.dt = dt
-        self.sign = 1.0 if controller.action == "reverse" else -1.0
-        self.tf = controller.derivative_filter_time(dt)
-        self.integral = controller.op_bias
-        self.deriv = 0.0
-        self.pv_prev = pv0
-        self._proportional = 0.0
-
-    def step(self, sp: float, pv: float) -> float:
-        c = self.c
-        err = self.sign * (sp - pv)
-        self.integral += c.ki * self.dt * err
-        if self.tf > 0.0:
-            self.deriv = (self.tf * self.deriv - c.kd * self.sign * (pv - self.pv_prev)) / (
-                self.tf + self.dt
-            )
-        self.pv_prev = pv
-        self._proportional = c.kp * err
-        out = self._proportional + self.integral + self.deriv
-        low, high = c.op_limits
-        if out > high or out < low:
-            return self.track(min(max(out, low), high))
-        return out
-
-    def track(self, out: float) -> float:
-        """Force the output to ``out`` and set the integral so the next step is bumpless."""
-        self.integral = out - self._proportional - self.deriv
-        return out
-
-
 class _SampledProcess:
     """The :class:`analytics.lti.DiscreteEntry` recursion on plain floats, one sample a call.
 
@@ -734,7 +694,7 @@ def simulate_compensated(
 
     plant = _SampledProcess(discretise(process, dt), n_samples)
     op_bias = loop.controller.op_bias
-    controller = _PIController(loop.controller, dt, loop.pv_bias)
+    controller = loop.controller.stepper(dt, loop.pv_bias)
     valve = loop.valve.stepper(op_bias, dt)
     run: CompensatorRun = _PassThrough()
     switch_on = math.ceil(compensate_from / dt - 1e-9)

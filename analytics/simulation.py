@@ -141,6 +141,10 @@ class PIDController:
             f"a controller needs 'Kc' (with 'Ti') or 'Kp' (with 'Ki'), got keys {sorted(spec)}"
         )
 
+    def stepper(self, dt: float, pv0: float) -> PIDStepper:
+        """This controller one sample a call (:class:`PIDStepper`), from PV ``pv0``."""
+        return PIDStepper(self, dt, pv0)
+
     def derivative_filter_time(self, dt: float) -> float:
         """Derivative filter time constant ``Td / N`` (``dt`` when ``kp = 0`` leaves
         ``Td`` undefined; 0 without derivative action)."""
@@ -158,6 +162,47 @@ class PIDController:
             "op_limits": list(self.op_limits),
             "op_bias": self.op_bias,
         }
+
+
+class PIDStepper:
+    """A :class:`PIDController` one sample a call, for loops simulated in Python.
+
+    Same recursion as the compiled :func:`_closed_loop` (integral from
+    ``op_bias``, derivative on the filtered measurement, anti-windup by
+    tracking the output limits), plus tracking of an externally held output
+    (a compensator that overrides OP, :mod:`analytics.compensation`).
+    """
+
+    def __init__(self, controller: PIDController, dt: float, pv0: float) -> None:
+        self.c = controller
+        self.dt = dt
+        self.sign = 1.0 if controller.action == "reverse" else -1.0
+        self.tf = controller.derivative_filter_time(dt)
+        self.integral = controller.op_bias
+        self.deriv = 0.0
+        self.pv_prev = pv0
+        self._proportional = 0.0
+
+    def step(self, sp: float, pv: float) -> float:
+        c = self.c
+        err = self.sign * (sp - pv)
+        self.integral += c.ki * self.dt * err
+        if self.tf > 0.0:
+            self.deriv = (self.tf * self.deriv - c.kd * self.sign * (pv - self.pv_prev)) / (
+                self.tf + self.dt
+            )
+        self.pv_prev = pv
+        self._proportional = c.kp * err
+        out = self._proportional + self.integral + self.deriv
+        low, high = c.op_limits
+        if out > high or out < low:
+            return self.track(min(max(out, low), high))
+        return out
+
+    def track(self, out: float) -> float:
+        """Force the output to ``out`` and set the integral so the next step is bumpless."""
+        self.integral = out - self._proportional - self.deriv
+        return out
 
 
 @dataclass(frozen=True)
