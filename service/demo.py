@@ -80,6 +80,8 @@ class DemoFeeder:
         self.tags = [tag for loop in spec["loops"] for tag in loop["tags"].values()]
         self.backfilled_until: float | None = None
         """UNIX time up to which :meth:`start` back-filled."""
+        self.backfilled_from: float | None = None
+        """UNIX time from which :meth:`start` back-filled."""
         self._first_live: dict[str, float] = {}
         self._lock = threading.Lock()
 
@@ -100,20 +102,36 @@ class DemoFeeder:
     def history_text(self) -> str:
         """The back-filled history in words, as the start banner and the log say it.
 
-        >>> DemoFeeder(history_s=7200, max_batch_samples=1000, clock=lambda: 0.0).history_text
+        >>> feeder = DemoFeeder(history_s=7200, max_batch_samples=1000, clock=lambda: 0.0)
+        >>> feeder.history_text
         'the last 2 h (7200 s)'
+        >>> feeder.backfilled_from, feeder.backfilled_until = -600.0, 0.0  # after a restart
+        >>> feeder.history_text
+        'the last 10 min (600 s), after the samples stored by the run before'
         """
-        hours, minutes = divmod(round(self.history_s / 60), 60)
+        span = self.history_s
+        if self.backfilled_from is not None and self.backfilled_until is not None:
+            span = self.backfilled_until - self.backfilled_from
+        hours, minutes = divmod(round(span / 60), 60)
         words = " ".join(part for part in (f"{hours} h" if hours else "",
                                            f"{minutes} min" if minutes else "") if part)
-        return f"the last {words or f'{self.history_s:g} s'} ({self.history_s:g} s)"
+        text = f"the last {words or f'{span:.0f} s'} ({span:.0f} s)"
+        return text if span >= self.history_s else text + (
+            ", after the samples stored by the run before")
 
-    def start(self, ingest: SampleSink) -> int:
-        """Serve the plant and ingest its last ``history_s``; the number of samples."""
+    def start(self, ingest: SampleSink, *, after: float | None = None) -> int:
+        """Serve the plant and ingest its last ``history_s``; the number of samples.
+
+        ``after`` is the latest sample the store already holds of the plant's tags (a
+        restart within the history): the back-fill starts after it, since this run's
+        plant is simulated from another origin and its samples would interleave with
+        the stored ones (two plants in one window); the seam is a plant restart.
+        """
         self.plant.start_in_thread()
         now = self.clock()
-        samples = self._ingest_history(ingest, now - self.history_s, dict.fromkeys(self.tags, now))
-        self.backfilled_until = now
+        since = now - self.history_s if after is None else max(now - self.history_s, after)
+        samples = self._ingest_history(ingest, since, dict.fromkeys(self.tags, now))
+        self.backfilled_from, self.backfilled_until = since, now
         log.info("demo plant: back-filled %d samples of %s", samples, self.history_text)
         return samples
 

@@ -41,6 +41,7 @@ from typing import Any, Protocol
 
 import uvicorn
 from fastapi import FastAPI
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -66,6 +67,7 @@ from service.plant import PlantRegistry, sync_plant
 from service.runtime import AppState, WatchedSource
 from service.scheduler import AnalysisScheduler
 from service.store.db import Store
+from service.store.models import Sample
 
 __all__ = [
     "INGEST_ROLES",
@@ -164,7 +166,10 @@ class Service:
     def start(self) -> None:
         """Start the demo plant with its back-fill, the connectors, then scheduling."""
         if self.feeder is not None:
-            self.feeder.start(self.state.ingest)
+            with self.state.store.session() as session:
+                stored_until = session.scalar(
+                    select(func.max(Sample.time)).where(Sample.tag.in_(self.feeder.tags)))
+            self.feeder.start(self.state.ingest, after=stored_until)
         for connector in self.connectors:
             connector.start()
         if self.feeder is not None:
