@@ -36,6 +36,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.alarms import AlarmStateError
 from service.api.deps import Principal, require
 from service.api.routes import (
+    advice,
     alarms,
     dashboard,
     ingest,
@@ -46,6 +47,7 @@ from service.api.routes import (
     reports,
     system,
     tickets,
+    unit_diagnosis,
     unit_prediction,
 )
 from service.logs import RequestIdMiddleware
@@ -126,8 +128,8 @@ def create_app(state: AppState) -> FastAPI:
         redoc_url=None,
     )
     app.state.loopwatch = state
-    for module in (system, loops, unit_prediction, plots, model_check, alarms, tickets,
-                   reports, ingest, keys, dashboard):
+    for module in (system, loops, advice, unit_diagnosis, unit_prediction, plots, model_check,
+                   alarms, tickets, reports, ingest, keys, dashboard):
         app.include_router(module.router)
 
     @app.get("/openapi.json", include_in_schema=False)

@@ -246,6 +246,14 @@ def require(permission: Permission | None) -> RequireKey:
 
 Reader = Annotated[Principal, Depends(require("read"))]
 """Any key whose role may read."""
+Operator = Annotated[Principal, Depends(require("alarms"))]
+"""A key whose role may act on alarms."""
+Maintenance = Annotated[Principal, Depends(require("tickets"))]
+"""A key whose role may change tickets."""
+Historian = Annotated[Principal, Depends(require("ingest"))]
+"""A key whose role may push samples."""
+Admin = Annotated[Principal, Depends(require("admin"))]
+"""An admin key."""
 
 
 def _analysis_slot(state: StateDep, principal: Reader) -> Iterator[Principal]:

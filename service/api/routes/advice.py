@@ -10,14 +10,14 @@ from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
 from analytics.tuning import CycleAgreement, Tuning, advise, cycle_origin, detune
-from service.api.deps import Analyst, SessionDep, StateDep, error_responses
+from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, error_responses
 from service.api.schemas.advice import LoopAdvice
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
 from service.tickets import latest_loop_run
 
-# included by the loops router under /api/v1
-router = APIRouter(tags=["advice"], responses=error_responses(409))
+router = APIRouter(prefix="/api/v1", tags=["advice"],
+                   responses={**ERROR_RESPONSES, **error_responses(404, 409)})
 
 SIMULATED_S = 4000.0
 """Length of the simulations that verify each candidate tuning."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Body, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field
 from sqlalchemy.orm import Session
 
@@ -23,13 +23,14 @@ from service.alarms import (
 from service.api.deps import (
     ERROR_RESPONSES,
     NOT_MODIFIED,
+    Admin,
     AppState,
     Offset,
-    Principal,
+    Operator,
+    Reader,
     SessionDep,
     StateDep,
     error_responses,
-    require,
     row_id,
     shared_answer,
 )
@@ -39,9 +40,6 @@ from service.store.models import Alarm
 router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"],
                    responses={**ERROR_RESPONSES, **error_responses(404, 409)})
 AlarmId = Annotated[int, row_id("the alarm's id")]
-Reader = Annotated[Principal, Depends(require("read"))]
-Operator = Annotated[Principal, Depends(require("alarms"))]
-Admin = Annotated[Principal, Depends(require("admin"))]
 
 
 class AlarmEventPublic(BaseModel):

@@ -3,19 +3,18 @@ and CSV."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, cast
+from typing import Any, cast
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import TypeAdapter
 
-from service.api.deps import ERROR_RESPONSES, Principal, StateDep, require
+from service.api.deps import ERROR_RESPONSES, Historian, StateDep
 from service.api.schemas.ingest import IngestAnswer
 from service.ingest import IngestError, IngestReport, PiStream, PiStreams, TagItems
 
 router = APIRouter(prefix="/api/v1/ingest", tags=["ingest"], responses=ERROR_RESPONSES)
-Historian = Annotated[Principal, Depends(require("ingest"))]
 
 MAX_CSV_BYTES = 20 * 1024 * 1024
 

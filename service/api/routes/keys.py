@@ -4,16 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, Field
 
 from service.api.deps import (
     ERROR_RESPONSES,
-    Principal,
+    Admin,
     SessionDep,
     StateDep,
     error_responses,
-    require,
     row_id,
 )
 from service.auth import AuthError, KeyConflictError, Role, create_key, list_keys, revoke_key
@@ -21,7 +20,6 @@ from service.logs import audit
 from service.store.models import ApiKey
 
 router = APIRouter(prefix="/api/v1/keys", tags=["keys"], responses=ERROR_RESPONSES)
-Admin = Annotated[Principal, Depends(require("admin"))]
 
 
 class KeyCreate(BaseModel):

@@ -6,7 +6,7 @@ from itertools import pairwise
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, Field, ValidationError
 from sqlalchemy import BigInteger, cast, func, select
 from sqlalchemy.orm import Session
@@ -15,17 +15,16 @@ from service.analysis import stiction_pattern_text
 from service.api.deps import (
     ERROR_RESPONSES,
     NOT_MODIFIED,
+    Admin,
     AppState,
     Offset,
-    Principal,
+    Reader,
     SessionDep,
     StateDep,
     TimeQuery,
     error_responses,
-    require,
     shared_answer,
 )
-from service.api.routes import advice, unit_diagnosis
 from service.api.schemas.diagnosis import LoopDiagnosisPublic
 from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.config import LoopConfig
@@ -36,10 +35,6 @@ from service.tickets import run_episodes
 
 router = APIRouter(prefix="/api/v1", tags=["loops"],
                    responses={**ERROR_RESPONSES, **error_responses(404)})
-router.include_router(advice.router)
-router.include_router(unit_diagnosis.router)
-Reader = Annotated[Principal, Depends(require("read"))]
-Admin = Annotated[Principal, Depends(require("admin"))]
 
 
 class LoopPublic(BaseModel):

@@ -32,7 +32,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Response
 from pydantic import BaseModel
 from sqlalchemy import select
 
@@ -46,10 +46,10 @@ from service.analysis import to_percent_of_span
 from service.api.deps import (
     ERROR_RESPONSES,
     Principal,
+    Reader,
     SessionDep,
     StateDep,
     TimeQuery,
-    require,
 )
 from service.api.routes.loops import loop_data
 from service.api.schemas.files import BINARY, TEXT
@@ -60,7 +60,6 @@ from service.store.models import AnalysisRun, Loop
 from service.tickets import latest_loop_run
 
 router = APIRouter(prefix="/api/v1/loops", tags=["plots"], responses=ERROR_RESPONSES)
-Reader = Annotated[Principal, Depends(require("read"))]
 
 PlotKind = Literal["trend", "signature", "spectrum", "nyquist", "history"]
 PlotFormat = Literal["svg", "png"]

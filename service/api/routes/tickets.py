@@ -4,17 +4,17 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query
 from pydantic import BaseModel, Field
 
 from service.api.deps import (
     ERROR_RESPONSES,
+    Maintenance,
     Offset,
-    Principal,
+    Reader,
     SessionDep,
     StateDep,
     error_responses,
-    require,
     row_id,
 )
 from service.api.schemas.tickets import CmmsExport
@@ -35,8 +35,6 @@ from service.tickets import (
 router = APIRouter(prefix="/api/v1/tickets", tags=["tickets"],
                    responses={**ERROR_RESPONSES, **error_responses(404, 409)})
 TicketId = Annotated[int, row_id("the ticket's id")]
-Reader = Annotated[Principal, Depends(require("read"))]
-Maintenance = Annotated[Principal, Depends(require("tickets"))]
 
 
 class TicketEventPublic(BaseModel):

@@ -9,15 +9,15 @@ from sqlalchemy import select
 
 from analytics.errors import AnalyticsError
 from service.analysis import UnitWindowsError, analyse_unit, unit_windows
-from service.api.deps import Analyst, SessionDep, StateDep, error_responses
+from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, error_responses
 from service.api.schemas.units import UnitDiagnosisPublic
 from service.config import LoopConfig
 from service.store.models import Loop, Unit
 from service.tickets import latest_unit_run
 from service.verdicts import named_valves
 
-# included by the loops router under /api/v1
-router = APIRouter(tags=["units"], responses=error_responses(404))
+router = APIRouter(prefix="/api/v1", tags=["units"],
+                   responses={**ERROR_RESPONSES, **error_responses(404)})
 
 
 @router.get("/units/{unit_id}/diagnosis", response_model=UnitDiagnosisPublic,
