@@ -530,8 +530,9 @@ class AnalysisScheduler:
 
     def _store_run(self, loop: LoopConfig, now: float, outcome: JobOutcome,
                    round_end: float | None, *, decided: bool) -> RunSummary:
-        """The run with the loop's own verdict on its valve (:func:`settle_run`) and, if
-        ``decided`` (a loop in no unit), its alarms and ticket in one transaction."""
+        """The run with the final verdict on its valve (:func:`settle_run`: the loop's own,
+        or its unit's latest decision) and, if ``decided`` (a loop in no unit), its alarms
+        and ticket in one transaction."""
         diagnosis = outcome.result
         with self.store.session() as session:
             run = AnalysisRun(
@@ -545,7 +546,12 @@ class AnalysisScheduler:
                 run.oscillating = diagnosis["oscillation"]["detected"]
                 run.period_s = diagnosis["oscillation"]["period_s"]
                 run.result = diagnosis
-                settle_run(run, None, previous_size_windows(session, run))
+                # A unit's latest decision keeps the last word until its diagnosis of this
+                # round: the pages never show a cleared valve's own finding in between.
+                unit_loops = self._units().get(loop.unit or "", [])
+                unit = None if not unit_loops else latest_unit_decision(
+                    session, str(loop.unit), {x.id: x.valve_asset or x.id for x in unit_loops})
+                settle_run(run, unit, previous_size_windows(session, run))
             session.add(run)
             session.flush()
             ticket_id = None

@@ -20,6 +20,7 @@ from sqlalchemy import select
 from analytics.scenarios import column3x3
 from connectors.plant_sim import COLUMN_LOOPS, _controller_config, column_process
 from service.config import PlantConfig, Settings
+from service.scheduler import JobOutcome
 from service.server import Service, build_service
 from service.store.db import Store
 from service.store.models import AnalysisRun, Ticket, UnitAnalysisRun
@@ -185,6 +186,23 @@ def test_every_page_reads_the_units_final_verdict_on_each_valve(make_service, ba
     assert {valve for g in diagnosis["groups"] for valve in g["sticky_valves"]} == {"FV-502"}
     assert {loop for g in diagnosis["groups"] for loop in g["sticky_loops"]} == {"AIC-502"}
     assert [t["valve_asset"] for t in get("/tickets")["data"]] == ["FV-502"]
+
+
+def test_a_loop_run_stored_before_its_units_diagnosis_reads_the_units_last_decision(
+        make_service, batch):
+    """A round stores the loops' runs, then the unit's diagnosis settles them: in between,
+    a cleared valve's new run must not show its own finding (the end-to-end test caught
+    AIC-501 as 'stiction' in /loops in those seconds)."""
+    svc = make_service(column_plant(unit="column"))
+    svc.state.ingest(batch)
+    svc.scheduler.run_round(FIRST_ROUND)
+    loop = next(x for x in svc.state.registry.plant.loops if x.id == "AIC-501")
+    with svc.state.store.session() as session:
+        own = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "AIC-501")).one()
+        finding = {k: v for k, v in own.result.items() if k != "valve"}
+    assert finding["stiction"]["verdict"] == "stiction"  # its own battery blames its valve
+    summary = svc.scheduler._store_run(loop, T0, JobOutcome("ok", finding), None, decided=False)
+    assert summary.verdict == "no_stiction"  # the unit's decision of the round before
 
 
 def test_with_the_units_model_only_the_sticky_valve_gets_a_ticket_too(make_service, batch):
