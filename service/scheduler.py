@@ -68,7 +68,7 @@ from service.analysis import (
     valve_decisions,
 )
 from service.buffer import LoopBuffers
-from service.config import LoopConfig, Settings
+from service.config import LoopConfig, PlantConfig, Settings
 from service.executors import end_executor, executor_slots, kills_workers
 from service.ingest import purge_samples
 from service.leader import Election, instance_name
@@ -198,6 +198,9 @@ class AnalysisScheduler:
         self._last_purge = -float("inf")
         self._synced_until: float | None = None
         self._log_mark = -math.inf  # newest ingest_log.received_at read by a sync
+        # the units of the plant object they were read from (the registry replaces it on
+        # change): every stored run asks for its unit's loops
+        self._units_of: tuple[PlantConfig | None, dict[str, list[LoopConfig]]] = (None, {})
 
     @property
     def leading(self) -> bool:
@@ -369,11 +372,15 @@ class AnalysisScheduler:
 
     def _units(self) -> dict[str, list[LoopConfig]]:
         """The plant's units of two or more loops, each with its loops in plant order."""
-        units: dict[str, list[LoopConfig]] = {}
-        for loop in self.registry.plant.loops:
-            if loop.unit is not None:
-                units.setdefault(loop.unit, []).append(loop)
-        return {unit: loops for unit, loops in units.items() if len(loops) >= 2}
+        plant = self.registry.plant
+        if self._units_of[0] is not plant:
+            units: dict[str, list[LoopConfig]] = {}
+            for loop in plant.loops:
+                if loop.unit is not None:
+                    units.setdefault(loop.unit, []).append(loop)
+            self._units_of = (plant, {unit: loops for unit, loops in units.items()
+                                      if len(loops) >= 2})
+        return self._units_of[1]
 
     def _analyse(self, loops: Iterable[LoopConfig], now: float,
                  round_end: float | None) -> list[RunSummary]:
