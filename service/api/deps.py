@@ -172,7 +172,11 @@ async def get_session(state: StateDep) -> AsyncIterator[Session]:
     pool: one trip through the pool per request instead of two (a plain generator is
     entered and left there).  As FastAPI leaves a plain generator, the commit cannot be
     cancelled and does not wait for the pool's capacity (a full pool of requests waiting
-    for connections that sessions waiting to close hold would never drain)."""
+    for connections that sessions waiting to close hold would never drain).
+
+    The transaction ends before the answer is sent (``scope="function"``; FastAPI's
+    default ends it after): a client reading right after a 2xx sees its write, and a
+    commit that fails is a 500 instead of a success for a write that was lost."""
     transaction = state.store.session()
     session = transaction.__enter__()
     try:
@@ -187,7 +191,7 @@ async def get_session(state: StateDep) -> AsyncIterator[Session]:
                                  limiter=CapacityLimiter(1))
 
 
-SessionDep = Annotated[Session, Depends(get_session)]
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _key_header = APIKeyHeader(name="X-API-Key", auto_error=False)
 

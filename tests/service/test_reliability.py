@@ -495,3 +495,36 @@ def test_an_analysis_slot_is_free_before_its_answer_is_sent(tmp_path):
     service.state.close_analyses()
     service.executor.shutdown()
     service.state.store.close()
+
+
+# ----------------------------------------------------------------------------- commits
+
+
+def test_a_write_is_answered_only_after_its_commit(svc, monkeypatch):
+    """A route's transaction commits before its answer is sent: a client that reads
+    right after a 200 sees its write (the dashboard redraws an acknowledged alarm from
+    the next GET), and a commit that fails is a 500, never a 200 for a lost write.
+    FastAPI's default ends a ``yield`` dependency only after the response is sent."""
+    from sqlalchemy import event
+    from sqlalchemy.orm import Session
+
+    client = TestClient(svc.app, raise_server_exceptions=False)
+
+    def wrote(session: Session, _context: object) -> None:
+        session.info["wrote"] = True
+
+    def refuse(session: Session) -> None:
+        if session.info.get("wrote"):  # the key's insert; reads commit nothing
+            raise RuntimeError("the disk is full")
+
+    event.listen(Session, "after_flush", wrote)
+    event.listen(Session, "before_commit", refuse)
+    try:
+        answer = client.post("/api/v1/keys", json={"name": "lost", "role": "viewer"},
+                             headers=HEADERS)
+    finally:
+        event.remove(Session, "before_commit", refuse)
+        event.remove(Session, "after_flush", wrote)
+    assert answer.status_code == 500
+    names = [k["name"] for k in client.get("/api/v1/keys", headers=HEADERS).json()["data"]]
+    assert "lost" not in names
