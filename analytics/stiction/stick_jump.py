@@ -393,6 +393,7 @@ def find_stick_episodes(
     follow_jump_bands: float = 4.0,
     max_follow_ratio: float = 0.8,
     reference: FloatArray | None = None,
+    level_error: FloatArray | None = None,
 ) -> EpisodeAnalysis:
     """Holds of the valve proxy with OP travel, and the jumps that end them.
 
@@ -435,6 +436,13 @@ def find_stick_episodes(
     reference : ndarray, optional
         What a stick-jump heads for (the set point); the proxy's median if
         None.
+    level_error : ndarray, optional
+        For an integrating process (the proxy is PV's slope): the level's
+        error, set point (else the median PV) minus PV.  A slip turns the slope
+        back towards its median (the valve returns to the balance of in- and
+        outflow) or the way that closes the level's error (the controller's
+        integral action pushed it off the balance); a load turns the slope
+        away from the balance while the level sits at its set point.
     """
     pv_noise = robust_noise(proxy)
     op_noise = robust_noise(op)
@@ -444,6 +452,9 @@ def find_stick_episodes(
     band = max(band_sigmas * pv_noise / np.sqrt(smoothing), 1e-9 * max(span, 1.0))
     if reference is None:
         reference = np.full(y.size, float(np.median(y)))
+    if level_error is not None:
+        error = moving_average(level_error, smoothing)
+        error_band = band_sigmas * robust_noise(level_error) / np.sqrt(smoothing)
     moves = travel_increments(u, travel_sigmas * op_noise)
     flat = [h for h in _holds(y, band) if h[1] - h[0] >= min_hold and _is_flat(y[h[0]:h[1]], band)]
     periods = _stuck_periods(flat, band, max_transition_fraction)
@@ -511,10 +522,16 @@ def find_stick_episodes(
         # moved PV towards it (a load moves PV away from where it held).  The
         # reference during the hold, or just after the jump: operators often
         # move the set point to where a sticky valve's flow ended up.
-        toward = any(
-            abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
-            for offset in (float(np.median(reference[s:e])) - level,
-                           float(np.median(reference[s_after:s_after + min_hold])) - level))
+        offsets = (float(np.median(reference[s:e])) - level,
+                   float(np.median(reference[s_after:s_after + min_hold])) - level)
+        toward = any(abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
+                     for offset in offsets)
+        if level_error is not None and not toward:
+            # or the slope turned to close the level's error, over the hold or as
+            # the valve slipped
+            errors = (float(np.median(error[s:e])), float(np.median(error[e - step:e])))
+            toward = any(abs(offset) >= error_band and np.sign(pv_jump) == np.sign(offset)
+                         for offset in errors)
         direction = np.sign(pv_jump) * np.sign(op_travel)
         consistent = toward and (gain_sign == 0 or direction == gain_sign)
         episode = StickEpisode(s, jump_end, e, op_travel, float(pv_jump), op_during_jump,
@@ -547,8 +564,10 @@ def valve_proxy(pv: FloatArray, ts: float, process_type: ProcessType | None,
 def analyse_window(window: LoopWindow) -> EpisodeAnalysis | None:
     """The stick-jump episodes of ``window`` (None without OP and PV).
 
-    The reference a jump must head for is the set point when given (not for
-    an integrating process, whose proxy is a slope), else the proxy's median.
+    The reference a jump must head for is the set point when given, else the
+    proxy's median; for an integrating process, whose proxy is a slope, a jump
+    may also turn the slope the way that closes the level's error (set point,
+    else the median PV, minus PV).
     The episodes are looked for at every smoothing of :data:`SMOOTHING_SCALES`;
     the scale whose episodes outnumber the contrary jumps most is reported
     (the band, hence the significance of a jump, follows the noise left at
@@ -558,11 +577,13 @@ def analyse_window(window: LoopWindow) -> EpisodeAnalysis | None:
         return None
     proxy = valve_proxy(window.pv, window.ts, window.process_type)
     sign = loop_gain_sign(window.op, window.pv, window.sp)
-    use_sp = window.sp is not None and window.process_type != INTEGRATING
+    integrating = window.process_type == INTEGRATING
+    set_point = np.median(window.pv) if window.sp is None else window.sp
     analyses = [
         find_stick_episodes(window.op, proxy, gain_sign=sign, smoothing=smoothing,
                             min_hold=MIN_HOLD * smoothing // SMOOTHING_SCALES[0],
-                            reference=window.sp if use_sp else None)
+                            reference=None if integrating else window.sp,
+                            level_error=set_point - window.pv if integrating else None)
         for smoothing in SMOOTHING_SCALES
     ]
     return max(analyses, key=lambda a: len(a.episodes) - len(a.contrary))

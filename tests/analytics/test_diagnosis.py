@@ -187,8 +187,8 @@ def test_isdb_floor():
 
 @pytest.mark.slow
 def test_transient_library_floor():
-    """Issue 17 on the non-oscillating library: at least 16 of its 20 sticky valves
-    found (17 today), none of its 21 healthy look-alikes called sticky."""
+    """Issue 17 on the non-oscillating library: at least 17 of its 20 sticky valves
+    found (18 today), none of its 21 healthy look-alikes called sticky."""
     found = false_alarms = 0
     for case in transient_library():
         r = case.simulate()
@@ -198,7 +198,7 @@ def test_transient_library_floor():
             found += d.stiction.verdict == "stiction"
         else:
             false_alarms += d.stiction.verdict == "stiction"
-    assert found >= 16
+    assert found >= 17
     assert false_alarms == 0
 
 

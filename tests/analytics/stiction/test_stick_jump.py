@@ -184,3 +184,29 @@ def test_a_small_stick_band_on_a_noisy_flow_shows_at_a_coarser_smoothing():
     for episode in analysis.episodes:
         assert np.sign(mv[episode.end] - mv[episode.start]) == np.sign(episode.op_travel)
     assert StickJumpDetector().decide(analysis).decision == STICTION
+
+
+@pytest.mark.parametrize("seed", [2001, 2002, 2003, 2004])
+def test_a_level_s_slope_turning_to_close_the_level_error_is_a_slip(seed):
+    """A level behind a sticky valve on a set-point ramp: integral action pushes
+    the valve off the in/outflow balance to bring the level to its new set point,
+    so the slope of PV jumps away from its median, the way that closes the
+    level's error.  Those slips count (before, only slips back towards the
+    median slope did, and most of these windows were called healthy); the same
+    loop with a healthy valve stays clean.  Seeds other than the library's."""
+    from analytics.synthetic_cases import TRANSIENT_PROCESSES, SyntheticCase, _events, _noise
+    from analytics.valves import HeValve
+
+    level = TRANSIENT_PROCESSES["level"]
+    setpoint, loads = _events("sp-ramp", level, 2000, 5.0, seed)
+    noise = _noise(level.noise_levels[seed % len(level.noise_levels)], seed)
+    verdicts = {}
+    for label, valve in (("stiction", HeValve(1.25, 0.75)), ("no_stiction", IdealValve())):
+        case = SyntheticCase("level-ramp", label, "stick_jump", level.kind, 5.0, 2.0, 0.5,
+                             valve, level.model, PIDController.ideal(level.Kc, level.Ti),
+                             (*loads, noise), 2000, setpoint)
+        result = case.simulate()
+        window = LoopWindow(5.0, result.op[0], result.pv[0], sp=result.sp[0],
+                            process_type="integrating")
+        verdicts[label] = StickJumpDetector().detect(window).decision
+    assert verdicts == {"stiction": STICTION, "no_stiction": UNDECIDED}
