@@ -1563,12 +1563,27 @@ class CycleAgreement:
         """Compare the current tuning's predicted and simulated cycle of ``advice``
         (loop 0) with the measured ``period_s`` and OP ``amplitude``."""
         predicted, simulated = advice.current_predicted, advice.current_simulated
+        return cls.between(period_s, amplitude,
+                           (predicted.period_s, predicted.amplitudes[0]),
+                           (simulated.period_s, simulated.amplitudes[0]))
+
+    @classmethod
+    def between(cls, period_s: float | None, amplitude: float | None,
+                predicted: tuple[float | None, float | None],
+                simulated: tuple[float | None, float | None]) -> CycleAgreement:
+        """Compare a model's ``predicted`` and ``simulated`` cycle, each ``(period_s, OP
+        amplitude)`` (None where that side has no cycle), with the measured one.
+
+        >>> c = CycleAgreement.between(200.0, None, (None, None), (210.0, None))
+        >>> c.simulated_period_error, c.reproduces, c.predicted_agrees
+        (0.05, True, False)
+        """
         return cls(
             period_s, amplitude,
-            _relative_error(predicted.period_s, period_s),
-            _relative_error(simulated.period_s, period_s),
-            _relative_error(predicted.amplitudes[0], amplitude),
-            _relative_error(simulated.amplitudes[0], amplitude),
+            _relative_error(predicted[0], period_s),
+            _relative_error(simulated[0], period_s),
+            _relative_error(predicted[1], amplitude),
+            _relative_error(simulated[1], amplitude),
         )
 
     @property

@@ -11,6 +11,19 @@ hour with the configured process type and without one
 hours (:func:`analytics.quantification.combine_windows`), as
 ``service.verdicts.settle_run`` does (issue 19).
 
+Each window also prints the identified process gain K and the product K J.
+FV-105 and FV-502 are He valves whose OP travels only 8 % and 6 % more per
+cycle than S (8.67 vs 8, 4.26 vs 4): each valve slips once per OP reversal,
+so MV is a square wave of height J, the slip times give S, and the PV steps
+give only K J.  At the simulated S the output error varies by less than 3 %
+(FV-105, J 3-7) and 0.4 % (FV-502 second hour, J 0.5-4) over J: J and K are
+not separately identified from such a cycle, and the windows split the same
+K J differently (FV-502: K -4.02, J 0.71 and K -0.72, J 4.18, K J -2.9 and
+-3.0).  FV-105's square wave is fitted as well by a Kano valve that slips
+less and then follows OP (first hour: S 6.96, R^2 0.9934) as by a He valve
+(S 8.01, J 5.97, K 0.77, R^2 0.9929): the family, and with it S, is not
+decided by the fit either.
+
 Run with ``.venv/bin/python benchmarks/demo_sizes.py [hours]`` (default 2).
 """
 
@@ -58,14 +71,15 @@ def main(hours: int) -> None:
             op, pv = signals["op"][part], signals["pv"][part]
             for process_type in (loop["process_type"], None):
                 est = quantify_stiction(op, pv, ts, process_type=process_type)
-                if (est.S is None or est.J is None or est.search is None
+                if (est.S is None or est.J is None or est.search is None or est.model is None
                         or est.S_interval is None or est.J_interval is None):
                     print(f"  hour {hour}: {est.issues}")
                     continue
                 (s_lo, s_hi), (j_lo, j_hi) = est.S_interval, est.J_interval
                 print(f"  hour {hour} {process_type or 'either type':16s} S {est.S:5.2f} "
                       f"[{s_lo:.2f}, {s_hi:.2f}]  J {est.J:5.2f} [{j_lo:.2f}, {j_hi:.2f}]  "
-                      f"{est.search.valve_model:4s} R^2 {est.fit_r2:.3f}")
+                      f"{est.search.valve_model:4s} R^2 {est.fit_r2:.3f}  "
+                      f"K {est.model.K:.3g}, K J {est.model.K * est.J:.3g}")
                 if process_type is not None:
                     sizes["S"].append(est.S)
                     sizes["J"].append(est.J)

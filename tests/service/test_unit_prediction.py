@@ -27,7 +27,7 @@ from analytics.valves import ChoudhuryValve, IdealValve
 from service.config import ConfigError, PlantConfig, Settings, parse_plant_config
 from service.server import build_service
 from service.store.db import Store
-from service.store.models import AnalysisRun
+from service.store.models import AnalysisRun, UnitAnalysisRun
 from tests.service.test_api import ADMIN, T0, key
 
 TEMPERATURE = TransferFunction.fopdt(0.4346, 27.58, 6.0)  # thesis Eq. 5.42
@@ -88,6 +88,23 @@ def store_run(client: TestClient, loop_id: str, verdict: str,
         return int(run.id)
 
 
+def store_unit_run(client: TestClient, at: float, period_s: float | None,
+                   amplitude: float) -> None:
+    """A diagnosis of u1 that measured TIC-1 cycling at ``period_s`` with OP amplitude
+    ``amplitude`` (no group: no cycle)."""
+    groups = [] if period_s is None else [{
+        "period_s": period_s, "loops": ["TIC-1", "FIC-2"],
+        "members": [{"signal": "pv_TIC-1", "period_s": period_s, "amplitude": 0.5},
+                    {"signal": "op_TIC-1", "period_s": period_s, "amplitude": amplitude}]}]
+    state = client.app.state.loopwatch  # type: ignore[attr-defined]
+    with state.store.session() as session:
+        session.add(UnitAnalysisRun(
+            unit_id="u1", started_at=at, finished_at=at, window_start=at - 3600.0,
+            window_end=at, status="ok", loops=["TIC-1", "FIC-2"], incomplete_loops=[],
+            sticky_loops=["TIC-1"], cleared_loops=[],
+            result={"groups": groups, "sticky_valves": []}))
+
+
 def loop_matrix(omega: float, hold_delay: float) -> np.ndarray:
     """``gc_i(jw) e^(-jw hold) g_ij(jw)``, computed directly."""
     rows = ((TEMPERATURE, FLOW_TO_TEMPERATURE), (TEMPERATURE_TO_FLOW, FLOW))
@@ -111,7 +128,8 @@ def test_prediction_of_the_coupled_unit_meets_its_defining_equation_and_the_simu
     assert body["valves"][0]["valve"] == {"model": "choudhury", "S": 4.0, "J": 2.0}
     assert body["valves"][0]["run_id"] == run_id
     assert body["valves"][1]["valve"] is None
-    assert body["unknown"] == []
+    assert body["unknown"] == ["unit 'u1' has no diagnosis yet: the prediction is not "
+                               "checked against a measured cycle"]
     (cycle,) = body["limit_cycles"]
     assert cycle["stable"] and cycle["amplitudes"][1] is None
 
@@ -146,6 +164,47 @@ def test_prediction_of_the_coupled_unit_meets_its_defining_equation_and_the_simu
                                   / simulated["period_s"])
     assert abs(error) < 10.0
     assert abs(body["comparison"]["amplitude_error_pct"][0]) < 20.0
+
+
+def test_agree_needs_the_model_to_reproduce_the_measured_cycle(client: TestClient) -> None:
+    """Issue 19: the column predicted no cycle and said ``agree: true`` while the plant
+    cycled at 200 s.  Prediction and simulation agreeing with each other is not enough:
+    the model must cycle with the period the unit's diagnosis measured (within 15 %)."""
+    viewer = key(client, "viewer")
+    store_run(client, "TIC-1", "stiction", {"S": 4.0, "J": 2.0})
+    store_run(client, "FIC-2", "no_stiction")
+    store_unit_run(client, T0, 200.0, 3.0)
+    body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
+    (cycle,) = body["limit_cycles"]
+    simulated = body["simulated"]
+    assert simulated["oscillating"] and cycle["stable"]  # they agree with each other ...
+    measured = body["comparison"]["measured_cycle"]
+    assert measured["measured"] == {"period_s": 200.0, "amplitude": 3.0}
+    assert measured["period_error"]["predicted"] == pytest.approx(
+        (cycle["period_s"] - 200.0) / 200.0)
+    assert measured["period_error"]["simulated"] == pytest.approx(
+        (simulated["period_s"] - 200.0) / 200.0)
+    assert measured["amplitude_error"]["simulated"] == pytest.approx(
+        (simulated["amplitudes"][0] - 3.0) / 3.0)
+    # ... but a 36 s cycle is not the measured 200 s one
+    assert not measured["reproduces"] and not measured["agree"]
+    assert "disagrees with the measurement (200 s)" in measured["explanation"]
+    assert body["comparison"]["agree"] is False
+    assert body["unknown"] == []
+
+    # A later diagnosis that measured the model's own cycle: all three agree.
+    store_unit_run(client, T0 + 60.0, simulated["period_s"] * 1.05,
+                   simulated["amplitudes"][0])
+    body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
+    measured = body["comparison"]["measured_cycle"]
+    assert measured["period_error"]["simulated"] == pytest.approx(1 / 1.05 - 1)
+    assert measured["reproduces"] and measured["agree"] and body["comparison"]["agree"]
+
+    # A diagnosis that measured no cycle of TIC-1, while the model cycles: no agreement.
+    store_unit_run(client, T0 + 120.0, None, 0.0)
+    body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
+    assert body["comparison"]["measured_cycle"]["measured"]["period_s"] is None
+    assert body["comparison"]["agree"] is False
 
 
 def test_missing_configuration_and_estimates_are_named(client: TestClient) -> None:

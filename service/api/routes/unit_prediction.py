@@ -4,7 +4,11 @@ The model is the unit's process matrix from the plant file
 (:class:`service.config.UnitProcessConfig`), the loops' configured controllers
 and each loop's latest stiction estimate; :func:`service.prediction.predict_spec`
 predicts it by the describing function (thesis Eqs. 3.11-3.14, 3.20, 3.23 with
-the amplitude consistency of ERRATA item 9) and simulates it beside.
+the amplitude consistency of ERRATA item 9) and simulates it beside.  Both are
+checked against the cycle the unit's latest diagnosis measured
+(:class:`analytics.tuning.CycleAgreement`, issue 19): a model that does not
+reproduce the measured period does not ``agree``, whatever prediction and
+simulation say to each other.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from fastapi import APIRouter, HTTPException
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
+from analytics.tuning import CycleAgreement
 from service.api.deps import (
     ERROR_RESPONSES,
     Analyst,
@@ -26,7 +31,7 @@ from service.api.deps import (
 from service.api.schemas.prediction import UnitPrediction
 from service.prediction import ModelError, predict_spec
 from service.store.models import Loop, Unit
-from service.tickets import latest_loop_run
+from service.tickets import latest_loop_run, latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"],
                    responses={**ERROR_RESPONSES, **error_responses(404, 409)})
@@ -92,6 +97,41 @@ def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
     return entry, None
 
 
+def _measured_cycle(session: Session, unit_id: str, sticky: str
+                    ) -> tuple[float | None, float | None, str | None]:
+    """Period and OP amplitude of the cycle of loop ``sticky`` in the unit's latest ``ok``
+    diagnosis (its oscillation group, :func:`analytics.plantwide.unit.diagnose_unit`), and
+    what is not known about it; ``(None, None, None)`` when the diagnosis found no cycle
+    of that loop."""
+    run = latest_unit_run(session, unit_id, ok_only=True)
+    if run is None or run.result is None:
+        return None, None, (f"unit {unit_id!r} has no diagnosis yet: the prediction is not "
+                            "checked against a measured cycle")
+    group = next((g for g in run.result.get("groups", []) if sticky in g.get("loops", [])),
+                 None)
+    if group is None:
+        return None, None, None
+    member = next((m for m in group.get("members", []) if m.get("signal") == f"op_{sticky}"),
+                  None)
+    return float(group["period_s"]), None if member is None else member.get("amplitude"), None
+
+
+def _against_measured(prediction: dict[str, Any], loops: list[str], sticky: str,
+                      period_s: float | None, amplitude: float | None) -> dict[str, Any]:
+    """The model's cycle against the measured one, for loop ``sticky``: the stable
+    predicted cycle closest in period to the measured one (the slowest without a measured
+    cycle) and the simulated cycle."""
+    i = loops.index(sticky)
+    stable = [c for c in prediction["limit_cycles"] if c["stable"]]
+    if period_s is not None:
+        stable.sort(key=lambda c: abs(c["period_s"] - period_s))
+    predicted = (stable[0]["period_s"], stable[0]["op_amplitudes"][i]) if stable else (None, None)
+    simulated = prediction["simulated"]
+    sim = ((simulated["period_s"], simulated["amplitudes"][i]) if simulated["oscillating"]
+           else (None, None))
+    return CycleAgreement.between(period_s, amplitude, predicted, sim).to_dict()
+
+
 @router.get("/units/{unit_id}/prediction", response_model=UnitPrediction,
             response_model_exclude_unset=True)
 def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
@@ -100,9 +140,13 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
 
     Every limit cycle of the unit's loops (frequency, period, OP amplitude per
     loop, stability) beside the cycle simulated with the same model, and the
-    DF error (``comparison``).  ``valves`` says where each valve comes from
-    (a valve the unit's latest diagnosis clears is healthy, with
-    ``cleared_by_unit_run``);
+    DF error (``comparison``), and both against the cycle of the first sticky
+    loop in the unit's latest diagnosis (``comparison.measured_cycle``: period
+    within 15 %, OP amplitude within 25 %); ``comparison.agree`` holds only when
+    prediction, simulation and measurement agree (without a diagnosis:
+    prediction and simulation, and ``unknown`` says so).  ``valves`` says where
+    each valve comes from (a valve the unit's latest diagnosis clears is
+    healthy, with ``cleared_by_unit_run``);
     ``unknown`` lists what was assumed.  404 for an unknown unit; 409 when the
     unit has no process matrix or a loop lacks a controller or a stiction size;
     422 when the loops are unstable without stiction.
@@ -145,4 +189,18 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
         prediction = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
     except (ModelError, AnalyticsError) as exc:
         raise HTTPException(422, f"Prediction not available: {exc}") from None
-    return {**answer, **prediction}
+    sticky = next(v["loop"] for v in valves if v["valve"] is not None)
+    period_s, amplitude, note = _measured_cycle(session, unit_id, sticky)
+    if note:
+        unknown.append(note)
+    measured = _against_measured(prediction, unit.process.loops, sticky, period_s, amplitude)
+    comparison = prediction["comparison"]
+    if note is None:  # a diagnosis exists: the model must reproduce what it measured
+        if period_s is None:  # ... which is no cycle of the sticky loop
+            cycles = (any(c["stable"] for c in prediction["limit_cycles"])
+                      or prediction["simulated"]["oscillating"])
+            matches = not cycles
+        else:
+            matches = measured["agree"]
+        comparison = {**comparison, "agree": comparison["agree"] and matches}
+    return {**answer, **prediction, "comparison": {**comparison, "measured_cycle": measured}}

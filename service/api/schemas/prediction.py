@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from service.api.schemas.advice import CycleAgreementPublic
 from service.api.schemas.base import Schema
 
 
@@ -91,7 +92,9 @@ class ComparisonPublic(Schema):
     """The describing-function prediction against the simulation."""
 
     agree: bool
-    """Prediction and simulation agree on whether the loops oscillate."""
+    """Prediction and simulation agree on whether the loops oscillate, and (when the unit
+    has a diagnosis) the model reproduces the measured cycle: period within 15 % in
+    prediction and simulation, or no cycle where none was measured."""
     matched_omega: float | None
     """Frequency of the stable predicted cycle closest in period to the simulated one,
     rad/s."""
@@ -99,6 +102,9 @@ class ComparisonPublic(Schema):
     """``100 (T_DF - T_sim) / T_sim``."""
     amplitude_error_pct: list[float | None]
     """Per loop with a sticky valve, ``100 (A_DF - A_sim) / A_sim``; null elsewhere."""
+    measured_cycle: CycleAgreementPublic | None = None
+    """The model's cycle against the one the unit's latest diagnosis measured in the first
+    sticky loop (absent from ``loopwatch predict``, which has no measurement)."""
 
 
 class UnitPrediction(Schema):
