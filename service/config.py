@@ -467,6 +467,9 @@ class Settings(BaseSettings):
     email_from: str = "loopwatch@localhost"
     email_to: Annotated[list[str], NoDecode, BeforeValidator(_comma_separated)] = Field(
         default_factory=list, description="recipients of e-mail events (comma-separated)")
+    access_log: Literal["failed", "all", "off"] = Field(
+        default="failed", description="console lines for HTTP requests: those answered "
+                                      "400 or above, all, or off")
     host: str = "127.0.0.1"
     log_format: Literal["text", "json"] = Field(
         default="text", description="console log lines: text, or JSON objects with the "

@@ -95,8 +95,24 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(entry, default=str)
 
 
-def configure_logging(log_format: Literal["text", "json"], quiet: Iterable[str] = ()) -> None:
-    """Log to stderr at INFO in ``log_format``; the loggers ``quiet`` at WARNING."""
+ACCESS_LOGGER = "uvicorn.access"
+
+
+class _FailedRequestsFilter(logging.Filter):
+    """Keeps uvicorn's access records of requests answered 400 or above: a dashboard
+    polls a few routes every 15 s, and a line for each answer would bury the
+    console's warnings (its args are client, method, path, HTTP version, status)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args if isinstance(record.args, tuple) else ()
+        return len(args) != 5 or not isinstance(args[4], int) or args[4] >= 400
+
+
+def configure_logging(log_format: Literal["text", "json"], quiet: Iterable[str] = (),
+                      access_log: Literal["failed", "all", "off"] = "failed") -> None:
+    """Log to stderr at INFO in ``log_format``; the loggers ``quiet`` at WARNING;
+    uvicorn's access records as ``access_log`` says (requests answered 400 or above,
+    every request, or none)."""
     handler = logging.StreamHandler()
     handler.addFilter(_RequestIdFilter())
     handler.setFormatter(JsonFormatter() if log_format == "json" else logging.Formatter(
@@ -106,6 +122,9 @@ def configure_logging(log_format: Literal["text", "json"], quiet: Iterable[str] 
     root.setLevel(logging.INFO)
     for library in quiet:
         logging.getLogger(library).setLevel(logging.WARNING)
+    access = logging.getLogger(ACCESS_LOGGER)
+    access.filters[:] = [_FailedRequestsFilter()] if access_log == "failed" else []
+    access.disabled = access_log == "off"
 
 
 def audit(actor: str, action: str, target: str, **details: Any) -> None:

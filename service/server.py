@@ -429,7 +429,7 @@ def serve(config: Path | None, *, host: str | None = None, port: int | None = No
     """Run the service until interrupted (the ``loopwatch serve`` command)."""
     plant = load_plant_config(config) if config is not None else None
     settings = Settings()
-    configure_logging(settings.log_format, QUIET_LIBRARIES)
+    configure_logging(settings.log_format, QUIET_LIBRARIES, settings.access_log)
     updates: dict[str, Any] = {
         k: v for k, v in (("host", host), ("port", port), ("role", role)) if v is not None
     }

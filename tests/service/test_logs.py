@@ -117,3 +117,42 @@ def test_json_lines_carry_the_request_id_and_actions_leave_audit_records(
     assert first["time"].endswith("+00:00")
     service.executor.shutdown()
     service.state.store.close()
+
+
+@pytest.mark.parametrize("setting, logged", [("failed", ["/missing"]),
+                                             ("all", ["/ok", "/missing"]), ("off", [])])
+def test_the_console_logs_failed_requests_only_by_default(setting, logged):
+    """A dashboard polls every 15 s: a line per answer would bury the console's
+    warnings (LOOPWATCH_ACCESS_LOG; uvicorn serving real requests)."""
+    import urllib.error
+    import urllib.request
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    configure_logging("json", access_log=setting)
+    stream = io.StringIO()
+    root.handlers[0].setStream(stream)  # type: ignore[attr-defined]
+    app = FastAPI()
+    app.get("/ok")(lambda: {"ok": True})
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None))
+    thread = threading.Thread(target=server.run)
+    thread.start()
+    try:
+        while not server.started:
+            threading.Event().wait(0.01)
+        for path in ("/ok", "/missing"):
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5).read()
+            except urllib.error.HTTPError as error:
+                assert error.code == 404
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        root.handlers[:] = handlers
+        root.setLevel(level)
+        logging.getLogger("uvicorn.access").filters[:] = []
+        logging.getLogger("uvicorn.access").disabled = False
+    lines = [json.loads(line) for line in stream.getvalue().splitlines()]
+    paths = [r["message"].split()[3] for r in lines if r["logger"] == "uvicorn.access"]
+    assert paths == logged
