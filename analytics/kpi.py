@@ -7,6 +7,8 @@ signals already in % of span:
   control error ``SP - PV``, and the share of time PV spent within its limits;
 * :func:`harris_index` -- the minimum-variance (Harris) index with the
   Desborough-Harris normalisation, from the dead time in samples;
+* :func:`identify_dead_time` -- that dead time from the window's OP and PV
+  when none is configured (an ARX delay scan);
 * :func:`valve_travel_per_day` and :func:`reversals_per_day` -- OP travel
   beyond noise and its direction changes (the valve's wear);
 * :func:`saturation` -- the share of time OP sat at its limits;
@@ -31,6 +33,13 @@ References
    4.2 (set-point response: overshoot, settling time with a 2 % band, IAE).
 .. [5] N. F. Thornhill, B. Huang and H. Zhang, "Detection of multiple
    oscillations in control loops", J. Process Control 13 (2003) 91-100.
+.. [6] S. Bjorklund and L. Ljung, "A review of time-delay estimation
+   techniques", Proc. 42nd IEEE CDC (2003) 2502-2507, sec. 3 (the ARX
+   method: the delay of the ARX model with the smallest loss).
+.. [7] L. Ljung, *System Identification: Theory for the User*, 2nd ed.,
+   Prentice Hall 1999, sec. 13.4 (direct identification in closed loop needs
+   excitation beyond the feedback) and sec. 16.4 (the chi-square test of
+   model structures).
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from analytics.stiction.stick_jump import (
 from analytics.types import FloatArray
 
 __all__ = [
+    "DeadTimeEstimate",
     "ErrorStatistics",
     "HarrisIndex",
     "LoopKpis",
@@ -59,6 +69,7 @@ __all__ = [
     "SetpointResponse",
     "error_statistics",
     "harris_index",
+    "identify_dead_time",
     "longest_normal_stretch",
     "loop_kpis",
     "manual_samples",
@@ -207,6 +218,108 @@ def harris_index(error: FloatArray, dead_time: int, order: int | None = None
     mse = float(r[0] + mean**2)
     ratio = mv / mse
     return HarrisIndex(mv, mse, ratio, 1.0 - ratio, dead_time)
+
+
+@dataclass(frozen=True)
+class DeadTimeEstimate:
+    """The dead time :func:`identify_dead_time` found in a window, or why it found none.
+
+    Attributes
+    ----------
+    samples : int or None
+        The dead time ``d`` in samples as :func:`harris_index` counts it (the
+        hold's sample included); None when the window does not tell it.
+    note : str
+        How it was found, or why not.
+    """
+
+    samples: int | None
+    note: str
+
+
+def identify_dead_time(op: FloatArray, pv: FloatArray, *, max_delay: int = 30, na: int = 4,
+                       nb: int = 3, chi2: float = 16.27) -> DeadTimeEstimate:
+    """The loop's dead time in samples from its OP and PV: an ARX delay scan.
+
+    For each delay ``k = 1 .. max_delay`` the ARX model
+    ``PV_t = c + sum_{i=1}^{na} a_i PV_{t-i} + sum_{j=0}^{nb-1} b_j OP_{t-k-j} + e_t``
+    is fitted by least squares (Bjorklund and Ljung 2003, sec. 3; all from one
+    Gram matrix of the lagged signals, so a delay costs one small solve), and
+    its loss ``V_k`` (residual mean square) compared.  Delays shorter than the
+    true one fit as well as it whenever their ``nb`` lags reach it, so the
+    estimate is the *longest* delay whose loss is not significantly above the
+    smallest: ``N ln(V_k / V_min) < chi2`` (Ljung 1999, sec. 16.4; the default
+    is the 0.999 quantile of chi-square with 3 degrees of freedom).  The
+    model's first OP lag counts the hold's sample, as :func:`harris_index`
+    wants it.
+
+    Under feedback alone OP is a function of past PV, and the data may not
+    tell the delay (Ljung 1999, sec. 13.4): it needs excitation beyond the
+    feedback -- set-point changes, or OP moves of its own (a dither, an
+    operator's move, a sticky valve's jumps).  So OP must explain PV
+    significantly beyond PV's own past (the same test against the model
+    without OP); otherwise, and when OP does not move or the best delay is
+    the longest searched, the dead time is unknown and the note says why.
+    Samples where OP or PV is missing are left out with the rows that lag them.
+
+    Examples
+    --------
+    A first-order process behind three samples of dead time (two whole and the
+    hold's), driven by a random OP:
+
+    >>> rng = np.random.default_rng(0)
+    >>> op = rng.normal(size=2000)
+    >>> pv = np.zeros(2000)
+    >>> for t in range(3, 2000):
+    ...     pv[t] = 0.8 * pv[t - 1] + 0.5 * op[t - 3] + 0.1 * rng.normal()
+    >>> identify_dead_time(op, pv).samples
+    3
+    >>> identify_dead_time(np.full(2000, 40.0), pv).note
+    'OP does not move: no excitation to identify the dead time from'
+    """
+    u = np.asarray(op, dtype=np.float64)
+    y = np.asarray(pv, dtype=np.float64)
+    start = max(na, max_delay + nb - 1)
+    n = y.size - start
+    finite_u = u[np.isfinite(u)]
+    if finite_u.size < 2 or np.ptp(finite_u) == 0.0:
+        return DeadTimeEstimate(None, "OP does not move: no excitation to identify the dead "
+                                      "time from")
+    if n < 10 * (1 + na + nb):
+        return DeadTimeEstimate(None, "too few samples to identify the dead time")
+    # Columns: 1, PV_t, PV_{t-1..t-na}, OP_{t-1..t-start}; rows t = start .. end.
+    lagged = np.column_stack(
+        [np.ones(n)] + [y[start - i:start - i + n] for i in range(na + 1)]
+        + [u[start - j:start - j + n] for j in range(1, start + 1)])
+    lagged = lagged[np.isfinite(lagged).all(axis=1)]
+    rows = lagged.shape[0]
+    if rows < 10 * (1 + na + nb):
+        return DeadTimeEstimate(None, "too few complete samples to identify the dead time")
+    lagged[:, 1:] -= lagged[:, 1:].mean(axis=0)  # conditions the Gram matrix; c absorbs it
+    gram = lagged.T @ lagged
+    past = [0, *range(2, na + 2)]  # the constant and PV's own past
+
+    def loss(columns: list[int]) -> float:
+        g = gram[np.ix_(columns, columns)]
+        r = gram[columns, 1]
+        coef = np.linalg.solve(g, r)
+        return max(float(gram[1, 1] - coef @ r), 0.0) / rows
+
+    losses = np.array([loss(past + list(range(na + 1 + k, na + 1 + k + nb)))
+                       for k in range(1, max_delay + 1)])
+    best = float(losses.min())
+    if not best > 0.0:
+        return DeadTimeEstimate(None, "PV follows OP exactly: no noise to judge the fit by")
+    if rows * np.log(loss(past) / best) < chi2:
+        return DeadTimeEstimate(None, "OP's moves explain nothing of PV beyond PV's own past: "
+                                      "no set-point or OP excitation to identify the dead "
+                                      "time from")
+    d = int(np.flatnonzero(rows * np.log(losses / best) < chi2)[-1]) + 1
+    if d == max_delay:
+        return DeadTimeEstimate(None, f"the dead time is {max_delay} samples or longer, "
+                                      "beyond the delays searched")
+    return DeadTimeEstimate(d, f"identified from the window: ARX delay scan over 1-{max_delay} "
+                               "samples")
 
 
 def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
@@ -476,8 +589,10 @@ class LoopKpis:
         None without SP and PV.
     harris : HarrisIndex or None
         None when the dead time is unknown or there are too few samples.
-    dead_time_source : {"configured", "unknown"}
-        Where the dead time came from.
+    dead_time_source : {"configured", "identified", "unknown"}
+        Where the dead time came from: the loop's configuration, the window
+        (:func:`identify_dead_time`, or the analysis's own process
+        identification), or nowhere (a note says why).
     travel_per_day, reversals_per_day, saturation : float or None
         OP figures; None without OP.
     setpoint_responses : tuple of SetpointResponse
@@ -487,6 +602,11 @@ class LoopKpis:
         None when the oscillation detection did not run.
     notes : tuple of str
         What was skipped and why.
+    dead_time_samples : int or None
+        The dead time ``d`` in samples (the hold's counted); None when unknown.
+    dead_time_s : float or None
+        The same in seconds, ``(d - 1) ts``: the whole samples of the dead
+        time without the hold's, the shortest continuous dead time that gives ``d``.
     """
 
     samples: int
@@ -501,6 +621,8 @@ class LoopKpis:
     service_factor: ServiceFactor | None = None
     oscillation_index: float | None = None
     notes: tuple[str, ...] = field(default=())
+    dead_time_samples: int | None = None
+    dead_time_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (NaN becomes None)."""
@@ -522,11 +644,18 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
               pv_limits: tuple[float, float] | None = None,
               mode: Sequence[Any] | FloatArray | None = None,
               mode_mapping: Mapping[Any, Mode] | None = None,
-              oscillation: Mapping[str, Any] | None = None) -> LoopKpis:
+              oscillation: Mapping[str, Any] | None = None,
+              identified_dead_time: int | None = None) -> LoopKpis:
     """All KPIs of one window; signals in % of span, ``dead_time`` in samples (or None).
 
     ``oscillation`` is the oscillation part of a diagnosis
     (:meth:`analytics.diagnosis.LoopDiagnosis.to_dict`: ``detected``, ``regularity``).
+
+    The minimum-variance index uses the configured ``dead_time``; without one
+    the ``identified_dead_time`` (samples) the caller's own process
+    identification found in this window, so none runs twice; without that
+    the dead time :func:`identify_dead_time` finds in the window's OP and PV.
+    ``dead_time_source`` says which, and a note why it stayed unknown.
 
     With a ``mode`` signal, the samples in manual are left out of the
     controller's figures -- error statistics, minimum-variance index,
@@ -549,12 +678,19 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
                 "are of the samples in auto or cascade")
             sp, pv = (None if x is None else np.where(manual, np.nan, x) for x in (sp, pv))
     error = harris = None
+    source = "unknown" if dead_time is None else "configured"
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
         error = error_statistics(sp, pv, ts, pv_limits)
         responses = setpoint_responses(sp, pv, ts)
+        why = ""
+        if dead_time is None and identified_dead_time is not None:
+            dead_time, source = identified_dead_time, "identified"
+        elif dead_time is None and op is not None:
+            estimate = identify_dead_time(op, pv)
+            dead_time, source, why = estimate.samples, "identified", f" ({estimate.note})"
         if dead_time is None:
-            notes.append("dead time unknown: no minimum-variance (Harris) index")
+            notes.append(f"dead time unknown{why}: no minimum-variance (Harris) index")
         else:
             harris = harris_index(sp - pv, dead_time)
             if harris is None:
@@ -569,8 +705,9 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         bool(oscillation.get("detected")), oscillation.get("regularity"))
     return LoopKpis(
         samples=n, ts=ts, error=error, harris=harris,
-        dead_time_source="unknown" if dead_time is None else "configured",
+        dead_time_source=source if dead_time is not None else "unknown",
         travel_per_day=travel, reversals_per_day=reversals, saturation=sat,
         setpoint_responses=responses, service_factor=factor, oscillation_index=osc,
-        notes=tuple(notes),
+        notes=tuple(notes), dead_time_samples=dead_time,
+        dead_time_s=None if dead_time is None else (dead_time - 1) * ts,
     )

@@ -10,6 +10,7 @@ from analytics.kpi import (
     LoopKpis,
     error_statistics,
     harris_index,
+    identify_dead_time,
     loop_kpis,
     oscillation_index,
     reversals_per_day,
@@ -129,6 +130,101 @@ def test_harris_index_refuses_too_little_data_and_bad_dead_time():
     assert harris_index(np.zeros(5000), 2) is None
     with pytest.raises(ValueError, match="at least one sample"):
         harris_index(np.zeros(5000), 0)
+
+
+def dithered_loop(a, w, d, phi, kp, ki):
+    """:func:`closed_loop` with an AR(1) disturbance (pole ``phi``) and a white dither ``w``
+    added to the controller's output: OP_t = u_t + w_t (an operator's or a test signal's
+    moves of its own).  Returns PV and OP."""
+    n = lfilter([1.0], [1.0, -phi], a)
+    y, u, op = np.zeros(a.size), np.zeros(a.size), np.zeros(a.size)
+    for t in range(a.size):
+        y[t] = n[t] + (op[t - d] if t >= d else 0.0)
+        u[t] = (u[t - 1] if t else 0.0) - kp * (y[t] - (y[t - 1] if t else 0.0)) - ki * y[t]
+        op[t] = u[t] + w[t]
+    return y, op
+
+
+def exact_dithered_mv_ratio(d, phi, kp, ki, sigma_w):
+    """sigma_mv^2 / sigma_y^2 of :func:`dithered_loop` (var a = 1), in closed form.
+
+    The disturbance at the output is ``v_t = n_t + w_{t-d}``; ``(1 - phi q^-1) v`` is an
+    MA(1) with autocovariances ``g0 = 1 + sigma_w^2 (1 + phi^2)``, ``g1 = -phi sigma_w^2``,
+    so ``v = (1 + theta q^-1) / (1 - phi q^-1) e`` with the invertible root ``theta`` of
+    ``theta / (1 + theta^2) = g1 / g0`` and ``var e = g1 / theta`` (the spectral factor,
+    Box and Jenkins 1976, sec. 6.3): ``psi_0 = 1``, ``psi_i = (phi + theta) phi^(i-1)``,
+    and sigma_mv^2 = var e sum_{i<d} psi_i^2 (Harris 1989).  sigma_y^2 from the loop's
+    impulse responses to either source.
+    """
+    g0, g1 = 1.0 + sigma_w**2 * (1.0 + phi**2), -phi * sigma_w**2
+    rho = g1 / g0
+    theta = 2.0 * rho / (1.0 + math.sqrt(1.0 - 4.0 * rho**2))  # |theta| < 1, no cancellation
+    psi = np.r_[1.0, (phi + theta) * phi ** np.arange(d - 1)]
+    mv = g1 / theta * float(np.sum(psi**2))
+    impulse = np.zeros(6000)
+    impulse[0] = 1.0
+    from_a = dithered_loop(impulse, np.zeros(6000), d, phi, kp, ki)[0]
+    from_w = dithered_loop(np.zeros(6000), impulse, d, phi, kp, ki)[0]
+    assert abs(from_a[-1]) < 1e-12 and abs(from_w[-1]) < 1e-12
+    return mv / float(np.sum(from_a**2) + sigma_w**2 * np.sum(from_w**2))
+
+
+DITHERED = [  # d, disturbance pole, kp, ki, dither standard deviation
+    pytest.param(3, 0.9, 0.0, 0.2, 0.5, id="AR1-0.9-d3-I"),
+    pytest.param(5, 0.95, 0.3, 0.1, 0.5, id="AR1-0.95-d5-PI"),
+    pytest.param(2, 0.5, 0.0, 0.3, 0.3, id="AR1-0.5-d2-I"),
+    pytest.param(4, 0.8, 0.0, 0.05, 0.5, id="AR1-0.8-d4-sluggish"),
+]
+
+
+def test_the_dithered_closed_form_is_the_undithered_one_without_dither():
+    """The closed form reduces to :func:`exact_mv_ratio` as the dither vanishes."""
+    assert exact_dithered_mv_ratio(3, 0.9, 0.0, 0.2, 1e-4) == pytest.approx(
+        exact_mv_ratio(3, [1.0], [1.0, -0.9], 0.0, 0.2), rel=1e-6)
+
+
+@pytest.mark.parametrize(("d", "phi", "kp", "ki", "sigma_w"), DITHERED)
+def test_harris_index_from_the_identified_dead_time_within_5_percent(d, phi, kp, ki, sigma_w):
+    """No dead time configured: the one identified from one hour of OP and PV at 1 s is the
+    simulated one, and the index from it is within 5 % of the exact ratio."""
+    exact = exact_dithered_mv_ratio(d, phi, kp, ki, sigma_w)
+    rng = np.random.default_rng(3)
+    y, op = dithered_loop(rng.normal(size=4100), rng.normal(scale=sigma_w, size=4100),
+                          d, phi, kp, ki)
+    pv, op = 50.0 + y[500:], 40.0 + op[500:]
+    assert identify_dead_time(op, pv).samples == d
+    k = loop_kpis(1.0, op=op, pv=pv, sp=np.full(pv.size, 50.0))
+    assert k.dead_time_source == "identified"
+    assert k.dead_time_samples == d and k.dead_time_s == d - 1
+    assert k.harris.dead_time == d
+    assert k.harris.ratio == pytest.approx(exact, rel=0.05)
+    assert k.to_dict()["dead_time_source"] == "identified"
+
+
+def test_a_window_without_excitation_leaves_the_dead_time_unknown_and_says_why():
+    rng = np.random.default_rng(4)
+    pv = 50.0 + lfilter([1.0], [1.0, -0.9], rng.normal(size=3600))
+    sp = np.full(3600, 50.0)
+    held = loop_kpis(1.0, op=np.full(3600, 40.0), pv=pv, sp=sp)  # OP held: no move at all
+    assert held.dead_time_source == "unknown" and held.harris is None
+    assert held.dead_time_samples is None and held.dead_time_s is None
+    assert any(note.startswith("dead time unknown (OP does not move") for note in held.notes)
+    # OP moves, but PV does not answer (a valve that does not act, or a loop open elsewhere)
+    idle = loop_kpis(1.0, op=40.0 + rng.normal(size=3600), pv=pv, sp=sp)
+    assert idle.dead_time_source == "unknown" and idle.harris is None
+    assert any("no set-point or OP excitation" in note for note in idle.notes)
+
+
+def test_a_dead_time_the_analysis_already_identified_is_used_without_a_scan():
+    rng = np.random.default_rng(4)
+    pv = 50.0 + rng.normal(size=3600)
+    k = loop_kpis(1.0, op=np.full(3600, 40.0), pv=pv, sp=np.full(3600, 50.0),
+                  identified_dead_time=3)
+    assert k.dead_time_source == "identified" and k.harris.dead_time == 3
+    configured = loop_kpis(1.0, op=np.full(3600, 40.0), pv=pv, sp=np.full(3600, 50.0),
+                           dead_time=2, identified_dead_time=3)
+    assert configured.dead_time_source == "configured" and configured.harris.dead_time == 2
+    assert configured.dead_time_s == 1.0
 
 
 # ---------------------------------------------------------------- valve travel
