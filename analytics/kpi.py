@@ -230,96 +230,168 @@ class DeadTimeEstimate:
         The dead time ``d`` in samples as :func:`harris_index` counts it (the
         hold's sample included); None when the window does not tell it.
     note : str
-        How it was found, or why not.
+        What it was identified from (``"identified from set-point steps"``,
+        ``"identified from the operator's OP moves in manual"``), or why not.
     """
 
     samples: int | None
     note: str
 
 
-def identify_dead_time(op: FloatArray, pv: FloatArray, *, max_delay: int = 30, na: int = 4,
-                       nb: int = 3, chi2: float = 16.27) -> DeadTimeEstimate:
-    """The loop's dead time in samples from its OP and PV: an ARX delay scan.
+def _moves_beyond_noise(x: FloatArray, floor: float = 0.0) -> bool:
+    """Whether ``x`` moves beyond its noise within any of its runs of present samples.
 
-    For each delay ``k = 1 .. max_delay`` the ARX model
-    ``PV_t = c + sum_{i=1}^{na} a_i PV_{t-i} + sum_{j=0}^{nb-1} b_j OP_{t-k-j} + e_t``
-    is fitted by least squares (Bjorklund and Ljung 2003, sec. 3; all from one
-    Gram matrix of the lagged signals, so a delay costs one small solve), and
-    its loss ``V_k`` (residual mean square) compared.  Delays shorter than the
-    true one fit as well as it whenever their ``nb`` lags reach it, so the
-    estimate is the *longest* delay whose loss is not significantly above the
-    smallest: ``N ln(V_k / V_min) < chi2`` (Ljung 1999, sec. 16.4; the default
-    is the 0.999 quantile of chi-square with 3 degrees of freedom).  The
-    model's first OP lag counts the hold's sample, as :func:`harris_index`
-    wants it.
-
-    Under feedback alone OP is a function of past PV, and the data may not
-    tell the delay (Ljung 1999, sec. 13.4): it needs excitation beyond the
-    feedback -- set-point changes, or OP moves of its own (a dither, an
-    operator's move, a sticky valve's jumps).  So OP must explain PV
-    significantly beyond PV's own past (the same test against the model
-    without OP); otherwise, and when OP does not move or the best delay is
-    the longest searched, the dead time is unknown and the note says why.
-    Samples where OP or PV is missing are left out with the rows that lag them.
-
-    Examples
-    --------
-    A first-order process behind three samples of dead time (two whole and the
-    hold's), driven by a random OP:
-
-    >>> rng = np.random.default_rng(0)
-    >>> op = rng.normal(size=2000)
-    >>> pv = np.zeros(2000)
-    >>> for t in range(3, 2000):
-    ...     pv[t] = 0.8 * pv[t - 1] + 0.5 * op[t - 3] + 0.1 * rng.normal()
-    >>> identify_dead_time(op, pv).samples
-    3
-    >>> identify_dead_time(np.full(2000, 40.0), pv).note
-    'OP does not move: no excitation to identify the dead time from'
+    A backlash of three noise standard deviations (:func:`robust_noise`, and
+    no narrower than ``floor``) follows each run, as the valve travel counts
+    OP's moves (:func:`analytics.stiction.stick_jump.travel_increments`).
     """
-    u = np.asarray(op, dtype=np.float64)
-    y = np.asarray(pv, dtype=np.float64)
+    present = np.isfinite(x)
+    edges = np.diff(np.concatenate(([0], present.astype(np.int8), [0])))
+    values = x[present]
+    if values.size < 3:
+        return False
+    band = max(3.0 * robust_noise(values), floor)
+    return any(travel_increments(x[start:stop], band).sum() > 0.0
+               for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1),
+                                      strict=True) if stop - start > 1)
+
+
+def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
+               chi2: tuple[float, float]) -> tuple[int | None, str]:
+    """The delay from ``u`` to ``y`` by an ARX delay scan, or None and why not.
+
+    For each delay ``k = 0 .. max_delay`` the model
+    ``y_t = c + sum_{i=1}^{na} a_i y_{t-i} + sum_{j=0}^{nb-1} b_j u_{t-k-j} + e_t``
+    is fitted by least squares over the rows whose lags are all present
+    (Bjorklund and Ljung 2003, sec. 3; all from one Gram matrix of the lagged
+    signals, so a delay costs one small solve) and its loss ``V_k`` (residual
+    mean square) compared by ``N ln(V_k / V_min)``, chi-square distributed
+    when the delays fit alike (Ljung 1999, sec. 16.4).  Delays shorter than
+    the true one fit as well as it whenever their ``nb`` lags reach it, so the
+    delay is the *longest* one whose loss is not significantly above the
+    smallest (below ``chi2[1]``).  It stands only when the test tells it
+    sharply: its own loss is within the tighter ``chi2[0]`` of the smallest
+    (else the first samples of the response hide in the noise, and the onset
+    may be a sample earlier), and no delay fits alike more than ``nb - 1``
+    samples before it (those no longer reach it).  ``u`` must explain ``y``
+    beyond ``y``'s own past by the test at ``chi2[1]``.  A delay of 0 (PV
+    moving with ``u`` at the same sample, as no sampled process can) or of
+    ``max_delay`` is no estimate.
+    """
     start = max(na, max_delay + nb - 1)
     n = y.size - start
-    finite_u = u[np.isfinite(u)]
-    if finite_u.size < 2 or np.ptp(finite_u) == 0.0:
-        return DeadTimeEstimate(None, "OP does not move: no excitation to identify the dead "
-                                      "time from")
     if n < 10 * (1 + na + nb):
-        return DeadTimeEstimate(None, "too few samples to identify the dead time")
-    # Columns: 1, PV_t, PV_{t-1..t-na}, OP_{t-1..t-start}; rows t = start .. end.
+        return None, "too few samples"
+    # Columns: 1, y_t, y_{t-1..t-na}, u_{t-0..t-start}; rows t = start .. end.
     lagged = np.column_stack(
         [np.ones(n)] + [y[start - i:start - i + n] for i in range(na + 1)]
-        + [u[start - j:start - j + n] for j in range(1, start + 1)])
+        + [u[start - j:start - j + n] for j in range(start + 1)])
     lagged = lagged[np.isfinite(lagged).all(axis=1)]
     rows = lagged.shape[0]
     if rows < 10 * (1 + na + nb):
-        return DeadTimeEstimate(None, "too few complete samples to identify the dead time")
+        return None, "too few complete samples"
     lagged[:, 1:] -= lagged[:, 1:].mean(axis=0)  # conditions the Gram matrix; c absorbs it
     gram = lagged.T @ lagged
-    past = [0, *range(2, na + 2)]  # the constant and PV's own past
+    past = [0, *range(2, na + 2)]  # the constant and y's own past
 
     def loss(columns: list[int]) -> float:
         g = gram[np.ix_(columns, columns)]
         r = gram[columns, 1]
-        coef = np.linalg.solve(g, r)
+        coef = np.linalg.lstsq(g, r, rcond=None)[0]  # a held u makes g singular
         return max(float(gram[1, 1] - coef @ r), 0.0) / rows
 
-    losses = np.array([loss(past + list(range(na + 1 + k, na + 1 + k + nb)))
-                       for k in range(1, max_delay + 1)])
+    losses = np.array([loss(past + list(range(na + 2 + k, na + 2 + k + nb)))
+                       for k in range(max_delay + 1)])
     best = float(losses.min())
     if not best > 0.0:
-        return DeadTimeEstimate(None, "PV follows OP exactly: no noise to judge the fit by")
-    if rows * np.log(loss(past) / best) < chi2:
-        return DeadTimeEstimate(None, "OP's moves explain nothing of PV beyond PV's own past: "
-                                      "no set-point or OP excitation to identify the dead "
-                                      "time from")
-    d = int(np.flatnonzero(rows * np.log(losses / best) < chi2)[-1]) + 1
+        return None, "PV follows them exactly: no noise to judge the fit by"
+    if rows * np.log(loss(past) / best) < chi2[1]:
+        return None, "they explain nothing of PV beyond PV's own past"
+    excess = rows * np.log(losses / best)
+    alike = np.flatnonzero(excess < chi2[1])
+    d = int(alike[-1])
+    if excess[d] >= chi2[0] or alike[0] < d - nb + 1:
+        return None, (f"too weak to tell the delay: {alike[0]} to {alike[-1]} samples fit "
+                      "alike")
+    if d == 0:
+        return None, "PV moves with them at the same sample, as no sampled process can"
     if d == max_delay:
-        return DeadTimeEstimate(None, f"the dead time is {max_delay} samples or longer, "
-                                      "beyond the delays searched")
-    return DeadTimeEstimate(d, f"identified from the window: ARX delay scan over 1-{max_delay} "
-                               "samples")
+        return None, f"the delay is {max_delay} samples or longer, beyond those searched"
+    return d, ""
+
+
+def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = None,
+                       manual: NDArray[np.bool_] | None = None, *, max_delay: int = 30,
+                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47)
+                       ) -> DeadTimeEstimate:
+    """The loop's dead time in samples, from the window's external excitation only.
+
+    Under feedback alone OP is a function of past PV, and the data do not
+    tell the delay in general (Ljung 1999, sec. 13.4: identifiability in
+    closed loop needs a signal from outside the loop, a set-point change or
+    a dither).  A dither cannot be told from the controller's own moves in
+    OP, so the delay is identified only from what the window shows to come
+    from outside:
+
+    * the operator's OP moves in manual (``manual`` marks those samples): no
+      feedback acts, and the delay from OP to PV is the dead time;
+    * set-point moves in auto or cascade: the controller passes them to OP
+      at once, so the delay from SP to PV is the process's dead time too, and
+      SP, unlike OP, is not correlated with the disturbance (the indirect
+      approach, Ljung 1999, sec. 13.5).
+
+    A signal counts when it moves beyond three noise standard deviations of
+    its own (and, for SP, of PV: a step PV's noise hides tells nothing).
+    Each is scanned by an ARX delay scan (Bjorklund and Ljung 2003, sec. 3;
+    the longest delay whose loss is within a chi-square test of the
+    smallest, Ljung 1999, sec. 16.4; ``chi2`` the 0.95 and 0.999 quantiles
+    with 4 degrees of freedom, ``nb = 4``, :func:`_arx_delay`), manual moves
+    first; the first conclusive scan gives the dead time, and weak
+    excitation gives 'unknown' with the delays that fitted alike rather than
+    a guess.  The model's first lag
+    counts the hold's sample, as :func:`harris_index` wants it.  Samples
+    where a signal is missing are left out with the rows that lag them.
+
+    Examples
+    --------
+    A first-order process behind three samples of dead time (two whole and the
+    hold's), its OP stepped by hand:
+
+    >>> rng = np.random.default_rng(0)
+    >>> op = np.repeat(rng.normal(size=40), 50)
+    >>> pv = np.zeros(2000)
+    >>> for t in range(3, 2000):
+    ...     pv[t] = 0.8 * pv[t - 1] + 0.5 * op[t - 3] + 0.1 * rng.normal()
+    >>> identify_dead_time(op, pv, manual=np.ones(2000, dtype=bool))
+    DeadTimeEstimate(samples=3, note="identified from the operator's OP moves in manual")
+    >>> identify_dead_time(op, pv, np.full(2000, 50.0)).note[:44]
+    'unknown: no set-point moves beyond noise and'
+    """
+    u, y = np.asarray(op, dtype=np.float64), np.asarray(pv, dtype=np.float64)
+    hand = np.zeros(y.size, dtype=bool) if manual is None else np.asarray(manual, dtype=bool)
+    sources = []
+    if hand.any():
+        moved = np.where(hand, u, np.nan)
+        if _moves_beyond_noise(moved):
+            sources.append(("the operator's OP moves in manual", moved, np.where(hand, y, np.nan)))
+    if sp is not None:
+        s = np.where(hand, np.nan, np.asarray(sp, dtype=np.float64))
+        auto_pv = np.where(hand, np.nan, y)
+        finite_pv = auto_pv[np.isfinite(auto_pv)]
+        floor = 3.0 * robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+        if _moves_beyond_noise(s, floor):
+            sources.append(("set-point steps", s, auto_pv))
+    if not sources:
+        return DeadTimeEstimate(None, "unknown: no set-point moves beyond noise and no OP "
+                                      "moves in manual in the window; under feedback alone "
+                                      "the dead time cannot be identified")
+    reasons = []
+    for name, excitation, response in sources:
+        d, why = _arx_delay(excitation, response, max_delay, na, nb, chi2)
+        if d is not None:
+            return DeadTimeEstimate(d, f"identified from {name}")
+        reasons.append(f"{name}: {why}")
+    return DeadTimeEstimate(None, "unknown: the window's " + "; ".join(reasons))
 
 
 def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
@@ -591,8 +663,7 @@ class LoopKpis:
         None when the dead time is unknown or there are too few samples.
     dead_time_source : {"configured", "identified", "unknown"}
         Where the dead time came from: the loop's configuration, the window
-        (:func:`identify_dead_time`, or the analysis's own process
-        identification), or nowhere (a note says why).
+        (:func:`identify_dead_time`), or nowhere.
     travel_per_day, reversals_per_day, saturation : float or None
         OP figures; None without OP.
     setpoint_responses : tuple of SetpointResponse
@@ -607,6 +678,10 @@ class LoopKpis:
     dead_time_s : float or None
         The same in seconds, ``(d - 1) ts``: the whole samples of the dead
         time without the hold's, the shortest continuous dead time that gives ``d``.
+    dead_time_note : str
+        The source in words, for the pages beside the index: ``"configured"``,
+        ``"identified from set-point steps"`` (or ``"... from the operator's
+        OP moves in manual"``), ``"unknown: ..."`` with the reason.
     """
 
     samples: int
@@ -623,6 +698,7 @@ class LoopKpis:
     notes: tuple[str, ...] = field(default=())
     dead_time_samples: int | None = None
     dead_time_s: float | None = None
+    dead_time_note: str = "unknown"
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (NaN becomes None)."""
@@ -644,18 +720,17 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
               pv_limits: tuple[float, float] | None = None,
               mode: Sequence[Any] | FloatArray | None = None,
               mode_mapping: Mapping[Any, Mode] | None = None,
-              oscillation: Mapping[str, Any] | None = None,
-              identified_dead_time: int | None = None) -> LoopKpis:
+              oscillation: Mapping[str, Any] | None = None) -> LoopKpis:
     """All KPIs of one window; signals in % of span, ``dead_time`` in samples (or None).
 
     ``oscillation`` is the oscillation part of a diagnosis
     (:meth:`analytics.diagnosis.LoopDiagnosis.to_dict`: ``detected``, ``regularity``).
 
     The minimum-variance index uses the configured ``dead_time``; without one
-    the ``identified_dead_time`` (samples) the caller's own process
-    identification found in this window, so none runs twice; without that
-    the dead time :func:`identify_dead_time` finds in the window's OP and PV.
-    ``dead_time_source`` says which, and a note why it stayed unknown.
+    the dead time :func:`identify_dead_time` finds from the window's set-point
+    steps or the operator's OP moves in manual (never from the loop under
+    feedback alone).  ``dead_time_source`` and ``dead_time_note`` say which,
+    or why it stayed unknown.
 
     With a ``mode`` signal, the samples in manual are left out of the
     controller's figures -- error statistics, minimum-variance index,
@@ -665,6 +740,7 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     sample: the valve wears in manual too.
     """
     notes: list[str] = []
+    whole_pv, whole_sp = pv, sp  # manual samples included: the identification wants them
     n = max((x.size for x in (op, pv, sp) if x is not None), default=0)
     factor = None
     manual = np.zeros(n, dtype=bool)
@@ -678,19 +754,19 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
                 "are of the samples in auto or cascade")
             sp, pv = (None if x is None else np.where(manual, np.nan, x) for x in (sp, pv))
     error = harris = None
-    source = "unknown" if dead_time is None else "configured"
+    configured = dead_time is not None
+    note = "configured" if configured else "unknown: no SP or no PV"
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
         error = error_statistics(sp, pv, ts, pv_limits)
         responses = setpoint_responses(sp, pv, ts)
-        why = ""
-        if dead_time is None and identified_dead_time is not None:
-            dead_time, source = identified_dead_time, "identified"
-        elif dead_time is None and op is not None:
-            estimate = identify_dead_time(op, pv)
-            dead_time, source, why = estimate.samples, "identified", f" ({estimate.note})"
+        if not configured:
+            note = "unknown: no OP to identify it from"
+            if op is not None and whole_pv is not None:
+                estimate = identify_dead_time(op, whole_pv, whole_sp, manual)
+                dead_time, note = estimate.samples, estimate.note
         if dead_time is None:
-            notes.append(f"dead time unknown{why}: no minimum-variance (Harris) index")
+            notes.append(f"dead time {note}; no minimum-variance (Harris) index")
         else:
             harris = harris_index(sp - pv, dead_time)
             if harris is None:
@@ -705,9 +781,11 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         bool(oscillation.get("detected")), oscillation.get("regularity"))
     return LoopKpis(
         samples=n, ts=ts, error=error, harris=harris,
-        dead_time_source=source if dead_time is not None else "unknown",
+        dead_time_source="configured" if configured else (
+            "unknown" if dead_time is None else "identified"),
         travel_per_day=travel, reversals_per_day=reversals, saturation=sat,
         setpoint_responses=responses, service_factor=factor, oscillation_index=osc,
         notes=tuple(notes), dead_time_samples=dead_time,
         dead_time_s=None if dead_time is None else (dead_time - 1) * ts,
+        dead_time_note=note,
     )
