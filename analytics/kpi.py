@@ -7,8 +7,8 @@ signals already in % of span:
   control error ``SP - PV``, and the share of time PV spent within its limits;
 * :func:`harris_index` -- the minimum-variance (Harris) index with the
   Desborough-Harris normalisation, from the dead time in samples;
-* :func:`identify_dead_time` -- that dead time from the window's OP and PV
-  when none is configured (an ARX delay scan);
+* :func:`identify_dead_time` -- that dead time, when none is configured, from
+  the window's set-point steps or the operator's OP moves in manual;
 * :func:`valve_travel_per_day` and :func:`reversals_per_day` -- OP travel
   beyond noise and its direction changes (the valve's wear);
 * :func:`saturation` -- the share of time OP sat at its limits;
@@ -283,29 +283,41 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
     if n < 10 * (1 + na + nb):
         return None, "too few samples"
     # Columns: 1, y_t, y_{t-1..t-na}, u_{t-0..t-start}; rows t = start .. end.
-    lagged = np.column_stack(
-        [np.ones(n)] + [y[start - i:start - i + n] for i in range(na + 1)]
-        + [u[start - j:start - j + n] for j in range(start + 1)])
-    lagged = lagged[np.isfinite(lagged).all(axis=1)]
-    rows = lagged.shape[0]
+    # Rows whose lags are all present, from the running counts of present samples.
+    present = np.concatenate(([0], np.cumsum(np.isfinite(y)))), np.concatenate(
+        ([0], np.cumsum(np.isfinite(u))))
+    t = np.arange(start, y.size)
+    complete = ((present[0][t + 1] - present[0][t - na] == na + 1)
+                & (present[1][t + 1] - present[1][t - start] == start + 1))
+    rows = int(complete.sum())
     if rows < 10 * (1 + na + nb):
         return None, "too few complete samples"
-    lagged[:, 1:] -= lagged[:, 1:].mean(axis=0)  # conditions the Gram matrix; c absorbs it
-    gram = lagged.T @ lagged
+    lagged = np.column_stack(
+        [y[start - i:start - i + n][complete] for i in range(na + 1)]
+        + [u[start - j:start - j + n][complete] for j in range(start + 1)])
+    lagged -= lagged.mean(axis=0)  # conditions the Gram matrix; the constant absorbs it
+    gram = np.zeros((lagged.shape[1] + 1,) * 2)
+    gram[0, 0] = rows  # the constant, orthogonal to the centred columns
+    gram[1:, 1:] = lagged.T @ lagged
     past = [0, *range(2, na + 2)]  # the constant and y's own past
 
-    def loss(columns: list[int]) -> float:
-        g = gram[np.ix_(columns, columns)]
+    def losses_of(columns: NDArray[np.intp]) -> FloatArray:
+        """Residual mean squares of the models of these columns (one row a model)."""
         r = gram[columns, 1]
-        coef = np.linalg.lstsq(g, r, rcond=None)[0]  # a held u makes g singular
-        return max(float(gram[1, 1] - coef @ r), 0.0) / rows
+        coef = np.linalg.solve(gram[columns[:, :, None], columns[:, None, :]], r[..., None])
+        return np.maximum(gram[1, 1] - np.sum(coef[..., 0] * r, axis=1), 0.0) / rows
 
-    losses = np.array([loss(past + list(range(na + 2 + k, na + 2 + k + nb)))
+    models = np.array([past + list(range(na + 2 + k, na + 2 + k + nb))
                        for k in range(max_delay + 1)])
+    try:
+        losses = losses_of(models)
+        own_past = float(losses_of(np.array([past]))[0])
+    except np.linalg.LinAlgError:  # PV held, or its lags collinear with the input's
+        return None, "PV or they do not vary enough to fit"
     best = float(losses.min())
     if not best > 0.0:
         return None, "PV follows them exactly: no noise to judge the fit by"
-    if rows * np.log(loss(past) / best) < chi2[1]:
+    if rows * np.log(own_past / best) < chi2[1]:
         return None, "they explain nothing of PV beyond PV's own past"
     excess = rows * np.log(losses / best)
     alike = np.flatnonzero(excess < chi2[1])
@@ -390,8 +402,8 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
         d, why = _arx_delay(excitation, response, max_delay, na, nb, chi2)
         if d is not None:
             return DeadTimeEstimate(d, f"identified from {name}")
-        reasons.append(f"{name}: {why}")
-    return DeadTimeEstimate(None, "unknown: the window's " + "; ".join(reasons))
+        reasons.append(f"from {name}, {why}")
+    return DeadTimeEstimate(None, "unknown: " + "; ".join(reasons))
 
 
 def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:

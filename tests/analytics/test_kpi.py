@@ -259,7 +259,7 @@ def test_set_point_steps_too_small_for_a_sluggish_loop_leave_it_unknown():
     y, op = stepped_loop(a, r, 4, 0.8, 0.0, 0.05)
     estimate = identify_dead_time(40.0 + op[500:], 50.0 + y[500:], 50.0 + r[500:])
     assert estimate.samples is None
-    assert estimate.note.startswith("unknown: the window's set-point steps: too weak to tell")
+    assert estimate.note.startswith("unknown: from set-point steps, too weak to tell")
 
 
 def test_the_operators_op_moves_in_manual_tell_the_dead_time():
