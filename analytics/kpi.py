@@ -7,6 +7,8 @@ signals already in % of span:
   control error ``SP - PV``, and the share of time PV spent within its limits;
 * :func:`harris_index` -- the minimum-variance (Harris) index with the
   Desborough-Harris normalisation, from the dead time in samples;
+* :func:`identify_dead_time` -- that dead time, when none is configured, from
+  the window's set-point steps or the operator's OP moves in manual;
 * :func:`valve_travel_per_day` and :func:`reversals_per_day` -- OP travel
   beyond noise and its direction changes (the valve's wear);
 * :func:`saturation` -- the share of time OP sat at its limits;
@@ -31,6 +33,13 @@ References
    4.2 (set-point response: overshoot, settling time with a 2 % band, IAE).
 .. [5] N. F. Thornhill, B. Huang and H. Zhang, "Detection of multiple
    oscillations in control loops", J. Process Control 13 (2003) 91-100.
+.. [6] S. Bjorklund and L. Ljung, "A review of time-delay estimation
+   techniques", Proc. 42nd IEEE CDC (2003) 2502-2507, sec. 3 (the ARX
+   method: the delay of the ARX model with the smallest loss).
+.. [7] L. Ljung, *System Identification: Theory for the User*, 2nd ed.,
+   Prentice Hall 1999, sec. 13.4 (direct identification in closed loop needs
+   excitation beyond the feedback) and sec. 16.4 (the chi-square test of
+   model structures).
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from analytics.stiction.stick_jump import (
 from analytics.types import FloatArray
 
 __all__ = [
+    "DeadTimeEstimate",
     "ErrorStatistics",
     "HarrisIndex",
     "LoopKpis",
@@ -59,6 +69,7 @@ __all__ = [
     "SetpointResponse",
     "error_statistics",
     "harris_index",
+    "identify_dead_time",
     "longest_normal_stretch",
     "loop_kpis",
     "manual_samples",
@@ -207,6 +218,192 @@ def harris_index(error: FloatArray, dead_time: int, order: int | None = None
     mse = float(r[0] + mean**2)
     ratio = mv / mse
     return HarrisIndex(mv, mse, ratio, 1.0 - ratio, dead_time)
+
+
+@dataclass(frozen=True)
+class DeadTimeEstimate:
+    """The dead time :func:`identify_dead_time` found in a window, or why it found none.
+
+    Attributes
+    ----------
+    samples : int or None
+        The dead time ``d`` in samples as :func:`harris_index` counts it (the
+        hold's sample included); None when the window does not tell it.
+    note : str
+        What it was identified from (``"identified from set-point steps"``,
+        ``"identified from the operator's OP moves in manual"``), or why not.
+    """
+
+    samples: int | None
+    note: str
+
+
+def _moves_beyond_noise(x: FloatArray, floor: float = 0.0) -> bool:
+    """Whether ``x`` moves beyond its noise within any of its runs of present samples.
+
+    A backlash of three noise standard deviations (:func:`robust_noise`, and
+    no narrower than ``floor``) follows each run, as the valve travel counts
+    OP's moves (:func:`analytics.stiction.stick_jump.travel_increments`).
+    """
+    present = np.isfinite(x)
+    edges = np.diff(np.concatenate(([0], present.astype(np.int8), [0])))
+    values = x[present]
+    if values.size < 3:
+        return False
+    band = max(3.0 * robust_noise(values), floor)
+    return any(travel_increments(x[start:stop], band).sum() > 0.0
+               for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1),
+                                      strict=True) if stop - start > 1)
+
+
+def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
+               chi2: tuple[float, float]) -> tuple[int | None, str]:
+    """The delay from ``u`` to ``y`` by an ARX delay scan, or None and why not.
+
+    For each delay ``k = 0 .. max_delay`` the model
+    ``y_t = c + sum_{i=1}^{na} a_i y_{t-i} + sum_{j=0}^{nb-1} b_j u_{t-k-j} + e_t``
+    is fitted by least squares over the rows whose lags are all present
+    (Bjorklund and Ljung 2003, sec. 3; all from one Gram matrix of the lagged
+    signals, so a delay costs one small solve) and its loss ``V_k`` (residual
+    mean square) compared by ``N ln(V_k / V_min)``, chi-square distributed
+    when the delays fit alike (Ljung 1999, sec. 16.4).  Delays shorter than
+    the true one fit as well as it whenever their ``nb`` lags reach it, so the
+    delay is the *longest* one whose loss is not significantly above the
+    smallest (below ``chi2[1]``).  It stands only when the test tells it
+    sharply: its own loss is within the tighter ``chi2[0]`` of the smallest
+    (else the first samples of the response hide in the noise, and the onset
+    may be a sample earlier), and no delay fits alike more than ``nb - 1``
+    samples before it (those no longer reach it).  ``u`` must explain ``y``
+    beyond ``y``'s own past by the test at ``chi2[1]``.  A delay of 0 (PV
+    moving with ``u`` at the same sample, as no sampled process can) or of
+    ``max_delay`` is no estimate.
+    """
+    start = max(na, max_delay + nb - 1)
+    n = y.size - start
+    if n < 10 * (1 + na + nb):
+        return None, "too few samples"
+    # Columns: 1, y_t, y_{t-1..t-na}, u_{t-0..t-start}; rows t = start .. end.
+    # Rows whose lags are all present, from the running counts of present samples.
+    present = np.concatenate(([0], np.cumsum(np.isfinite(y)))), np.concatenate(
+        ([0], np.cumsum(np.isfinite(u))))
+    t = np.arange(start, y.size)
+    complete = ((present[0][t + 1] - present[0][t - na] == na + 1)
+                & (present[1][t + 1] - present[1][t - start] == start + 1))
+    rows = int(complete.sum())
+    if rows < 10 * (1 + na + nb):
+        return None, "too few complete samples"
+    lagged = np.column_stack(
+        [y[start - i:start - i + n][complete] for i in range(na + 1)]
+        + [u[start - j:start - j + n][complete] for j in range(start + 1)])
+    lagged -= lagged.mean(axis=0)  # conditions the Gram matrix; the constant absorbs it
+    gram = np.zeros((lagged.shape[1] + 1,) * 2)
+    gram[0, 0] = rows  # the constant, orthogonal to the centred columns
+    gram[1:, 1:] = lagged.T @ lagged
+    past = [0, *range(2, na + 2)]  # the constant and y's own past
+
+    def losses_of(columns: NDArray[np.intp]) -> FloatArray:
+        """Residual mean squares of the models of these columns (one row a model)."""
+        r = gram[columns, 1]
+        coef = np.linalg.solve(gram[columns[:, :, None], columns[:, None, :]], r[..., None])
+        return np.maximum(gram[1, 1] - np.sum(coef[..., 0] * r, axis=1), 0.0) / rows
+
+    models = np.array([past + list(range(na + 2 + k, na + 2 + k + nb))
+                       for k in range(max_delay + 1)])
+    try:
+        losses = losses_of(models)
+        own_past = float(losses_of(np.array([past]))[0])
+    except np.linalg.LinAlgError:  # PV held, or its lags collinear with the input's
+        return None, "PV or they do not vary enough to fit"
+    best = float(losses.min())
+    if not best > 0.0:
+        return None, "PV follows them exactly: no noise to judge the fit by"
+    if rows * np.log(own_past / best) < chi2[1]:
+        return None, "they explain nothing of PV beyond PV's own past"
+    excess = rows * np.log(losses / best)
+    alike = np.flatnonzero(excess < chi2[1])
+    d = int(alike[-1])
+    if excess[d] >= chi2[0] or alike[0] < d - nb + 1:
+        return None, (f"too weak to tell the delay: {alike[0]} to {alike[-1]} samples fit "
+                      "alike")
+    if d == 0:
+        return None, "PV moves with them at the same sample, as no sampled process can"
+    if d == max_delay:
+        return None, f"the delay is {max_delay} samples or longer, beyond those searched"
+    return d, ""
+
+
+def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = None,
+                       manual: NDArray[np.bool_] | None = None, *, max_delay: int = 30,
+                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47)
+                       ) -> DeadTimeEstimate:
+    """The loop's dead time in samples, from the window's external excitation only.
+
+    Under feedback alone OP is a function of past PV, and the data do not
+    tell the delay in general (Ljung 1999, sec. 13.4: identifiability in
+    closed loop needs a signal from outside the loop, a set-point change or
+    a dither).  A dither cannot be told from the controller's own moves in
+    OP, so the delay is identified only from what the window shows to come
+    from outside:
+
+    * the operator's OP moves in manual (``manual`` marks those samples): no
+      feedback acts, and the delay from OP to PV is the dead time;
+    * set-point moves in auto or cascade: the controller passes them to OP
+      at once, so the delay from SP to PV is the process's dead time too, and
+      SP, unlike OP, is not correlated with the disturbance (the indirect
+      approach, Ljung 1999, sec. 13.5).
+
+    A signal counts when it moves beyond three noise standard deviations of
+    its own (and, for SP, of PV: a step PV's noise hides tells nothing).
+    Each is scanned by an ARX delay scan (Bjorklund and Ljung 2003, sec. 3;
+    the longest delay whose loss is within a chi-square test of the
+    smallest, Ljung 1999, sec. 16.4; ``chi2`` the 0.95 and 0.999 quantiles
+    with 4 degrees of freedom, ``nb = 4``, :func:`_arx_delay`), manual moves
+    first; the first conclusive scan gives the dead time, and weak
+    excitation gives 'unknown' with the delays that fitted alike rather than
+    a guess.  The model's first lag
+    counts the hold's sample, as :func:`harris_index` wants it.  Samples
+    where a signal is missing are left out with the rows that lag them.
+
+    Examples
+    --------
+    A first-order process behind three samples of dead time (two whole and the
+    hold's), its OP stepped by hand:
+
+    >>> rng = np.random.default_rng(0)
+    >>> op = np.repeat(rng.normal(size=40), 50)
+    >>> pv = np.zeros(2000)
+    >>> for t in range(3, 2000):
+    ...     pv[t] = 0.8 * pv[t - 1] + 0.5 * op[t - 3] + 0.1 * rng.normal()
+    >>> identify_dead_time(op, pv, manual=np.ones(2000, dtype=bool))
+    DeadTimeEstimate(samples=3, note="identified from the operator's OP moves in manual")
+    >>> identify_dead_time(op, pv, np.full(2000, 50.0)).note[:44]
+    'unknown: no set-point moves beyond noise and'
+    """
+    u, y = np.asarray(op, dtype=np.float64), np.asarray(pv, dtype=np.float64)
+    hand = np.zeros(y.size, dtype=bool) if manual is None else np.asarray(manual, dtype=bool)
+    sources = []
+    if hand.any():
+        moved = np.where(hand, u, np.nan)
+        if _moves_beyond_noise(moved):
+            sources.append(("the operator's OP moves in manual", moved, np.where(hand, y, np.nan)))
+    if sp is not None:
+        s = np.where(hand, np.nan, np.asarray(sp, dtype=np.float64))
+        auto_pv = np.where(hand, np.nan, y)
+        finite_pv = auto_pv[np.isfinite(auto_pv)]
+        floor = 3.0 * robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+        if _moves_beyond_noise(s, floor):
+            sources.append(("set-point steps", s, auto_pv))
+    if not sources:
+        return DeadTimeEstimate(None, "unknown: no set-point moves beyond noise and no OP "
+                                      "moves in manual in the window; under feedback alone "
+                                      "the dead time cannot be identified")
+    reasons = []
+    for name, excitation, response in sources:
+        d, why = _arx_delay(excitation, response, max_delay, na, nb, chi2)
+        if d is not None:
+            return DeadTimeEstimate(d, f"identified from {name}")
+        reasons.append(f"from {name}, {why}")
+    return DeadTimeEstimate(None, "unknown: " + "; ".join(reasons))
 
 
 def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
@@ -476,8 +673,9 @@ class LoopKpis:
         None without SP and PV.
     harris : HarrisIndex or None
         None when the dead time is unknown or there are too few samples.
-    dead_time_source : {"configured", "unknown"}
-        Where the dead time came from.
+    dead_time_source : {"configured", "identified", "unknown"}
+        Where the dead time came from: the loop's configuration, the window
+        (:func:`identify_dead_time`), or nowhere.
     travel_per_day, reversals_per_day, saturation : float or None
         OP figures; None without OP.
     setpoint_responses : tuple of SetpointResponse
@@ -487,6 +685,15 @@ class LoopKpis:
         None when the oscillation detection did not run.
     notes : tuple of str
         What was skipped and why.
+    dead_time_samples : int or None
+        The dead time ``d`` in samples (the hold's counted); None when unknown.
+    dead_time_s : float or None
+        The same in seconds, ``(d - 1) ts``: the whole samples of the dead
+        time without the hold's, the shortest continuous dead time that gives ``d``.
+    dead_time_note : str
+        The source in words, for the pages beside the index: ``"configured"``,
+        ``"identified from set-point steps"`` (or ``"... from the operator's
+        OP moves in manual"``), ``"unknown: ..."`` with the reason.
     """
 
     samples: int
@@ -501,6 +708,9 @@ class LoopKpis:
     service_factor: ServiceFactor | None = None
     oscillation_index: float | None = None
     notes: tuple[str, ...] = field(default=())
+    dead_time_samples: int | None = None
+    dead_time_s: float | None = None
+    dead_time_note: str = "unknown"
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (NaN becomes None)."""
@@ -528,6 +738,12 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     ``oscillation`` is the oscillation part of a diagnosis
     (:meth:`analytics.diagnosis.LoopDiagnosis.to_dict`: ``detected``, ``regularity``).
 
+    The minimum-variance index uses the configured ``dead_time``; without one
+    the dead time :func:`identify_dead_time` finds from the window's set-point
+    steps or the operator's OP moves in manual (never from the loop under
+    feedback alone).  ``dead_time_source`` and ``dead_time_note`` say which,
+    or why it stayed unknown.
+
     With a ``mode`` signal, the samples in manual are left out of the
     controller's figures -- error statistics, minimum-variance index,
     set-point responses and saturation -- since in manual no controller acts
@@ -536,6 +752,7 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     sample: the valve wears in manual too.
     """
     notes: list[str] = []
+    whole_pv, whole_sp = pv, sp  # manual samples included: the identification wants them
     n = max((x.size for x in (op, pv, sp) if x is not None), default=0)
     factor = None
     manual = np.zeros(n, dtype=bool)
@@ -549,12 +766,19 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
                 "are of the samples in auto or cascade")
             sp, pv = (None if x is None else np.where(manual, np.nan, x) for x in (sp, pv))
     error = harris = None
+    configured = dead_time is not None
+    note = "configured" if configured else "unknown: no SP or no PV"
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
         error = error_statistics(sp, pv, ts, pv_limits)
         responses = setpoint_responses(sp, pv, ts)
+        if not configured:
+            note = "unknown: no OP to identify it from"
+            if op is not None and whole_pv is not None:
+                estimate = identify_dead_time(op, whole_pv, whole_sp, manual)
+                dead_time, note = estimate.samples, estimate.note
         if dead_time is None:
-            notes.append("dead time unknown: no minimum-variance (Harris) index")
+            notes.append(f"dead time {note}; no minimum-variance (Harris) index")
         else:
             harris = harris_index(sp - pv, dead_time)
             if harris is None:
@@ -569,8 +793,11 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         bool(oscillation.get("detected")), oscillation.get("regularity"))
     return LoopKpis(
         samples=n, ts=ts, error=error, harris=harris,
-        dead_time_source="unknown" if dead_time is None else "configured",
+        dead_time_source="configured" if configured else (
+            "unknown" if dead_time is None else "identified"),
         travel_per_day=travel, reversals_per_day=reversals, saturation=sat,
         setpoint_responses=responses, service_factor=factor, oscillation_index=osc,
-        notes=tuple(notes),
+        notes=tuple(notes), dead_time_samples=dead_time,
+        dead_time_s=None if dead_time is None else (dead_time - 1) * ts,
+        dead_time_note=note,
     )

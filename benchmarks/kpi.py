@@ -37,9 +37,13 @@ chosen runs' ~0.5 kB ``kpis``, where before PostgreSQL visited and sorted
 the loop's runs and decompressed and parsed each chosen run's ~9 kB result.
 The rest of the route's time is Python: parsing the returned KPIs, building
 and serialising the response (about 10 ms) and the in-process HTTP.  The KPIs
-without a configured dead time (the ARX delay scan of
-:func:`analytics.kpi.identify_dead_time` runs when the window does not
-oscillate) take 3.2-4.1 ms instead of 1.1-1.2 ms, the scan 2.3-3.0 ms.
+without a configured dead time run the ARX delay scan of
+:func:`analytics.kpi.identify_dead_time` only when the window has external
+excitation (set-point moves, OP moves in manual); this window has both, so
+both scans run (the worst case): 5.7 ms instead of 1.24 ms, the scans
+4.7 ms, measured on 2026-11-26 at a load of 6 on the 2 shared cores (a
+window without set-point moves or manual skips it: the KPIs of the
+healthy flow loop of the library then take 0.55 ms).
 
 Run with ``.venv/bin/python benchmarks/kpi.py [--history]``.
 """
@@ -119,7 +123,7 @@ def main() -> None:
         "saturation": lambda: saturation(op),
         "setpoint_responses": lambda: setpoint_responses(sp, pv, 1.0),
         "service_factor": lambda: service_factor(mode, mapping, 1.0),
-        "identify_dead_time": lambda: identify_dead_time(op, pv),
+        "identify_dead_time": lambda: identify_dead_time(op, pv, sp, mode == 16.0),
     }
     for name, f in parts.items():
         print(f"  {name:22s} {median_ms(f):.3f} ms")

@@ -186,8 +186,10 @@ def analyse_window(
         window's first sample (UNIX s): the stiction episodes' times
         (``start_s``, ...) count from it, and ``kpis``
         (:meth:`analytics.kpi.LoopKpis.to_dict` of the same window in % of
-        span; the Harris index only with a configured dead time,
-        :func:`dead_time_samples`).  With samples in manual, ``manual``
+        span; the Harris index from the configured dead time,
+        :func:`dead_time_samples`, else from the one the window's set-point
+        steps or manual OP moves tell, :func:`analytics.kpi.identify_dead_time`;
+        ``dead_time_note`` says which, or why none).  With samples in manual, ``manual``
         (:func:`manual_stretch`) says which stretch was diagnosed.
     """
     ranges: dict[str, tuple[float, float]] = {

@@ -34,10 +34,12 @@ __all__ = ["COLUMNS", "BadActorReport", "ReportLine", "build_report", "report_cs
 COLUMNS = (
     "rank", "loop", "name", "unit", "importance", "score", "severity", "bad_share", "runs",
     "bad_runs", "worst", "why", "health", "oscillating", "period_s", "verdict",
-    "oscillation_index", "harris_ratio", "error_std", "travel_per_day", "reversals_per_day",
-    "saturation", "service_factor", "open_tickets",
+    "oscillation_index", "harris_ratio", "harris_dead_time", "error_std", "travel_per_day",
+    "reversals_per_day", "saturation", "service_factor", "open_tickets",
 )
-"""The CSV columns; the KPIs (% of span) are those of the latest analysis run."""
+"""The CSV columns; the KPIs (% of span) are those of the latest analysis run;
+``harris_dead_time`` says where the Harris index's dead time came from
+(``configured``, ``identified from set-point steps``, ``unknown: ...``)."""
 
 OPEN_TICKET_STATES = ("open", "acknowledged", "scheduled")
 
@@ -110,6 +112,7 @@ def _figures(kpis: dict[str, Any]) -> dict[str, Any]:
     return {
         "oscillation_index": kpis.get("oscillation_index"),
         "harris_ratio": (kpis.get("harris") or {}).get("ratio"),
+        "harris_dead_time": kpis.get("dead_time_note"),
         "error_std": (kpis.get("error") or {}).get("std"),
         "travel_per_day": kpis.get("travel_per_day"),
         "reversals_per_day": kpis.get("reversals_per_day"),
@@ -131,7 +134,7 @@ def report_csv(report: BadActorReport) -> str:
             row.worst or "", row.why, _number(row.health),
             "" if row.oscillating is None else str(row.oscillating).lower(),
             _number(row.period_s), row.verdict or "",
-            *(_number(v) for v in _figures(line.kpis).values()),
+            *(v if isinstance(v, str) else _number(v) for v in _figures(line.kpis).values()),
             "; ".join(line.tickets),
         ])
     return out.getvalue()
@@ -236,6 +239,7 @@ def report_pdf(report: BadActorReport) -> bytes:
                      and row.period_s is not None else
                      "oscillating" if row.oscillating else "not oscillating"
                      if row.oscillating is not None else "not analysed")
-        pdf.cell(0, note_h, _latin1(f"   {row.why}; {diagnosis}"), border="LRB",
+        dead_time = f"; Harris dead time {f['harris_dead_time']}" if f["harris_dead_time"] else ""
+        pdf.cell(0, note_h, _latin1(f"   {row.why}; {diagnosis}{dead_time}"), border="LRB",
                  new_x="LMARGIN", new_y="NEXT")
     return bytes(pdf.output())

@@ -516,11 +516,25 @@ async function renderOverview(params) {
 const KPI_PERIODS = [[86400, "1 day"], [7 * 86400, "1 week"], [30 * 86400, "30 days"],
   [91 * 86400, "13 weeks"]];
 
-/** The KPIs the loop page draws over time: header, value of one run's KPIs (or health). */
+/** The KPIs the loop page draws over time: key, header, value of one run's KPIs (or
+ * health). */
 const KPI_TRENDS = [
-  ["Health (0..100)", (p) => p.health],
-  ...KPI_COLUMNS.map(([, label, value]) => [label, (p) => (p.kpis ? value(p.kpis) : null)]),
+  ["health", "Health (0..100)", (p) => p.health],
+  ...KPI_COLUMNS.map(([key, label, value]) =>
+    [key, label, (p) => (p.kpis ? value(p.kpis) : null)]),
 ];
+
+/** Where the latest run's Harris index took its dead time from, in words: "configured",
+ * "identified from set-point steps", or "unknown: ..." with the reason (null for runs
+ * stored before the KPIs said so). */
+function deadTimeText(history) {
+  const latest = [...history.data].reverse().find((p) => p.kpis && p.kpis.dead_time_note);
+  if (!latest) return null;
+  const k = latest.kpis;
+  const d = k.dead_time_samples === null || k.dead_time_samples === undefined ? ""
+    : ` (${k.dead_time_samples} samples, ${num(k.dead_time_s, 3)} s)`;
+  return `Dead time: ${k.dead_time_note}${d}`;
+}
 
 const SVG_NS = "http://www.w3.org/2000/svg";
 
@@ -573,8 +587,13 @@ async function kpiTrendSection(path, end) {
       ? ` (every ${Math.ceil(history.total / history.count)}th of ${history.total} runs)` : "";
     box.replaceChildren(h("p", { class: "help" },
       `${history.count} analysis runs${note}, ${utc(since)} to ${utc(until)}.`),
-    ...KPI_TRENDS.map(([label, value]) => kpiChart(label,
-      history.data.map((p) => [p.started_at, value(p)]), since, until)));
+    ...KPI_TRENDS.map(([key, label, value]) => {
+      const chart = kpiChart(label, history.data.map((p) => [p.started_at, value(p)]),
+        since, until);
+      const deadTime = key === "harris" ? deadTimeText(history) : null;
+      if (deadTime) chart.append(h("p", { class: "sub", "data-dead-time": "" }, deadTime));
+      return chart;
+    }));
   };
   choice.addEventListener("change", show);
   await show();

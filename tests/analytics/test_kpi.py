@@ -10,6 +10,7 @@ from analytics.kpi import (
     LoopKpis,
     error_statistics,
     harris_index,
+    identify_dead_time,
     loop_kpis,
     oscillation_index,
     reversals_per_day,
@@ -129,6 +130,178 @@ def test_harris_index_refuses_too_little_data_and_bad_dead_time():
     assert harris_index(np.zeros(5000), 2) is None
     with pytest.raises(ValueError, match="at least one sample"):
         harris_index(np.zeros(5000), 0)
+
+
+def stepped_loop(a, r, d, phi, kp, ki, hand=None, dither=None):
+    """:func:`closed_loop` with an AR(1) disturbance (pole ``phi``) and a set point ``r``:
+    the PI acts on ``e = r - y``; where ``hand`` is given (not NaN) OP is the operator's
+    (manual), and the controller takes over from it bumplessly; a ``dither`` is added to
+    the controller's output.  Returns PV and OP."""
+    n = lfilter([1.0], [1.0, -phi], a)
+    y, u, e, op = (np.zeros(a.size) for _ in range(4))
+    for t in range(a.size):
+        y[t] = n[t] + (op[t - d] if t >= d else 0.0)
+        e[t] = r[t] - y[t]
+        if hand is not None and np.isfinite(hand[t]):
+            u[t] = hand[t]
+        else:
+            u[t] = (u[t - 1] if t else 0.0) + kp * (e[t] - (e[t - 1] if t else 0.0)) + ki * e[t]
+        op[t] = u[t] + (0.0 if dither is None else dither[t])
+    return y, op
+
+
+def telegraph(rng, size, p, c):
+    """A set point switching between -c and c with probability p at each sample (a random
+    binary test signal): autocovariance ``c^2 rho^|k|``, ``rho = 1 - 2 p``, an AR(1) with
+    innovations of variance ``c^2 (1 - rho^2)``."""
+    return c * rng.choice([-1.0, 1.0]) * (1.0 - 2.0 * (np.cumsum(rng.random(size) < p) % 2))
+
+
+def exact_stepped_mv_ratio(d, phi, kp, ki, p, c):
+    """sigma_mv^2 / sigma_e^2 of :func:`stepped_loop` with a :func:`telegraph` set point
+    (var a = 1), in closed form.
+
+    The error is ``e = S (r - n)``: a feedback loop cannot act on the first ``d`` terms of
+    the disturbance ``v = r - n`` in its innovations form (Harris 1989; a set point the
+    controller does not know ahead is a disturbance like any other).  ``(1 - rho q^-1)
+    (1 - phi q^-1) v`` is an MA(1) with autocovariances ``g0 = s2 (1 + phi^2) + 1 + rho^2``,
+    ``g1 = -phi s2 - rho`` (``s2`` the set point's innovation variance), so
+    ``v = (1 + theta q^-1) / ((1 - rho q^-1)(1 - phi q^-1)) eps`` with the invertible root
+    ``theta`` of ``theta / (1 + theta^2) = g1 / g0`` and ``var eps = g1 / theta`` (the
+    spectral factor, Box and Jenkins 1976, sec. 6.3); sigma_mv^2 is var eps times the sum
+    of the first d squared weights of that filter.  sigma_e^2 from the loop's impulse
+    responses to either source.
+    """
+    rho = 1.0 - 2.0 * p
+    s2 = c**2 * (1.0 - rho**2)
+    g0, g1 = s2 * (1.0 + phi**2) + 1.0 + rho**2, -phi * s2 - rho
+    ratio = g1 / g0
+    theta = 2.0 * ratio / (1.0 + math.sqrt(1.0 - 4.0 * ratio**2))  # |theta| < 1
+    first = np.zeros(d)
+    first[0] = 1.0
+    psi = lfilter([1.0, theta], np.convolve([1.0, -rho], [1.0, -phi]), first)
+    mv = g1 / theta * float(np.sum(psi**2))
+    impulse = np.zeros(8000)
+    impulse[0] = 1.0
+    r = lfilter([1.0], [1.0, -rho], impulse)
+    from_r = r - stepped_loop(np.zeros(8000), r, d, phi, kp, ki)[0]
+    from_a = stepped_loop(impulse, np.zeros(8000), d, phi, kp, ki)[0]
+    assert abs(from_r[-1]) < 1e-10 and abs(from_a[-1]) < 1e-10
+    return mv / (s2 * float(np.sum(from_r**2)) + float(np.sum(from_a**2)))
+
+
+STEPPED = [  # d, disturbance pole, kp, ki
+    pytest.param(3, 0.9, 0.0, 0.2, id="AR1-0.9-d3-I"),
+    pytest.param(5, 0.95, 0.3, 0.1, id="AR1-0.95-d5-PI"),
+    pytest.param(2, 0.5, 0.0, 0.3, id="AR1-0.5-d2-I"),
+    pytest.param(1, 0.9, 0.2, 0.2, id="AR1-0.9-d1-PI"),
+]
+
+
+def test_the_stepped_closed_form_is_the_unstepped_one_without_steps():
+    """The closed form reduces to :func:`exact_mv_ratio` as the set point's steps vanish."""
+    assert exact_stepped_mv_ratio(3, 0.9, 0.0, 0.2, 0.01, 1e-5) == pytest.approx(
+        exact_mv_ratio(3, [1.0], [1.0, -0.9], 0.0, 0.2), rel=1e-6)
+
+
+@pytest.mark.parametrize(("d", "phi", "kp", "ki"), STEPPED)
+def test_harris_index_from_the_dead_time_of_set_point_steps_within_5_percent(d, phi, kp, ki):
+    """No dead time configured: set-point steps of 8 % (a random binary test signal, about
+    one every 100 s) against a disturbance of 1.2-3.2 % standard deviation.  The dead time
+    identified from the steps is the simulated one and the index from it within 5 % of
+    the exact ratio, on 20,000 samples as the index's own test above (over seeds 0-11
+    of each loop: d right in all 48, the index within -2.7 to +2.6 %; on one hour the
+    index spreads over -4.6 to +5.6 %, the sampling error of the hour's few steps, and d
+    is right or unknown, next test)."""
+    exact = exact_stepped_mv_ratio(d, phi, kp, ki, 0.01, 4.0)
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=20_500)
+    r = telegraph(rng, 20_500, 0.01, 4.0)
+    y, op = stepped_loop(a, r, d, phi, kp, ki)
+    sp, pv, op = 50.0 + r[500:], 50.0 + y[500:], 40.0 + op[500:]
+    assert identify_dead_time(op, pv, sp).samples == d
+    k = loop_kpis(1.0, op=op, pv=pv, sp=sp)
+    assert k.dead_time_source == "identified"
+    assert k.dead_time_note == "identified from set-point steps"
+    assert k.dead_time_samples == d and k.dead_time_s == d - 1
+    assert k.harris.dead_time == d
+    assert k.harris.ratio == pytest.approx(exact, rel=0.05)
+    assert k.to_dict()["dead_time_source"] == "identified"
+
+
+def test_on_one_hour_the_dead_time_from_set_point_steps_is_right_or_unknown():
+    """Twelve one-hour windows of each loop of :data:`STEPPED`: the identified dead time is
+    never wrong, and it may say 'unknown' (delays that fit alike) where an hour's steps
+    fall few -- none of the 48 when this was written.  (With steps of half the size, over
+    twenty hours of these four loops and of d = 4, ki = 0.05 and d = 8, ki = 0.1, the scan
+    was wrong in 2 of 120 hours, by one sample, and unknown in 50.)"""
+    identified = 0
+    for param in STEPPED:
+        d, phi, kp, ki = param.values
+        for seed in range(12):
+            rng = np.random.default_rng(seed)
+            a = rng.normal(size=4100)
+            r = telegraph(rng, 4100, 0.01, 4.0)
+            y, op = stepped_loop(a, r, d, phi, kp, ki)
+            found = identify_dead_time(40.0 + op[500:], 50.0 + y[500:], 50.0 + r[500:])
+            assert found.samples in (d, None), (param.id, seed, found)
+            identified += found.samples == d
+    assert identified >= 40
+
+
+def test_set_point_steps_too_small_for_a_sluggish_loop_leave_it_unknown():
+    """A sluggish integral controller (ki = 0.05) passes an 8 % step to OP as a 0.4 % move,
+    under a disturbance of 1.7 %: delays 1 to 15 or so fit alike, and the scan says so
+    rather than pick one (taking the longest of them gave 7 to 21 for d = 4 before)."""
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=4100)
+    r = telegraph(rng, 4100, 0.01, 4.0)
+    y, op = stepped_loop(a, r, 4, 0.8, 0.0, 0.05)
+    estimate = identify_dead_time(40.0 + op[500:], 50.0 + y[500:], 50.0 + r[500:])
+    assert estimate.samples is None
+    assert estimate.note.startswith("unknown: from set-point steps, too weak to tell")
+
+
+def test_the_operators_op_moves_in_manual_tell_the_dead_time():
+    """The first quarter hour in manual, the operator moving OP by 2-6 % every two minutes
+    or so; then auto at a constant set point.  The dead time comes from the open-loop
+    stretch, and the index of the samples in auto is within 5 % of the exact ratio."""
+    d, phi, kp, ki = 3, 0.9, 0.0, 0.2
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=4100)
+    hand = np.full(4100, np.nan)
+    hand[:1400] = np.repeat(rng.uniform(-6.0, 6.0, size=12), 120)[:1400]
+    y, op = stepped_loop(a, np.zeros(4100), d, phi, kp, ki, hand)
+    mode = np.where(np.isfinite(hand), 0, 1)[500:]  # manual until 900 s into the window
+    pv, op = 50.0 + y[500:], 40.0 + op[500:]
+    k = loop_kpis(1.0, op=op, pv=pv, sp=np.full(pv.size, 50.0), mode=mode,
+                  mode_mapping={0: "manual", 1: "auto"})
+    assert k.dead_time_source == "identified" and k.dead_time_samples == d
+    assert k.dead_time_note == "identified from the operator's OP moves in manual"
+    assert k.harris.ratio == pytest.approx(exact_mv_ratio(d, [1.0], [1.0, -phi], kp, ki),
+                                           rel=0.05)
+
+
+def test_a_loop_under_feedback_alone_leaves_the_dead_time_unknown_and_says_why():
+    """No set-point moves and no manual: the window cannot tell the delay, whatever OP
+    does -- a white dither added to OP (which the data cannot tell from the controller's
+    own moves) or nothing but the disturbance (where the scan of OP against PV found 16
+    samples for a true 3 on the service's healthy loop)."""
+    rng = np.random.default_rng(4)
+    sp = np.full(3600, 50.0)
+    for dither in (None, rng.normal(scale=0.5, size=4100)):
+        y, op = stepped_loop(rng.normal(size=4100), np.zeros(4100), 3, 0.9, 0.0, 0.2,
+                             dither=dither)
+        k = loop_kpis(1.0, op=40.0 + op[500:], pv=50.0 + y[500:], sp=sp)
+        assert k.dead_time_source == "unknown" and k.harris is None
+        assert k.dead_time_samples is None and k.dead_time_s is None
+        assert k.dead_time_note.startswith("unknown: no set-point moves beyond noise and no "
+                                           "OP moves in manual")
+        assert any(note.startswith("dead time unknown: no set-point moves") for note in k.notes)
+    held = loop_kpis(1.0, op=np.full(3600, 40.0), pv=50.0 + rng.normal(size=3600), sp=sp,
+                     mode=np.zeros(3600), mode_mapping={0: "manual"})  # manual, OP held
+    assert held.dead_time_source == "unknown"
+    assert held.dead_time_note.startswith("unknown: no set-point moves beyond noise and no")
 
 
 # ---------------------------------------------------------------- valve travel

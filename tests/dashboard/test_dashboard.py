@@ -557,6 +557,11 @@ def check_kpi_views(running: RunningService, browser: Browser,
     assert xs == sorted(xs) and xs[0] < 0.35 * xs[-1]  # spread over the week
     label = chart.locator("svg").get_attribute("aria-label") or ""
     assert f"latest {history[-1]['kpis']['travel_per_day']:.2f}" in label
+    # Beside the Harris index, where its dead time came from (none configured, the set
+    # point held still: unknown, and why).
+    dead_time = page.locator('figure[data-kpi-trend="Harris index"] [data-dead-time]')
+    assert dead_time.inner_text() == f"Dead time: {history[-1]['kpis']['dead_time_note']}"
+    assert dead_time.inner_text().startswith("Dead time: unknown: no set-point moves")
     page.get_by_role("combobox", name="Period ending at the latest analysis").select_option(
         label="1 day")
     page.wait_for_function(

@@ -7,6 +7,7 @@ and stored run by run, for the history and the ranking.
 """
 
 import csv
+import dataclasses
 import io
 from concurrent.futures import ThreadPoolExecutor
 
@@ -17,7 +18,7 @@ from pypdf import PdfReader
 from sqlalchemy import event
 
 from analytics.kpi import oscillation_index
-from analytics.synthetic_cases import synthetic_library
+from analytics.synthetic_cases import synthetic_library, window_start
 from service.analysis import analyse_window
 from service.cli import main
 from service.config import PlantConfig, Settings
@@ -91,8 +92,12 @@ def test_every_run_stores_its_kpis_and_the_history_returns_them(service, client)
     assert sticky["oscillation_index"] == oscillation_index(True, osc["regularity"]) > 0
     # Dead time 3 s at 1 s: d = 3 + 1 samples with the hold; FIC-2 has none configured.
     assert sticky["dead_time_source"] == "configured" and sticky["harris"]["dead_time"] == 4
+    assert sticky["dead_time_note"] == "configured" and sticky["dead_time_s"] == 3.0
     assert 0 < sticky["harris"]["ratio"] <= 1.0
+    # FIC-2's set point holds still in the window and it is never in manual: under
+    # feedback alone its dead time cannot be identified (analytics.kpi.identify_dead_time).
     assert healthy["harris"] is None and healthy["dead_time_source"] == "unknown"
+    assert healthy["dead_time_note"].startswith("unknown: no set-point moves beyond noise")
     assert any("dead time unknown" in note for note in healthy["notes"])
     assert sticky["error"]["within_limits"] is not None
     assert healthy["error"]["within_limits"] is None
@@ -109,6 +114,34 @@ def test_every_run_stores_its_kpis_and_the_history_returns_them(service, client)
                            params={"since": T0 - 60, "until": T0}).json()
     assert only_last["count"] == 1
     assert client.get("/api/v1/loops/FIC-1/kpis", headers=viewer).json()["count"] == 2
+
+
+def test_a_loop_without_a_dead_time_has_it_from_its_set_point_steps(service, client):
+    """FIC-2 (no process model) with a set point stepped by 5 % every 150 s: the run's KPIs
+    take the dead time from the steps, the simulated one (2 s of the process, 1.2 e^{-2 s} /
+    (8 s + 1), plus the hold's sample), say so, and the history returns it.  (Steps of
+    5 % every 300 s were too weak for this sluggish first response, 12 % of the gain in the
+    first sample, in one simulated hour of the two tried: 'unknown', 2 to 4 samples fitting
+    alike; weak excitation is tested in tests/analytics/test_kpi.py.)"""
+    case = {c.name: c for c in synthetic_library(3600)}["flow-noise-ts1"]
+    first = window_start(3600, 1.0)
+    loop = service.state.registry.plant.loops[1].model_dump(mode="json")
+    assert loop["id"] == "FIC-2" and loop["process_model"] is None
+    steps = tuple((first + 150 * (k + 1), 50.0 + 2.5 * (-1) ** k) for k in range(24))
+    sim = dataclasses.replace(case, setpoint=((0.0, 50.0), *steps)).simulate()
+    kpis = analyse_window(loop, 1.0, T0 - 3600 + 1 + np.arange(3600.0), {
+        "op": sim.op[0], "pv": sim.pv[0], "sp": sim.sp[0], "mv": None})["kpis"]
+    assert kpis["dead_time_source"] == "identified"
+    assert kpis["dead_time_note"] == "identified from set-point steps"
+    assert kpis["dead_time_samples"] == int(case.process.delay / case.ts) + 1 == 3
+    assert kpis["harris"]["dead_time"] == 3 and 0 < kpis["harris"]["ratio"] <= 1
+    with service.state.store.session() as session:
+        session.add(AnalysisRun(loop_id="FIC-2", started_at=T0, finished_at=T0,
+                                window_start=T0 - 3600, window_end=T0, status="ok",
+                                result={"kpis": kpis}, kpis=kpis, round_end=T0))
+    body = client.get("/api/v1/loops/FIC-2/kpis", headers=key(client, "viewer"),
+                      params={"since": T0 - 60, "until": T0}).json()
+    assert body["data"][0]["kpis"] == kpis
 
 
 def test_the_kpi_history_reads_the_kpis_column_not_the_whole_diagnosis(service, client):
@@ -251,6 +284,9 @@ def test_bad_actor_report_csv(service, client, clock):
     assert float(rows[0]["travel_per_day"]) == pytest.approx(latest["travel_per_day"],
                                                              rel=1e-3)
     assert rows[1]["harris_ratio"] != "" and rows[0]["harris_ratio"] == ""  # FIC-1 has theta
+    assert rows[1]["harris_dead_time"] == "configured"
+    assert rows[0]["harris_dead_time"] == latest["dead_time_note"]
+    assert rows[0]["harris_dead_time"].startswith("unknown: ")
     refused = client.get("/api/v1/reports/bad-actors", headers=viewer, params={"format": "xls"})
     assert refused.status_code == 422 and refused.json()["detail"][0]["loc"][-1] == "format"
 

@@ -25,7 +25,7 @@ from service.api.deps import (
     error_responses,
     shared_answer,
 )
-from service.api.schemas.diagnosis import LoopDiagnosisPublic
+from service.api.schemas.diagnosis import KpisPublic, LoopDiagnosisPublic
 from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.config import LoopConfig
 from service.logs import audit
@@ -90,15 +90,15 @@ class BadActorsPublic(BaseModel):
 
 
 class KpiPointPublic(BaseModel):
-    """The KPIs of one analysis run (:meth:`analytics.kpi.LoopKpis.to_dict`; None for a
-    run stored before the KPIs were computed)."""
+    """The KPIs of one analysis run (None for a run stored before the KPIs were
+    computed); ``kpis.dead_time_note`` says where the Harris index's dead time came from."""
 
     run_id: int
     started_at: float
     window_start: float | None
     window_end: float | None
     health: float | None
-    kpis: dict[str, Any] | None
+    kpis: KpisPublic | None
 
 
 class KpiHistoryPublic(BaseModel):
@@ -544,7 +544,8 @@ def loop_health(
     )
 
 
-@router.get("/loops/{loop_id}/kpis", response_model=KpiHistoryPublic)
+@router.get("/loops/{loop_id}/kpis", response_model=KpiHistoryPublic,
+            response_model_exclude_unset=True)
 def loop_kpis(
     loop_id: str, session: SessionDep, state: StateDep, _: Reader,
     since: Annotated[float | None, Query(ge=0)] = None,

@@ -14,6 +14,46 @@ from typing import Any
 from service.api.schemas.base import OpenSchema
 
 
+class HarrisPublic(OpenSchema):
+    """The minimum-variance benchmark of the window (:class:`analytics.kpi.HarrisIndex`;
+    Desborough and Harris 1992)."""
+
+    ratio: float | None = None
+    """Harris index: minimum variance / mean square error, 1 at minimum-variance control,
+    towards 0 worse."""
+    normalised: float | None = None
+    """Desborough-Harris normalised index, 1 - ratio."""
+    mv_variance: float | None = None
+    """Estimated minimum achievable variance, (% of span)^2."""
+    mse: float | None = None
+    """Mean square of SP - PV, (% of span)^2."""
+    dead_time: int | None = None
+    """The dead time used, samples (the zero-order hold's included)."""
+
+
+class KpisPublic(OpenSchema):
+    """The loop's KPIs over one window (:meth:`analytics.kpi.LoopKpis.to_dict`); the
+    fields not named here (error statistics, valve travel, reversals, saturation,
+    set-point responses, service factor, oscillation index, notes) are described there."""
+
+    harris: HarrisPublic | None = None
+    """Null when the dead time is unknown (``dead_time_note`` says why) or the window
+    too short."""
+    dead_time_source: str | None = None
+    """Where the Harris index's dead time came from: ``configured`` (the loop's process
+    model), ``identified`` (from the window's set-point steps or the operator's OP moves
+    in manual: :func:`analytics.kpi.identify_dead_time`; never from the loop under
+    feedback alone, where the delay cannot be identified) or ``unknown``."""
+    dead_time_note: str | None = None
+    """The same in words, to show beside the index: ``configured``, ``identified from
+    set-point steps``, ``identified from the operator's OP moves in manual``, or
+    ``unknown: ...`` with the reason."""
+    dead_time_samples: int | None = None
+    """The dead time d in samples (the hold's counted); null when unknown."""
+    dead_time_s: float | None = None
+    """The same in seconds, (d - 1) ts."""
+
+
 class QualityPublic(OpenSchema):
     """Whether the window's data could be analysed."""
 
@@ -124,8 +164,8 @@ class LoopDiagnosisPublic(OpenSchema):
     """Health score, 0 (worst) to 100."""
     first_sample_at: float | None = None
     """First sample judged, UNIX s."""
-    kpis: dict[str, Any] | None = None
-    """The loop's KPIs over the window (:meth:`analytics.kpi.LoopKpis.to_dict`)."""
+    kpis: KpisPublic | None = None
+    """The loop's KPIs over the window."""
     valve: ValveVerdictPublic | None = None
     manual: dict[str, Any] | None = None
     """Present when the loop was in manual: its share of the window and the stretch in
