@@ -4,6 +4,10 @@ A :class:`TransferFunction` is a proper rational transfer function in the
 Laplace variable ``s`` times a pure delay ``exp(-delay * s)``.
 :func:`discretise` turns it into an exact zero-order-hold (ZOH) state-space
 recursion, including a dead time that is not a multiple of the sample time.
+:class:`FirstOrderProcess` is the one first-order process with dead time
+(self-regulating or integrating) of tuning, quantification and the model
+check, with its transfer function, its sampled lag and the closed forms of
+thesis chapter 5 (Eqs. 5.9-5.40).
 
 References
 ----------
