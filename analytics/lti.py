@@ -4,6 +4,10 @@ A :class:`TransferFunction` is a proper rational transfer function in the
 Laplace variable ``s`` times a pure delay ``exp(-delay * s)``.
 :func:`discretise` turns it into an exact zero-order-hold (ZOH) state-space
 recursion, including a dead time that is not a multiple of the sample time.
+:class:`FirstOrderProcess` is the one first-order process with dead time
+(self-regulating or integrating) of tuning, quantification and the model
+check, with its transfer function, its sampled lag and the closed forms of
+thesis chapter 5 (Eqs. 5.9-5.40).
 
 References
 ----------
@@ -21,17 +25,19 @@ References
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import scipy.linalg
+import scipy.optimize
 import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from analytics.errors import ModelSpecError
-from analytics.types import FloatArray
+from analytics.types import INTEGRATING, SELF_REGULATING, ComplexArray, FloatArray, ProcessType
 
 #: Relative tolerance under which ``delay / dt`` is taken to be an integer.
 _INTEGER_DELAY_RTOL = 1e-9
@@ -132,13 +138,16 @@ class TransferFunction:
     # ------------------------------------------------------------------ constructors
     @classmethod
     def fopdt(cls, K: float, tau: float, theta: float = 0.0) -> TransferFunction:
-        """First order plus dead time, ``K exp(-theta s) / (tau s + 1)`` with ``tau > 0``."""
-        return cls((_finite("K", K),), (_positive("tau", tau), 1.0), theta)
+        """First order plus dead time, ``K exp(-theta s) / (tau s + 1)`` with ``tau > 0``
+        (:class:`FirstOrderProcess`, self-regulating)."""
+        process = FirstOrderProcess(SELF_REGULATING, _finite("K", K), _positive("tau", tau), theta)
+        return process.transfer_function()
 
     @classmethod
     def integrating(cls, K: float, theta: float = 0.0) -> TransferFunction:
-        """Integrating process with dead time, ``K exp(-theta s) / s``."""
-        return cls((_finite("K", K),), (1.0, 0.0), theta)
+        """Integrating process with dead time, ``K exp(-theta s) / s``
+        (:class:`FirstOrderProcess`, integrating without a lag)."""
+        return FirstOrderProcess(INTEGRATING, _finite("K", K), 0.0, theta).transfer_function()
 
     @classmethod
     def second_order(
@@ -285,6 +294,189 @@ class TransferFunction:
         :attr:`is_integrating` to tell them apart from unstable ones.
         """
         return bool(np.all(self.poles().real < 0.0))
+
+
+@dataclass(frozen=True)
+class FirstOrderProcess:
+    """A first-order process with dead time, self-regulating or integrating.
+
+    ``K e^{-theta s} / (tau s + 1)`` (self-regulating, thesis Eq. 5.9) or
+    ``K e^{-theta s} / (s (tau s + 1))`` (integrating; ``tau = 0`` is the
+    ``K e^{-theta s} / s`` of thesis Eq. 5.31). The one process type of
+    tuning (the closed forms of thesis chapter 5 below), stiction
+    quantification (the identified linear part) and the model check (its
+    sampled recursion, :meth:`delay_samples` and :meth:`pole`); simulation
+    and compensation take its :meth:`transfer_function`.
+
+    Attributes
+    ----------
+    kind : {"self-regulating", "integrating"}
+    K : float
+        Gain: PV units per % (self-regulating) or PV units per % per second
+        (integrating).
+    tau : float
+        Time constant of the lag, s; 0: no lag.
+    theta : float
+        Dead time, s.
+
+    Raises
+    ------
+    ModelSpecError
+        Unknown kind, a parameter that is not a finite number, or a negative
+        ``tau`` or ``theta``.
+    """
+
+    kind: ProcessType
+    K: float
+    tau: float
+    theta: float
+
+    def __post_init__(self) -> None:
+        if self.kind not in (SELF_REGULATING, INTEGRATING):
+            raise ModelSpecError(
+                f"process type must be {SELF_REGULATING!r} or {INTEGRATING!r}, got {self.kind!r}"
+            )
+        for name in ("K", "tau", "theta"):
+            value = getattr(self, name)
+            if not (isinstance(value, numbers.Real) and math.isfinite(value)):
+                raise ModelSpecError(f"process {name} must be a finite number, got {value!r}")
+        if self.tau < 0 or self.theta < 0:
+            raise ModelSpecError(
+                f"process tau and theta must be >= 0 s, got tau={self.tau}, theta={self.theta}"
+            )
+
+    @property
+    def integrating(self) -> bool:
+        """True for an integrating process."""
+        return self.kind == INTEGRATING
+
+    @classmethod
+    def of(cls, process: TransferFunction, *, hold_delay: float = 0.0) -> FirstOrderProcess:
+        """Recognise the process classes of thesis chapter 5: ``K/(tau s + 1)`` with
+        ``tau > 0`` or ``K/s``, with dead time; ``hold_delay`` is added to it.
+
+        Raises
+        ------
+        ModelSpecError
+            If ``process`` is neither (with dead time), or its gain is zero.
+
+        Examples
+        --------
+        >>> FirstOrderProcess.of(TransferFunction.fopdt(0.4346, 27.58, 6.0), hold_delay=0.5)
+        FirstOrderProcess(kind='self-regulating', K=0.4346, tau=27.58, theta=6.5)
+        """
+        num, den = process.num, process.den
+        theta = process.delay + hold_delay
+        if len(num) == 1 and num[0] != 0 and len(den) == 2:
+            lead, constant = den
+            if constant == 0:
+                return cls(INTEGRATING, num[0] / lead, 0.0, theta)
+            if lead / constant > 0:
+                return cls(SELF_REGULATING, num[0] / constant, lead / constant, theta)
+        raise ModelSpecError(
+            "the chapter 5 analysis covers K e^-theta s/(tau s + 1) with tau > 0 and "
+            f"K e^-theta s/s; got num={list(num)}, den={list(den)}"
+        )
+
+    def transfer_function(self) -> TransferFunction:
+        """The process as a :class:`TransferFunction` (no lag for ``tau = 0``).
+
+        Examples
+        --------
+        >>> FirstOrderProcess("integrating", 0.02, 3.0, 1.0).transfer_function()
+        TransferFunction(num=(0.02,), den=(3.0, 1.0, 0.0), delay=1.0)
+        """
+        lag = (self.tau, 1.0) if self.tau > 0 else (1.0,)
+        den = (*lag, 0.0) if self.integrating else lag
+        return TransferFunction((self.K,), den, self.theta)
+
+    # ------------------------------------------------------------------ sampled
+    def delay_samples(self, dt: float) -> int:
+        """The dead time in whole samples of ``dt``, ``d = round(theta / dt)``."""
+        return round(self.theta / dt)
+
+    def pole(self, dt: float) -> float:
+        """The lag sampled every ``dt`` under a zero-order hold, ``exp(-dt / tau)``
+        (0 without a lag; Astrom & Wittenmark 1997, ch. 2)."""
+        return math.exp(-dt / self.tau) if self.tau > 0 else 0.0
+
+    # ------------------------------------------------------------------ thesis ch. 5
+    def open_loop_response(self, kc: float, ti: float, omega: ArrayLike) -> ComplexArray:
+        """``G(jw) Gc(jw)`` in the closed forms of thesis chapter 5.
+
+        Self-regulating: Eqs. 5.21-5.22 (5.12 without delay); integrating:
+        Eq. 5.35 divided by ``Kc`` (the lag of ``tau > 0`` as for a
+        self-regulating process); the controller ``Kc (1 - j/(tau_I w))``
+        (Eq. 5.23; ``ti = inf`` for P control). Their products are Eqs. 5.13,
+        5.15, 5.32, 5.34 and 5.36.
+        """
+        w = np.asarray(omega, dtype=np.float64)
+        cos, sin = np.cos(self.theta * w), np.sin(self.theta * w)
+        tw = self.tau * w
+        real = self.K * (cos - tw * sin) / (1 + tw**2)
+        imag = -self.K * (sin + tw * cos) / (1 + tw**2)
+        if self.integrating:  # divided by j w
+            real, imag = imag / w, -real / w
+        controller = kc * (1 - 1j / (ti * w))
+        return np.asarray((real + 1j * imag) * controller, dtype=np.complex128)
+
+    def phase_lag(self, ti: float, omega: FloatArray) -> FloatArray:
+        """``-arg G(jw) Gc(jw)``, continuous from ``w -> 0``.
+
+        ``theta w + atan(tau w)``, plus ``pi/2`` for an integrating process and
+        ``pi/2 - atan(tau_I w)`` with integral action: the ``beta``, ``alpha``
+        of thesis Eqs. 5.29-5.30.
+        """
+        lag = self.theta * omega
+        lag = lag + (np.pi / 2 if self.integrating else np.arctan(self.tau * omega))
+        if self.integrating and self.tau > 0:
+            lag = lag + np.arctan(self.tau * omega)
+        if math.isfinite(ti):
+            lag = lag + np.pi / 2 - np.arctan(ti * omega)
+        return np.asarray(lag, dtype=np.float64)
+
+    def crossing_frequencies(self, ti: float) -> tuple[float | None, float | None]:
+        """``(w*, w**)``: first crossings of the imaginary and the real axis, rad/s.
+
+        The roots of thesis Eqs. 5.18-5.19 (P), 5.27-5.28 (PI,
+        self-regulating) and 5.39-5.40 (PI, integrating), as corrected in
+        :mod:`analytics.tuning`: the first ``w > 0`` at which the phase lag
+        passes ``pi/2 + k pi`` (F) or ``k pi`` (H). They do not depend on
+        ``Kc``. None without dead time, where the curve never reaches the axis
+        (thesis sections 5.3.1, 5.4.1).
+        """
+        if self.theta <= 0:
+            return None, None
+        scale = max(self.theta, self.tau, ti if math.isfinite(ti) else 0.0)
+        grid = np.geomspace(1e-6 / scale, 4 * np.pi / self.theta, 4000)
+        lag = self.phase_lag(ti, grid)
+
+        def first(offset: float) -> float | None:
+            level = np.floor((lag - offset) / np.pi)
+            steps = np.flatnonzero(level[1:] != level[:-1])
+            if steps.size == 0:
+                return None
+            k = int(steps[0])
+            target = offset + np.pi * max(level[k], level[k + 1])
+            return float(
+                scipy.optimize.brentq(
+                    lambda w: float(self.phase_lag(ti, np.array([w]))[0]) - target,
+                    grid[k],
+                    grid[k + 1],
+                    xtol=1e-14,
+                    rtol=1e-13,
+                )
+            )
+
+        return first(np.pi / 2), first(0.0)
+
+    def low_frequency_real(self, kc: float, ti: float) -> float:
+        """``lim Re G Gc`` as ``w -> 0`` (thesis Tables 5.2-5.8); ``-inf`` for PI on
+        an integrating process. Its modulus is the ``d`` of Eq. 5.24 and Fig. 5.9."""
+        gain = self.K * kc
+        if self.integrating:
+            return -math.inf if math.isfinite(ti) else -gain * (self.theta + self.tau)
+        return gain * (1 - (self.theta + self.tau) / ti)
 
 
 @dataclass(frozen=True, eq=False)

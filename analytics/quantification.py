@@ -92,8 +92,9 @@ from scipy.optimize import minimize_scalar
 from scipy.stats import chi2, norm
 
 from analytics.errors import DataError
+from analytics.lti import FirstOrderProcess
 from analytics.oscillation import bandpass, detect_loop_oscillation
-from analytics.types import FloatArray, ProcessType
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
 __all__ = [
@@ -103,7 +104,6 @@ __all__ = [
     "VALVE_MODELS",
     "CombinedValue",
     "FitTrace",
-    "ProcessModel",
     "ProcessType",
     "SearchSummary",
     "StictionEstimate",
@@ -144,30 +144,6 @@ surely."""
 MIN_R2_GAIN = 0.02
 """R^2 a stiction model must add over a healthy valve for ``stiction_found``
 (stiction cases of the synthetic library gain 0.05-0.3, linear loops at most 0.011)."""
-
-@dataclass(frozen=True)
-class ProcessModel:
-    """The identified linear part, from MV (% of travel) to PV (plant units).
-
-    Attributes
-    ----------
-    K : float
-        Gain: PV units per % (self-regulating) or PV units per % per second
-        (integrating).
-    tau : float
-        Time constant of the first-order lag, s (0: no lag).
-    theta : float
-        Dead time, s: the MV delay less the one sample of the hold (a PV
-        sample can answer the MV of the sample before at the earliest).
-    integrating : bool
-        True for ``K e^{-theta s} / (s (tau s + 1))``, False for FOPDT.
-    """
-
-    K: float
-    tau: float
-    theta: float
-    integrating: bool
-
 
 @dataclass(frozen=True)
 class SearchSummary:
@@ -251,8 +227,11 @@ class StictionEstimate:
         (thesis Eq. 1.2).
     fit_r2 : float or None
         Output-error R^2 of the simulated PV over the scored window.
-    model : ProcessModel or None
-        The identified linear part.
+    model : FirstOrderProcess or None
+        The identified linear part, from MV (% of travel) to PV (plant units);
+        ``tau = 0`` when no lag was found, and ``theta`` is the MV delay less the
+        one sample of the hold (a PV sample can answer the MV of the sample
+        before at the earliest).
     search : SearchSummary or None
         Search bound, chosen valve model and the near-optimal region.
     trace : FitTrace or None
@@ -282,7 +261,7 @@ class StictionEstimate:
     fs: float | None
     fd: float | None
     fit_r2: float | None
-    model: ProcessModel | None
+    model: FirstOrderProcess | None
     search: SearchSummary | None
     trace: FitTrace | None
     period_s: float | None
@@ -1279,11 +1258,11 @@ def quantify_stiction(
     sse_ideal = table[0.0, 0.0][0]
     h = ts * window.factor
     integrating = row == 1
-    model = ProcessModel(
+    model = FirstOrderProcess(
+        kind=INTEGRATING if integrating else SELF_REGULATING,
         K=gain / h if integrating else gain,
         tau=0.0 if a <= 0.0 else -h / math.log(a),
         theta=(delay - 1) * ts,
-        integrating=integrating,
     )
 
     near = [c for c, s in table.items() if s[0] <= sse * (1.0 + near_optimal_tolerance)]

@@ -68,7 +68,6 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import ArrayLike
 
 from analytics.describing import (
@@ -86,7 +85,7 @@ from analytics.limit_cycle import (
     predict_limit_cycles,
     simulate_limit_cycle,
 )
-from analytics.lti import TransferFunction
+from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.oscillation import RAYLEIGH_ENVELOPE_CV
 from analytics.simulation import ClosedLoopModel, PIDController
 from analytics.types import BoolArray, ComplexArray, FloatArray, IntArray, ProcessType
@@ -120,132 +119,6 @@ def _json_float(value: float | None) -> float | None:
 
 
 # ---------------------------------------------------------------------------- ch. 5 analysis
-@dataclass(frozen=True)
-class FirstOrderProcess:
-    """The process classes of thesis chapter 5.
-
-    ``K e^{-theta s} / (tau s + 1)`` (self-regulating, Eq. 5.9) or
-    ``K e^{-theta s} / s`` (integrating, Eq. 5.31).
-
-    Attributes
-    ----------
-    kind : {"self-regulating", "integrating"}
-    K : float
-        Gain (per second for an integrating process).
-    tau : float or None
-        Time constant, s; None for an integrating process.
-    theta : float
-        Dead time, s, including any hold delay added by the caller.
-    """
-
-    kind: ProcessType
-    K: float
-    tau: float | None
-    theta: float
-
-    @classmethod
-    def of(cls, process: TransferFunction, *, hold_delay: float = 0.0) -> FirstOrderProcess:
-        """Recognise a first-order process; ``hold_delay`` is added to its dead time.
-
-        Raises
-        ------
-        ModelSpecError
-            If ``process`` is not ``K/(tau s + 1)`` with ``tau > 0`` or ``K/s``
-            (with dead time), or its gain is zero.
-
-        Examples
-        --------
-        >>> FirstOrderProcess.of(TransferFunction.fopdt(0.4346, 27.58, 6.0), hold_delay=0.5)
-        FirstOrderProcess(kind='self-regulating', K=0.4346, tau=27.58, theta=6.5)
-        """
-        num, den = process.num, process.den
-        theta = process.delay + hold_delay
-        if len(num) == 1 and num[0] != 0 and len(den) == 2:
-            lead, constant = den
-            if constant == 0:
-                return cls("integrating", num[0] / lead, None, theta)
-            if lead / constant > 0:
-                return cls("self-regulating", num[0] / constant, lead / constant, theta)
-        raise ModelSpecError(
-            "the chapter 5 analysis covers K e^-theta s/(tau s + 1) with tau > 0 and "
-            f"K e^-theta s/s; got num={list(num)}, den={list(den)}"
-        )
-
-    def open_loop_response(self, kc: float, ti: float, omega: ArrayLike) -> ComplexArray:
-        """``G(jw) Gc(jw)`` in the closed forms of chapter 5.
-
-        Self-regulating: Eqs. 5.21-5.22 (5.12 without delay); integrating:
-        Eq. 5.35 divided by ``Kc``; the controller ``Kc (1 - j/(tau_I w))``
-        (Eq. 5.23; ``ti = inf`` for P control). Their products are Eqs. 5.13,
-        5.15, 5.32, 5.34 and 5.36.
-        """
-        w = np.asarray(omega, dtype=np.float64)
-        cos, sin = np.cos(self.theta * w), np.sin(self.theta * w)
-        if self.tau is None:
-            real, imag = -self.K * sin / w, -self.K * cos / w
-        else:
-            tw = self.tau * w
-            real = self.K * (cos - tw * sin) / (1 + tw**2)
-            imag = -self.K * (sin + tw * cos) / (1 + tw**2)
-        controller = kc * (1 - 1j / (ti * w))
-        return np.asarray((real + 1j * imag) * controller, dtype=np.complex128)
-
-    def phase_lag(self, ti: float, omega: FloatArray) -> FloatArray:
-        """``-arg G(jw) Gc(jw)``, continuous from ``w -> 0``.
-
-        ``theta w + atan(tau w)`` (self-regulating) or ``theta w + pi/2``
-        (integrating), plus ``pi/2 - atan(tau_I w)`` with integral action: the
-        ``beta``, ``alpha`` of Eqs. 5.29-5.30.
-        """
-        lag = self.theta * omega
-        lag = lag + (np.pi / 2 if self.tau is None else np.arctan(self.tau * omega))
-        if math.isfinite(ti):
-            lag = lag + np.pi / 2 - np.arctan(ti * omega)
-        return np.asarray(lag, dtype=np.float64)
-
-    def crossing_frequencies(self, ti: float) -> tuple[float | None, float | None]:
-        """``(w*, w**)``: first crossings of the imaginary and the real axis, rad/s.
-
-        The roots of Eqs. 5.18-5.19 (P), 5.27-5.28 (PI, self-regulating) and
-        5.39-5.40 (PI, integrating), as corrected in the module notes: the
-        first ``w > 0`` at which the phase lag passes ``pi/2 + k pi`` (F) or
-        ``k pi`` (H). They do not depend on ``Kc``. None without dead time,
-        where the curve never reaches the axis (thesis sections 5.3.1, 5.4.1).
-        """
-        if self.theta <= 0:
-            return None, None
-        scale = max(self.theta, self.tau or 0.0, ti if math.isfinite(ti) else 0.0)
-        grid = np.geomspace(1e-6 / scale, 4 * np.pi / self.theta, 4000)
-        lag = self.phase_lag(ti, grid)
-
-        def first(offset: float) -> float | None:
-            level = np.floor((lag - offset) / np.pi)
-            steps = np.flatnonzero(level[1:] != level[:-1])
-            if steps.size == 0:
-                return None
-            k = int(steps[0])
-            target = offset + np.pi * max(level[k], level[k + 1])
-            return float(
-                scipy.optimize.brentq(
-                    lambda w: float(self.phase_lag(ti, np.array([w]))[0]) - target,
-                    grid[k],
-                    grid[k + 1],
-                    xtol=1e-14,
-                    rtol=1e-13,
-                )
-            )
-
-        return first(np.pi / 2), first(0.0)
-
-    def low_frequency_real(self, kc: float, ti: float) -> float:
-        """``lim Re G Gc`` as ``w -> 0`` (Tables 5.2-5.8); ``-inf`` for PI on an
-        integrating process. Its modulus is the ``d`` of Eq. 5.24 and Fig. 5.9."""
-        gain = self.K * kc
-        if self.tau is None:
-            return -math.inf if math.isfinite(ti) else -gain * self.theta
-        return gain * (1 - (self.theta + self.tau) / ti)
-
-
 @dataclass(frozen=True)
 class TuningRule:
     """One row of thesis Table 5.11: what stiction does and which retune helps.
@@ -387,7 +260,10 @@ class SingleLoopAnalysis:
     def to_dict(self) -> dict[str, Any]:
         """JSON form (infinite values as null)."""
         return {
-            "process": dataclasses.asdict(self.process),
+            "process": {
+                **dataclasses.asdict(self.process),
+                "tau": None if self.process.integrating else self.process.tau,
+            },
             "control": self.control,
             "Kc": self.kc,
             "Ti": _json_float(self.ti),
@@ -411,10 +287,10 @@ def _thesis_oscillation(
     """Stiction (``J > 0``) or deadband cycle by the conditions of sections 5.3-5.4."""
     delayed = process.theta > 0
     if j == 0:  # the deadband column of Table 5.11
-        if process.tau is not None or not math.isfinite(ti):
+        if not process.integrating or not math.isfinite(ti):
             return False
         return not delayed or ti > process.theta
-    if process.tau is None:  # integrating: always, except PI with Ti < theta
+    if process.integrating:  # always, except PI with Ti < theta
         return not (delayed and math.isfinite(ti) and ti < process.theta)
     if not delayed:
         return None if math.isfinite(ti) and ti < process.tau else False

@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 from analytics.model_check import ModelCheck, check_model  # noqa: E402
 from analytics.model_check.cases import CATALOGUE, HiddenEffectCase, hidden_effect_case  # noqa: E402
 from analytics.model_check.cases_independent import independent_case  # noqa: E402
+from analytics.model_check.model import PROCESS_JSON_TYPES  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 SAMPLES = 6000
@@ -206,7 +207,8 @@ def speed(seeds: int) -> None:
                 wall.append(time.perf_counter() - start_wall)
             cpu_all.extend(cpu)
             label = effect if isinstance(effect, str) else " + ".join(e[:12] for e in effect)
-            print(f"{name[:11]:11s} {label:28s} ({case.base_model.process.kind:11s}) "
+            kind = PROCESS_JSON_TYPES[case.base_model.process.kind]
+            print(f"{name[:11]:11s} {label:28s} ({kind:11s}) "
                   f"{statistics.median(cpu):6.2f} s  ({statistics.median(wall):.2f} s)")
     print(f"{'all':53s} median {statistics.median(cpu_all):6.2f} s, max {max(cpu_all):.2f} s  "
           f"[target < 2 s: {'met' if max(cpu_all) < 2 else 'MISSED'}]")

@@ -12,8 +12,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from analytics.lti import TransferFunction
+from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.simulation import ClosedLoopModel, Loop, PIDController
+from analytics.types import INTEGRATING, SELF_REGULATING
 from analytics.valves import ChoudhuryValve
 
 __all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop"]
@@ -75,10 +76,9 @@ def identified_loop(config: dict[str, Any], diagnosis: dict[str, Any] | None) ->
     # sampling interval: negligible at the cycle, and the loop stays strictly proper
     # for the Nyquist count (a PI controller on a pure gain and delay is not).
     tau = process["tau"] if process["tau"] > 0 else float(config["ts"])
-    lag = (tau, 1.0)
-    den = (*lag, 0.0) if process["integrating"] else lag
+    kind = INTEGRATING if process["integrating"] else SELF_REGULATING
     return IdentifiedLoop(
-        process=TransferFunction((gain,), den, process["theta"]),
+        process=FirstOrderProcess(kind, gain, tau, process["theta"]).transfer_function(),
         controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
                                        controller.get("Td", 0.0)),
         valve=ChoudhuryValve(float(estimate["S"]), float(estimate["J"] or 0.0)),

@@ -37,19 +37,19 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from analytics.lti import FirstOrderProcess
 from analytics.model_check.effects import EFFECTS
 from analytics.model_check.model import (
     LoopModel,
     PeriodicLoad,
     PIController,
-    Process,
     Quantiser,
     StictionZone,
     Valve,
     friction_of,
     friction_valve,
 )
-from analytics.types import FloatArray
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import ChoudhuryValve, HeValve
 
 __all__ = ["CATALOGUE", "HiddenEffectCase", "hidden_effect_case"]
@@ -131,13 +131,13 @@ def _base_loop(
     if integrating:
         K = float(rng.uniform(0.01, 0.04))
         closed = theta * float(rng.uniform(3.0, 6.0))
-        process = Process("integrating", K, 0.0, theta)
+        process = FirstOrderProcess(INTEGRATING, K, 0.0, theta)
         controller = PIController(1.0 / (K * (closed + theta)), 4.0 * (closed + theta))
     else:
         K = float(rng.uniform(0.6, 2.0))
         tau = float(rng.uniform(5.0, 40.0))
         closed = max(theta, tau / 4.0) * float(rng.uniform(1.0, 2.0))
-        process = Process("fopdt", K, tau, theta)
+        process = FirstOrderProcess(SELF_REGULATING, K, tau, theta)
         controller = PIController(tau / (K * (closed + theta)), min(tau, 4.0 * (closed + theta)))
     kind = HeValve if rng.random() < 0.5 else ChoudhuryValve
     like = kind(0.0, 0.0)
@@ -166,7 +166,7 @@ def _hide(
         theta = p.theta - step if rng.random() < 0.5 and p.theta - step >= 0 else p.theta + step
         return replace(base, process=replace(p, theta=theta)), {"theta": theta}, noise
     if effect == "time_constant_mismatch":
-        if p.kind == "integrating":
+        if p.integrating:
             tau = p.theta * float(rng.uniform(3.0, 8.0))
         else:
             factor = rng.uniform(1.7, 2.5) if rng.random() < 0.5 else rng.uniform(0.35, 0.6)

@@ -43,15 +43,15 @@ import math
 
 import numpy as np
 
+from analytics.lti import FirstOrderProcess
 from analytics.model_check.cases import CATALOGUE, HiddenEffectCase
 from analytics.model_check.model import (
     LoopModel,
     PIController,
-    Process,
     Valve,
     friction_valve,
 )
-from analytics.types import FloatArray
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import (
     HE,
     LAST_INPUT,
@@ -80,7 +80,7 @@ class _TrueLoop:
     def __init__(self, base: LoopModel, friction: tuple[float, float]) -> None:
         self.base = base
         self.K, self.tau, self.theta = base.process.K, base.process.tau, base.process.theta
-        self.integrating = base.process.kind == "integrating"
+        self.integrating = base.process.integrating
         self.params = {(d, z): np.array(friction) for d in (1, -1) for z in (False, True)}
         self.zone = (math.inf, -math.inf)
         self.characteristic = "linear"
@@ -158,13 +158,13 @@ def _base_loop(
     if integrating:
         K = float(10 ** rng.uniform(-2.3, -1.2))
         lam = theta * float(rng.uniform(2.0, 5.0))
-        process = Process("integrating", K, 0.0, theta)
+        process = FirstOrderProcess(INTEGRATING, K, 0.0, theta)
         controller = PIController((2 * lam + theta) / (K * (lam + theta) ** 2), 2 * lam + theta)
     else:
         K = float(10 ** rng.uniform(-0.5, 0.5))
         tau = float(rng.uniform(max(3.0 * ts, 4.0), 60.0))
         lam = max(theta, tau * float(rng.uniform(0.3, 1.0)))
-        process = Process("fopdt", K, tau, theta)
+        process = FirstOrderProcess(SELF_REGULATING, K, tau, theta)
         controller = PIController(tau / (K * (lam + theta)), tau)
     family = (HeValve, ChoudhuryValve, KanoValve)[int(rng.integers(0, 3))]
     like = family(0.0, 0.0)

@@ -524,7 +524,7 @@ def _replay_data(
     data best: where the valve starts (:func:`_valve_starts`) and, for an
     integrating process, the prediction horizon (how fast level errors build up).
     """
-    integrating = base.process.kind == "integrating"
+    integrating = base.process.integrating
     block = (op.size - warm_up) // max(2 * folds, 1)
     horizons = [h for h in HORIZONS if h is None or h <= block] if integrating else [None]
     options = [
@@ -1249,7 +1249,7 @@ def check_model(
     confidence = min(confidence, explained)
 
     def bias(prediction: Prediction) -> float:
-        return float(sp_a[0]) if process.kind == "integrating" else prediction.pv_bias
+        return float(sp_a[0]) if process.integrating else prediction.pv_bias
 
     cycle_base = _cycle(base, sp_a, bias(base_fit), noise, period, pv_a, warm_up)
     cycle_ext = (

@@ -574,12 +574,12 @@ def _fit_deadtime(data: ReplayData, base: LoopModel, longest: int) -> Candidate:
 
 def _fit_time_constant(data: ReplayData, base: LoopModel, longest: float) -> Candidate:
     tau0 = base.process.tau if base.process.tau > 0 else data.ts
-    lowest = data.ts / 4.0 if base.process.kind == "fopdt" else data.ts / 20.0
+    lowest = data.ts / 4.0 if not base.process.integrating else data.ts / 20.0
     grid = list(np.log(np.geomspace(min(lowest, tau0 / 5), max(longest, 5 * tau0), 25)))
 
     def model_of(log_tau: float) -> LoopModel:
         tau = math.exp(log_tau)
-        if base.process.kind == "integrating" and tau <= data.ts / 10.0:
+        if base.process.integrating and tau <= data.ts / 10.0:
             tau = 0.0
         return replace(base, process=replace(base.process, tau=tau))
 

@@ -32,10 +32,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from analytics.errors import DataError
+from analytics.lti import FirstOrderProcess
 from analytics.model_check.effects import ReplayData
-from analytics.model_check.model import LoopModel, PIController, Process, ProcessKind, Valve
+from analytics.model_check.model import LoopModel, PIController, Valve
 from analytics.quantification import quantify_stiction
-from analytics.types import FloatArray
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import HeValve, KanoValve
 
 __all__ = ["ControllerFit", "identify_controller", "identify_model"]
@@ -112,23 +113,22 @@ def _linear_process(
     n = op.size
     longest = max(3, min(n // 20, 60))
     best: tuple[float, LoopModel] | None = None
-    kinds: tuple[ProcessKind, ...] = ("fopdt", "integrating")
-    for kind in kinds:
-        horizon = max(20, n // 20) if kind == "integrating" else None
+    for kind in (SELF_REGULATING, INTEGRATING):
+        horizon = max(20, n // 20) if kind == INTEGRATING else None
         data = ReplayData(
-            op, pv, ts, warm_up=longest, folds=1, horizon=horizon, ramp=kind == "integrating",
+            op, pv, ts, warm_up=longest, folds=1, horizon=horizon, ramp=kind == INTEGRATING,
             held_out="none",
         )
         taus = np.geomspace(ts, max(2 * ts, n * ts / 10), 12)
-        for tau in taus if kind == "fopdt" else [0.0]:
+        for tau in taus if kind == SELF_REGULATING else [0.0]:
             for delay in range(longest):
                 trial = LoopModel(
-                    ts, Process(kind, 1.0, float(tau), delay * ts), controller,
+                    ts, FirstOrderProcess(kind, 1.0, float(tau), delay * ts), controller,
                     Valve(HeValve(0.0, 0.0)), op_bias,
                 )
                 fit = data.predict(trial, fit_gain=True)
                 if fit.scale != 0.0 and (best is None or fit.sse_fit < best[0]):
-                    process = Process(kind, fit.scale, float(tau), delay * ts)
+                    process = replace(trial.process, K=fit.scale)
                     best = (fit.sse_fit, replace(trial, process=process))
     if best is None:
         raise DataError("PV does not respond to OP: no process model can be identified")
@@ -149,14 +149,12 @@ def identify_model(
     fit = identify_controller(op, pv, ts, sp)
     if estimate.S is not None and estimate.model is not None and estimate.search is not None:
         p = estimate.model
-        kind: ProcessKind = "integrating" if p.integrating else "fopdt"
-        tau = p.tau if p.integrating else max(p.tau, ts / 100.0)
         valve = (
             HeValve(estimate.fs or 0.0, estimate.fd or 0.0)
             if estimate.search.valve_model == "he"
             else KanoValve(estimate.S, estimate.J or 0.0)
         )
-        process = Process(kind, p.K, tau, p.theta)
+        process = p if p.integrating else replace(p, tau=max(p.tau, ts / 100.0))
         model = LoopModel(ts, process, fit.controller, Valve(valve), op_bias)
         notes.append(
             f"valve and process identified by Hammerstein fit ({estimate.search.valve_model} "

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -58,7 +58,8 @@ from numpy.typing import ArrayLike
 from scipy.special import erfc
 
 from analytics.errors import DataError, ModelSpecError, ValveModelError
-from analytics.types import FloatArray
+from analytics.lti import FirstOrderProcess
+from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 from analytics.valves import (
     HE,
     LAST_INPUT,
@@ -75,19 +76,20 @@ from analytics.valves import (
 )
 
 __all__ = [
+    "PROCESS_JSON_TYPES",
     "LoopModel",
     "PIController",
     "PeriodicLoad",
-    "Process",
     "Quantiser",
     "SimulatedLoop",
     "StictionZone",
     "Valve",
     "friction_of",
     "friction_valve",
+    "process_from_dict",
+    "process_to_dict",
 ]
 
-ProcessKind = Literal["fopdt", "integrating"]
 FrictionValve = HeValve | ChoudhuryValve | KanoValve
 
 
@@ -120,75 +122,47 @@ def _object(where: str, spec: Any, required: tuple[str, ...], optional: tuple[st
 # parts
 
 
-@dataclass(frozen=True)
-class Process:
-    """First order plus dead time, or an integrator with an optional lag.
+PROCESS_JSON_TYPES: dict[ProcessType, str] = {SELF_REGULATING: "fopdt", INTEGRATING: "integrating"}
+"""The process ``type`` of the model's JSON form for each process type (issue 8 names a
+self-regulating process by its model, first order plus dead time)."""
 
-    Attributes
-    ----------
-    kind : {"fopdt", "integrating"}
-    K : float
-        Gain: PV units per % (FOPDT) or PV units per % per second (integrating).
-    tau : float
-        Time constant, s (> 0 for FOPDT; 0 means no lag for an integrator).
-    theta : float
-        Dead time, s; the model uses ``round(theta / dt)`` samples.
-    """
 
-    kind: ProcessKind
-    K: float
-    tau: float
-    theta: float
+def _check_process(kind: ProcessType, K: float, tau: float) -> None:
+    """What the model check needs of a :class:`~analytics.lti.FirstOrderProcess` beyond
+    its own checks: a gain and, for a self-regulating process, a lag."""
+    if K == 0:
+        raise ModelSpecError("process K must not be 0 (the valve would not act on PV)")
+    if kind == SELF_REGULATING and not tau > 0:
+        raise ModelSpecError(f"an FOPDT process needs tau > 0 s, got {tau}")
 
-    def __post_init__(self) -> None:
-        if self.kind not in ("fopdt", "integrating"):
-            raise ModelSpecError(
-                f"process type must be 'fopdt' or 'integrating', got {self.kind!r}"
-            )
-        if self.K == 0:
-            raise ModelSpecError("process K must not be 0 (the valve would not act on PV)")
-        if self.kind == "fopdt" and not self.tau > 0:
-            raise ModelSpecError(f"an FOPDT process needs tau > 0 s, got {self.tau}")
-        if self.tau < 0 or self.theta < 0:
-            raise ModelSpecError(
-                f"process tau and theta must be >= 0 s, got tau={self.tau}, theta={self.theta}"
-            )
 
-    @classmethod
-    def from_dict(cls, spec: Any) -> Process:
-        """``{"type": "fopdt", "K", "tau", "theta"}`` or
-        ``{"type": "integrating", "K", "theta"[, "tau"]}``."""
-        kind = spec.get("type") if isinstance(spec, dict) else None
-        if kind == "fopdt":
-            spec = _object("process", spec, ("type", "K", "tau"), ("theta",))
-        elif kind == "integrating":
-            spec = _object("process", spec, ("type", "K"), ("theta", "tau"))
-        else:
-            raise ModelSpecError(
-                f"process 'type' must be 'fopdt' or 'integrating', got {spec!r}"
-            )
-        return cls(
-            kind,
-            _number("process K", spec["K"]),
-            _number("process tau", spec.get("tau", 0.0)),
-            _number("process theta", spec.get("theta", 0.0)),
+def process_from_dict(spec: Any) -> FirstOrderProcess:
+    """The process of ``{"type": "fopdt", "K", "tau", "theta"}`` or
+    ``{"type": "integrating", "K", "theta"[, "tau"]}`` (``tau``: a lag, s)."""
+    json_type = spec.get("type") if isinstance(spec, dict) else None
+    kind = next((k for k, name in PROCESS_JSON_TYPES.items() if name == json_type), None)
+    if kind == SELF_REGULATING:
+        spec = _object("process", spec, ("type", "K", "tau"), ("theta",))
+    elif kind == INTEGRATING:
+        spec = _object("process", spec, ("type", "K"), ("theta", "tau"))
+    else:
+        raise ModelSpecError(
+            f"process 'type' must be 'fopdt' or 'integrating', got {spec!r}"
         )
+    K = _number("process K", spec["K"])
+    tau = _number("process tau", spec.get("tau", 0.0))
+    theta = _number("process theta", spec.get("theta", 0.0))
+    _check_process(kind, K, tau)
+    return FirstOrderProcess(kind, K, tau, theta)
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON form, the inverse of :meth:`from_dict`."""
-        out: dict[str, Any] = {"type": self.kind, "K": self.K}
-        if self.kind == "fopdt" or self.tau > 0:
-            out["tau"] = self.tau
-        out["theta"] = self.theta
-        return out
 
-    def delay_samples(self, dt: float) -> int:
-        """``d = round(theta / dt)``."""
-        return round(self.theta / dt)
-
-    def pole(self, dt: float) -> float:
-        """``exp(-dt / tau)`` (0 without a lag)."""
-        return math.exp(-dt / self.tau) if self.tau > 0 else 0.0
+def process_to_dict(process: FirstOrderProcess) -> dict[str, Any]:
+    """JSON form, the inverse of :func:`process_from_dict`."""
+    out: dict[str, Any] = {"type": PROCESS_JSON_TYPES[process.kind], "K": process.K}
+    if not process.integrating or process.tau > 0:
+        out["tau"] = process.tau
+    out["theta"] = process.theta
+    return out
 
 
 @dataclass(frozen=True)
@@ -743,7 +717,7 @@ class LoopModel:
     """
 
     dt: float
-    process: Process
+    process: FirstOrderProcess
     controller: PIController
     valve: Valve
     op_bias: float = 50.0
@@ -754,6 +728,7 @@ class LoopModel:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.dt) and self.dt > 0):
             raise ModelSpecError(f"dt must be > 0 s, got {self.dt}")
+        _check_process(self.process.kind, self.process.K, self.process.tau)
         low, high = self.controller.op_limits
         if not low <= self.op_bias <= high:
             raise ModelSpecError(
@@ -790,7 +765,7 @@ class LoopModel:
         pv_bias = spec.get("pv_bias")
         return cls(
             dt=_number("dt", spec["dt"]),
-            process=Process.from_dict(spec["process"]),
+            process=process_from_dict(spec["process"]),
             controller=PIController.from_dict(spec["controller"]),
             valve=Valve.from_dict(spec.get("valve")),
             op_bias=_number("op_bias", spec.get("op_bias", 50.0)),
@@ -803,7 +778,7 @@ class LoopModel:
         """JSON form, the inverse of :meth:`from_dict`."""
         out: dict[str, Any] = {
             "dt": self.dt,
-            "process": self.process.to_dict(),
+            "process": process_to_dict(self.process),
             "controller": self.controller.to_dict(),
             "valve": self.valve.to_dict(),
             "op_bias": self.op_bias,
@@ -909,7 +884,7 @@ class LoopModel:
             min(self.process.delay_samples(self.dt), n),  # a longer one acts as n
             self.process.pole(self.dt),
             self.process.K,
-            self.process.kind == "integrating",
+            self.process.integrating,
         )
 
     def simulate(
@@ -962,7 +937,7 @@ class LoopModel:
             min(self.process.delay_samples(self.dt), n),  # a longer one acts as n
             self.process.pole(self.dt),
             self.process.K,
-            self.process.kind == "integrating",
+            self.process.integrating,
             bias,
             q.resolution if q is not None else 0.0,
             q.origin if q is not None else 0.0,

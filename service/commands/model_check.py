@@ -18,6 +18,7 @@ import numpy as np
 
 from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, ModelCheck, check_model
+from analytics.model_check.model import PROCESS_JSON_TYPES
 from service.commands import CliError, read_json_file, read_loop_file
 
 __all__ = ["print_report", "register"]
@@ -46,7 +47,8 @@ def print_report(result: ModelCheck, source: str, out: TextIO) -> None:
     valve = ", ".join(f"{k} = {x:.3g}" for k, x in v.to_dict().items() if k != "model")
     print(f"{source}: {result.overlay.t.size} samples at {base.dt:g} s", file=out)
     print(
-        f"base model ({result.model_source}): {p.kind} K = {p.K:.4g}, tau = {p.tau:.4g} s, "
+        f"base model ({result.model_source}): {PROCESS_JSON_TYPES[p.kind]} K = {p.K:.4g}, "
+        f"tau = {p.tau:.4g} s, "
         f"theta = {p.theta:.4g} s; PI Kc = {c.Kc:.4g}, Ti = {c.Ti:.4g} s; "
         f"{v.name} valve {valve}; op_bias = {base.op_bias:.4g} %",
         file=out,

@@ -260,7 +260,7 @@ class TestIdentification:
         res = chapter4().run()
         result = check_model(res.op[0], res.pv[0], res.dt, sp=res.sp[0])
         assert result.model_source == "identified"
-        assert result.base_model.process.kind == "fopdt"
+        assert result.base_model.process.kind == "self-regulating"
         # the Hammerstein model (fitted on block means) replays the loop closely
         assert result.nmse_base_test < 0.1
         assert any("Hammerstein" in note for note in result.notes)

@@ -38,9 +38,10 @@ from sqlalchemy import select
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
-from analytics.lti import TransferFunction
+from analytics.lti import FirstOrderProcess
 from analytics.quantification import VALVE_MODELS
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
+from analytics.types import INTEGRATING, SELF_REGULATING
 from service import plots
 from service.analysis import to_percent_of_span
 from service.api.deps import (
@@ -186,11 +187,11 @@ def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: dict[str
     if not (np.isfinite(op).all() and np.isfinite(pv).all()):
         return None
     S, J, process = float(estimate["S"]), float(estimate["J"] or 0.0), estimate["process"]
-    lag = (process["tau"], 1.0) if process["tau"] > 0 else (1.0,)
-    den = (*lag, 0.0) if process["integrating"] else lag
+    kind = INTEGRATING if process["integrating"] else SELF_REGULATING
+    model = FirstOrderProcess(kind, process["K"], process["tau"], process["theta"])
     return plots.stiction_model_path(
         op, pv, ts, valve=VALVE_MODELS[estimate["valve_model"]](S, J),
-        process=TransferFunction((process["K"],), den, process["theta"]), period_s=period,
+        process=model.transfer_function(), period_s=period,
         label=f"fitted {estimate['valve_model']} valve, S = {S:.2f} %, J = {J:.2f} %",
     )
 
