@@ -58,7 +58,7 @@ class DemoFeeder:
     ----------
     history_s : float
         Seconds of plant history back-filled (the windows a sticky valve's ticket needs,
-        :meth:`service.scheduler.AnalysisScheduler.due_rounds`).
+        :meth:`service.scheduling.rounds.RoundGrid.due_rounds`).
     max_batch_samples : int
         The most samples one ingest batch may hold.
     clock : callable

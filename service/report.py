@@ -24,8 +24,9 @@ from fpdf import FPDF
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from service.api.routes.loops import BadActorPublic, bad_actor_rows, counted_runs
+from service.api.schemas.loops import BadActorPublic
 from service.bad_actors import BAD_SEVERITY, run_severity
+from service.ranking import bad_actor_rows, counted_runs
 from service.store.models import Ticket
 
 __all__ = ["COLUMNS", "BadActorReport", "ReportLine", "build_report", "report_csv",

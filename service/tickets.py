@@ -10,7 +10,7 @@ last counted one starts.  Runs every minute on hour-long windows share most
 of their data, so their verdicts are not independent: a healthy loop whose
 analyses now and then find weak stiction must not get a ticket from two of
 them a minute apart.  A new installation confirms from the history it finds
-(:meth:`service.scheduler.AnalysisScheduler.due_rounds`).  There
+(:meth:`service.scheduling.rounds.RoundGrid.due_rounds`).  There
 is at most one active ticket per valve asset: a further confirmation updates
 the evidence of that ticket and records an ``evidence updated`` event instead
 of opening another, but only when the valve's combined size has moved beyond

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from service.auth import Permission, Principal
+from service.ranking import period_length
 from service.runtime import AppState
 from service.security import retry_after
 
@@ -35,6 +36,7 @@ __all__ = [
     "StateDep",
     "TimeQuery",
     "error_responses",
+    "period_seconds",
     "require",
     "row_id",
     "shared_answer",
@@ -53,6 +55,14 @@ TimeQuery = Annotated[float | None, Query(ge=0, le=MAX_TIME_S, description="UNIX
 def row_id(description: str) -> Any:
     """A path parameter naming a stored row by its integer id (1 .. 2**63 - 1)."""
     return Path(ge=1, le=MAX_DB_INT, description=description)
+
+
+def period_seconds(period: str) -> float:
+    """:func:`period_length` for a route: 422 beyond :data:`service.ranking.MAX_PERIOD_S`."""
+    try:
+        return period_length(period)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
 
 
 class ValidationProblem(BaseModel):

@@ -43,8 +43,8 @@ def run(args: argparse.Namespace) -> int:
     """Write the report; 0 on success (user errors raise :class:`CliError`)."""
     from pydantic import ValidationError
 
-    from service.api.routes.loops import PERIOD_PATTERN, period_length
     from service.config import Settings
+    from service.ranking import PERIOD_PATTERN, period_length
     from service.report import build_report, report_csv, report_pdf
     from service.store.db import Store
 

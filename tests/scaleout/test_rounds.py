@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 
 from service.config import PlantConfig, Settings
 from service.leader import LeaseElection
-from service.scheduler import SYNC_OVERLAP_S
+from service.scheduling.rounds import SYNC_OVERLAP_S
 from service.server import SCHEDULING_ROLES, Service, build_service
 from service.store.db import Store
 from service.store.models import AnalysisRun, Ticket

@@ -4,7 +4,7 @@ a valve that sticks without a sustained cycle is a bad actor too."""
 import pytest
 
 from service.analysis import health_score, stiction_pattern_text
-from service.scheduler import AnalysisScheduler
+from service.scheduling.results import alarm_message
 
 
 def diagnosis(*, usable=True, warnings=0, detected=False, regularity=None,
@@ -74,4 +74,4 @@ def test_stiction_pattern_text(pattern, op_travel, words):
      "data unusable: PV flat"),
 ])
 def test_alarm_messages_name_the_stiction_pattern(case, message):
-    assert AnalysisScheduler._message(case) == message
+    assert alarm_message(case) == message

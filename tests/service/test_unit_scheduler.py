@@ -20,7 +20,7 @@ from sqlalchemy import select
 from analytics.scenarios import column3x3
 from connectors.plant_sim import COLUMN_LOOPS, _controller_config, column_process
 from service.config import PlantConfig, Settings
-from service.scheduler import JobOutcome
+from service.scheduling.jobs import JobOutcome
 from service.server import Service, build_service
 from service.store.db import Store
 from service.store.models import AnalysisRun, Ticket, UnitAnalysisRun
@@ -201,7 +201,8 @@ def test_a_loop_run_stored_before_its_units_diagnosis_reads_the_units_last_decis
         own = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "AIC-501")).one()
         finding = {k: v for k, v in own.result.items() if k != "valve"}
     assert finding["stiction"]["verdict"] == "stiction"  # its own battery blames its valve
-    summary = svc.scheduler._store_run(loop, T0, JobOutcome("ok", finding), None, decided=False)
+    summary = svc.scheduler.results.store_run(loop, T0, JobOutcome("ok", finding), None,
+                                              decided=False)
     assert summary.verdict == "no_stiction"  # the unit's decision of the round before
 
 

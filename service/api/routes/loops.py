@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-from itertools import pairwise
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request, Response
-from pydantic import BaseModel, Field, ValidationError
-from sqlalchemy import BigInteger, cast, func, select
+from pydantic import BaseModel, ValidationError
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.analysis import stiction_pattern_text
@@ -23,37 +21,21 @@ from service.api.deps import (
     StateDep,
     TimeQuery,
     error_responses,
+    period_seconds,
     shared_answer,
 )
+from service.api.loop_data import read_loop_data
 from service.api.schemas.diagnosis import KpisPublic, LoopDiagnosisPublic
-from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
+from service.api.schemas.loops import BadActorPublic, LoopDataPublic, LoopPublic
 from service.config import LoopConfig
 from service.logs import audit
 from service.plant import TagConflictError
-from service.store.models import Alarm, AnalysisRun, Loop, Sample, Tag, Unit
+from service.ranking import PERIOD_PATTERN, bad_actor_rows, loop_rows
+from service.store.models import AnalysisRun, Loop, Unit
 from service.tickets import run_episodes
 
 router = APIRouter(prefix="/api/v1", tags=["loops"],
                    responses={**ERROR_RESPONSES, **error_responses(404)})
-
-
-class LoopPublic(BaseModel):
-    """A loop in lists: identity and its latest state."""
-
-    id: str
-    name: str
-    unit: str | None
-    valve_asset: str | None
-    importance: str
-    health: float | None
-    oscillating: bool | None
-    period_s: float | None
-    verdict: str | None
-    confidence: float | None
-    S: float | None
-    J: float | None
-    analysed_at: float | None
-    active_alarms: int
 
 
 class LoopsPublic(BaseModel):
@@ -61,22 +43,6 @@ class LoopsPublic(BaseModel):
 
     data: list[LoopPublic]
     count: int
-
-
-class BadActorPublic(LoopPublic):
-    """A loop in the bad-actor ranking: its latest state and its KPI-based score over the
-    period (:mod:`service.bad_actors`)."""
-
-    score: float
-    severity: float
-    bad_share: float
-    runs: int
-    bad_runs: int
-    worst: str | None
-    why: str
-    kpis: dict[str, Any] | None = Field(
-        default=None, description="the KPIs of the loop's latest analysis run (as "
-        "GET /loops/{id}/kpis gives them)")
 
 
 class BadActorsPublic(BaseModel):
@@ -173,110 +139,13 @@ class UnitsPublic(BaseModel):
     count: int
 
 
-class SeriesPublic(BaseModel):
-    """One tag's samples over a time range (downsampled to at most max_points)."""
-
-    tag: str
-    signal: str
-    t: list[float]
-    value: list[float | None]
-
-
-class LoopDataPublic(BaseModel):
-    """Samples of every tag of a loop."""
-
-    loop_id: str
-    start: float
-    end: float
-    series: list[SeriesPublic]
-
-
-_RUN_COLUMNS = (AnalysisRun.health, AnalysisRun.oscillating, AnalysisRun.period_s,
-                AnalysisRun.verdict, AnalysisRun.confidence, AnalysisRun.S, AnalysisRun.J,
-                AnalysisRun.started_at)
-
-_STATE_FILTERS = {
-    "oscillating": AnalysisRun.oscillating.is_(True),
-    "stiction": AnalysisRun.verdict == "stiction",
-    "healthy": AnalysisRun.oscillating.is_(False),
-    "unknown": AnalysisRun.health.is_(None),
-}
-
-
-def _loop_rows(
-    session: SessionDep,
-    *,
-    unit: str | None = None,
-    loop_id: str | None = None,
-    state: str | None = None,
-    worst_first: bool = False,
-    offset: int = 0,
-    limit: int | None = None,
-    trusted: bool = False,
-) -> tuple[list[LoopPublic], int]:
-    """Loops joined with their latest successful run and active-alarm count, in one query.
-
-    Only the summary columns of the run are read (not the diagnosis JSON), and of the
-    loop's configuration only the two fields listed (extracted by the database, not
-    parsed here: the plant's whole configuration would be parsed on every request);
-    filtering, ordering and paging happen in the database.  ``trusted`` builds the
-    rows without validating them again (their columns have the models' types): for
-    callers that read every loop.
-    """
-    latest = (
-        select(AnalysisRun.loop_id, func.max(AnalysisRun.id).label("run_id"))
-        .where(AnalysisRun.status == "ok").group_by(AnalysisRun.loop_id).subquery()
-    )
-    alarms = (
-        select(Alarm.loop_id, func.count().label("n")).where(Alarm.state != "normal")
-        .group_by(Alarm.loop_id).subquery()
-    )
-    query = (
-        select(Loop.id, Loop.name, Loop.unit_id, Loop.config["valve_asset"].as_string(),
-               Loop.config["importance"].as_string(), *_RUN_COLUMNS,
-               func.coalesce(alarms.c.n, 0))
-        .outerjoin(latest, latest.c.loop_id == Loop.id)
-        .outerjoin(AnalysisRun, AnalysisRun.id == latest.c.run_id)
-        .outerjoin(alarms, alarms.c.loop_id == Loop.id)
-    )
-    if unit is not None:
-        query = query.where(Loop.unit_id == unit)
-    if loop_id is not None:
-        query = query.where(Loop.id == loop_id)
-    if state is not None:
-        query = query.where(_STATE_FILTERS[state])
-    if state is None:  # one row per loop: the joined subqueries have one row per loop
-        counted = select(func.count(Loop.id))
-        if unit is not None:
-            counted = counted.where(Loop.unit_id == unit)
-        if loop_id is not None:
-            counted = counted.where(Loop.id == loop_id)
-        count = session.scalar(counted) or 0
-    else:
-        count = session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    order = ([AnalysisRun.health.is_(None), AnalysisRun.health, Loop.id] if worst_first
-             else [Loop.id])
-    rows = session.execute(query.order_by(*order).offset(offset).limit(limit)).all()
-    make = LoopPublic.model_construct if trusted else LoopPublic
-    data = [
-        make(
-            id=r[0], name=r[1], unit=r[2], valve_asset=r[3],
-            importance="medium" if r[4] is None else r[4], health=r[5], oscillating=r[6],
-            period_s=r[7], verdict=r[8], confidence=r[9], S=r[10], J=r[11], analysed_at=r[12],
-            active_alarms=r[13],
-        )
-        for r in rows
-    ]
-    return data, count
-
-
 _STATE_TESTS = {
     "oscillating": lambda r: r.oscillating is True,
     "stiction": lambda r: r.verdict == "stiction",
     "healthy": lambda r: r.oscillating is False,
     "unknown": lambda r: r.health is None,
 }
-""":data:`_STATE_FILTERS` on a row of :func:`loop_states`."""
+"""The ``state`` filters of :func:`service.ranking.loop_rows` on a row of :func:`loop_states`."""
 
 
 def loop_states(session: SessionDep, app: AppState) -> list[LoopPublic]:
@@ -284,7 +153,7 @@ def loop_states(session: SessionDep, app: AppState) -> list[LoopPublic]:
     shared by the requests until a loop, run or alarm is written
     (:attr:`service.runtime.AppState.loop_views`).  The rows are shared: do not change
     them."""
-    return app.loop_views.get(("loops",), lambda: _loop_rows(session, trusted=True)[0])
+    return app.loop_views.get(("loops",), lambda: loop_rows(session, trusted=True)[0])
 
 
 @router.get("/loops", response_model=LoopsPublic, responses=NOT_MODIFIED)
@@ -312,105 +181,6 @@ async def list_loops(
         return LoopsPublic(data=rows[offset:offset + limit], count=len(rows))
 
     return await shared_answer(request, app, ("loops page", unit, state, offset, limit), page)
-
-
-PERIOD_PATTERN = r"^[1-9][0-9]{0,2}[hd]$"
-MAX_PERIOD_S = 92 * 86400.0
-
-
-def period_length(period: str) -> float:
-    """``"7d"`` or ``"36h"`` (:data:`PERIOD_PATTERN`) in seconds.
-
-    >>> period_length("7d"), period_length("36h")
-    (604800.0, 129600.0)
-
-    Raises
-    ------
-    ValueError
-        Longer than :data:`MAX_PERIOD_S`.
-    """
-    seconds = int(period[:-1]) * (86400.0 if period[-1] == "d" else 3600.0)
-    if seconds > MAX_PERIOD_S:
-        raise ValueError("period must be at most 92 days")
-    return seconds
-
-
-def period_seconds(period: str) -> float:
-    """:func:`period_length` for a route: 422 beyond :data:`MAX_PERIOD_S`."""
-    try:
-        return period_length(period)
-    except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
-
-
-def counted_runs(session: Session, since: float, until: float, bucket_s: float
-                 ) -> dict[str, list[tuple[float, float | None, dict[str, Any] | None]]]:
-    """Each loop's runs ``(started_at, health, kpis)`` started in ``(since, until]`` that
-    count for its score, oldest first: one per ``bucket_s`` (the analysis window's length;
-    buckets counted back from ``until``), the latest of its bucket.  Runs a minute apart on
-    hour-long windows share most of their data, so they are one observation of the loop,
-    not sixty, and a week is 168 runs a loop, not 10,080.  ``kpis`` holds only the KPIs
-    the score reads (:func:`service.bad_actors.scored_kpis`).
-    """
-    # Whole milliseconds (a cast truncates on SQLite, rounds on PostgreSQL: harmless at 1 ms),
-    # then integer division, which truncates on both.
-    bucket = cast((until - AnalysisRun.started_at) * 1000.0, BigInteger) // max(
-        1, round(bucket_s * 1000.0))
-    chosen = (
-        select(func.max(AnalysisRun.id))
-        .where(AnalysisRun.status == "ok", AnalysisRun.started_at > since,
-               AnalysisRun.started_at <= until)
-        .group_by(AnalysisRun.loop_id, bucket)
-    )
-    # only the KPIs the score reads, extracted by the database from the runs' ``kpis``
-    # column: parsing every run's diagnosis here cost more than the rest of the ranking
-    runs: dict[str, list[tuple[float, float | None, dict[str, Any] | None]]] = {}
-    for loop_id, started_at, health, *values in session.execute(
-        select(AnalysisRun.loop_id, AnalysisRun.started_at, AnalysisRun.health,
-               *(AnalysisRun.kpis[path].as_float() for path in SCORED_KPIS))
-        .where(AnalysisRun.id.in_(chosen)).order_by(AnalysisRun.started_at, AnalysisRun.id)
-    ):
-        runs.setdefault(loop_id, []).append((started_at, health, scored_kpis(values)))
-    return runs
-
-
-def latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
-    """Each loop's KPIs of its latest successful run (loops without any left out)."""
-    latest = (select(func.max(AnalysisRun.id)).where(AnalysisRun.status == "ok")
-              .group_by(AnalysisRun.loop_id))
-    rows = session.execute(select(AnalysisRun.loop_id, AnalysisRun.kpis)
-                           .where(AnalysisRun.id.in_(latest)))
-    return {loop_id: kpis for loop_id, kpis in rows if kpis}
-
-
-def bad_actor_rows(session: Session, since: float, until: float, period: str,
-                   bucket_s: float, runs: dict[str, list[tuple[float, float | None,
-                                                              dict[str, Any] | None]]]
-                   | None = None, loops: list[LoopPublic] | None = None
-                   ) -> list[BadActorPublic]:
-    """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the
-    runs started in ``(since, until]``, worst first: by score, then by health (loops not
-    analysed last); the runs that count are :func:`counted_runs` (given as ``runs`` when
-    the caller has them already), each with its latest run's KPIs.  ``loops``: every loop
-    with its latest state (:func:`loop_states`; read here when not given).
-    """
-    if loops is None:
-        loops = _loop_rows(session, trusted=True)[0]
-    if runs is None:
-        runs = counted_runs(session, since, until, bucket_s)
-    kpis = latest_kpis(session)
-    ranked = []
-    for loop in loops:
-        scored = score_loop([(health, k) for _, health, k in runs.get(loop.id, ())],
-                            loop.importance, period)
-        ranked.append(BadActorPublic.model_construct(
-            **loop.__dict__, score=scored.score, severity=scored.severity,
-            bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
-            worst=scored.worst, why=scored.why, kpis=kpis.get(loop.id),
-        ))
-    ranked.sort(key=lambda r: (-r.score, r.health is None,
-                               r.health if r.health is not None else 0.0, r.id))
-    return ranked
 
 
 @router.get("/plant/bad-actors", response_model=BadActorsPublic, responses=NOT_MODIFIED)
@@ -461,7 +231,7 @@ def _loop_or_404(session: SessionDep, loop_id: str) -> Loop:
 def get_loop(loop_id: str, session: SessionDep, _: Reader) -> LoopPublic:
     """One loop with its latest state."""
     _loop_or_404(session, loop_id)
-    return _loop_rows(session, loop_id=loop_id)[0][0]
+    return loop_rows(session, loop_id=loop_id)[0][0]
 
 
 @router.get("/loops/{loop_id}/config", response_model=LoopConfig)
@@ -589,27 +359,6 @@ def loop_kpis(
                             count=len(data), total=rows[0][6] if rows else 0)
 
 
-def _downsample(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the min and max of equal buckets so oscillations survive downsampling."""
-    if t.size <= max_points:
-        return t, v
-    buckets = max_points // 2
-    edges = np.linspace(0, t.size, buckets + 1).astype(int)
-    keep: list[int] = []
-    for lo, hi in pairwise(edges):
-        segment = v[lo:hi]
-        finite = np.isfinite(segment)
-        if not finite.any():
-            keep.append(lo)
-            continue
-        idx = np.flatnonzero(finite)
-        a = lo + idx[np.argmin(segment[finite])]
-        b = lo + idx[np.argmax(segment[finite])]
-        keep.extend(sorted({int(a), int(b)}))
-    index = np.asarray(keep)
-    return t[index], v[index]
-
-
 @router.get("/loops/{loop_id}/data", response_model=LoopDataPublic)
 def loop_data(
     loop_id: str,
@@ -622,25 +371,7 @@ def loop_data(
 ) -> LoopDataPublic:
     """Samples of the loop's tags between start and end (UNIX s; default: the last hour)."""
     _loop_or_404(session, loop_id)
-    end = state.clock() if end is None else end
-    start = end - 3600.0 if start is None else start
-    if not end > start:
-        raise HTTPException(422, "end must be after start")
-    series = []
-    for tag in session.scalars(select(Tag).where(Tag.loop_id == loop_id).order_by(Tag.signal)):
-        rows = session.execute(
-            select(Sample.time, Sample.value, Sample.good)
-            .where(Sample.tag == tag.name, Sample.time >= start, Sample.time <= end)
-            .order_by(Sample.time)
-        ).all()
-        t = np.array([r[0] for r in rows], dtype=float)
-        v = np.array([r[1] if r[2] and r[1] is not None else np.nan for r in rows], dtype=float)
-        t, v = _downsample(t, v, max_points)
-        series.append(SeriesPublic(
-            tag=tag.name, signal=tag.signal, t=t.tolist(),
-            value=[None if not np.isfinite(x) else float(x) for x in v],
-        ))
-    return LoopDataPublic(loop_id=loop_id, start=start, end=end, series=series)
+    return read_loop_data(session, loop_id, state.clock(), start, end, max_points)
 
 
 @router.get("/units", response_model=UnitsPublic)
@@ -660,5 +391,5 @@ def unit_loops(unit_id: str, session: SessionDep, _: Reader) -> LoopsPublic:
     """The loops of one unit with their latest state."""
     if session.get(Unit, unit_id) is None:
         raise HTTPException(404, "Unit not found")
-    data, count = _loop_rows(session, unit=unit_id)
+    data, count = loop_rows(session, unit=unit_id)
     return LoopsPublic(data=data, count=count)

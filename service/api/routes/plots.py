@@ -46,13 +46,12 @@ from service import plots
 from service.analysis import to_percent_of_span
 from service.api.deps import (
     ERROR_RESPONSES,
-    Principal,
     Reader,
     SessionDep,
     StateDep,
     TimeQuery,
 )
-from service.api.routes.loops import loop_data
+from service.api.loop_data import read_loop_data
 from service.api.schemas.files import BINARY, TEXT
 from service.buffer import LoopBuffers, LoopWindowData
 from service.config import LoopConfig
@@ -157,9 +156,9 @@ def _values(values: list[float | None]) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
 
-def _trend(session: SessionDep, state: StateDep, key: Principal, loop: Loop,
+def _trend(session: SessionDep, state: StateDep, loop: Loop,
            start: float | None, end: float | None) -> plots.Figure:
-    data = loop_data(loop.id, session, state, key, start, end, TREND_POINTS)
+    data = read_loop_data(session, loop.id, state.clock(), start, end, TREND_POINTS)
     series = {  # the mode tag is a state, not a trace (the loop page lists it)
         s.signal: (np.asarray(s.t, dtype=float), _values(s.value))
         for s in data.series if s.signal in plots.SIGNAL_LABELS
@@ -336,7 +335,7 @@ def loop_plot(
     kind: PlotKind,
     session: SessionDep,
     state: StateDep,
-    key: Reader,
+    _: Reader,
     image_format: Annotated[PlotFormat, Query(alias="format")] = "svg",
     start: Annotated[TimeQuery, Query(description="trend: UNIX s")] = None,
     end: Annotated[TimeQuery, Query(description="trend: UNIX s (default now)")] = None,
@@ -344,7 +343,7 @@ def loop_plot(
     """A plot of the loop as SVG (default) or PNG; see the module docstring for the kinds."""
     loop = _loop_or_404(session, loop_id)
     if kind == "trend":
-        figure = _trend(session, state, key, loop, start, end)
+        figure = _trend(session, state, loop, start, end)
     elif kind == "history":
         figure = _history(session, loop)
     else:

@@ -13,9 +13,9 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from service.api.deps import ERROR_RESPONSES, SessionDep, StateDep
-from service.api.routes.loops import PERIOD_PATTERN, Reader, period_seconds
+from service.api.deps import ERROR_RESPONSES, Reader, SessionDep, StateDep, period_seconds
 from service.api.schemas.files import BINARY, TEXT
+from service.ranking import PERIOD_PATTERN
 from service.report import build_report, report_csv, report_pdf
 
 router = APIRouter(prefix="/api/v1/reports", tags=["reports"], responses=ERROR_RESPONSES)
