@@ -96,6 +96,7 @@ class JsonFormatter(logging.Formatter):
 
 
 ACCESS_LOGGER = "uvicorn.access"
+UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", ACCESS_LOGGER)
 
 
 class _FailedRequestsFilter(logging.Filter):
@@ -122,6 +123,9 @@ def configure_logging(log_format: Literal["text", "json"], quiet: Iterable[str] 
     root.setLevel(logging.INFO)
     for library in quiet:
         logging.getLogger(library).setLevel(logging.WARNING)
+    for name in UVICORN_LOGGERS:  # to the root's handler, even after uvicorn's own config
+        uvicorn_logger = logging.getLogger(name)
+        uvicorn_logger.handlers[:], uvicorn_logger.propagate = [], True
     access = logging.getLogger(ACCESS_LOGGER)
     access.filters[:] = [_FailedRequestsFilter()] if access_log == "failed" else []
     access.disabled = access_log == "off"
