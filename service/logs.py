@@ -123,9 +123,10 @@ def configure_logging(log_format: Literal["text", "json"], quiet: Iterable[str] 
     root.setLevel(logging.INFO)
     for library in quiet:
         logging.getLogger(library).setLevel(logging.WARNING)
-    for name in UVICORN_LOGGERS:  # to the root's handler, even after uvicorn's own config
-        uvicorn_logger = logging.getLogger(name)
+    for name in UVICORN_LOGGERS:  # to the root's handler at its level, even after uvicorn
+        uvicorn_logger = logging.getLogger(name)  # configured them in this process
         uvicorn_logger.handlers[:], uvicorn_logger.propagate = [], True
+        uvicorn_logger.setLevel(logging.NOTSET)
     access = logging.getLogger(ACCESS_LOGGER)
     access.filters[:] = [_FailedRequestsFilter()] if access_log == "failed" else []
     access.disabled = access_log == "off"
