@@ -18,8 +18,12 @@ the interval the ticket holds (:func:`size_moved`) or the priority changes:
 a sticky valve analysed every minute does not add an event every minute
 (about 5,800 a day on the demo before, issue 19).  A ticket that is ``done``
 or ``cancelled`` does not block a new one.  A verdict other than stiction
-never closes a ticket: maintenance does that.  Every stiction pattern of the
-diagnosis counts alike: a valve that sticks without a sustained cycle
+never closes a ticket: maintenance does that.  When ``confirmations_needed``
+analyses of separate windows in a row find no stiction (for a loop of a unit,
+also when the unit's diagnosis clears the valve), the active ticket gets one
+``not confirmed`` event saying so, so that a planner checks the valve before
+sending a crew; a later confirmation adds a ``confirmed again`` event.
+Every stiction pattern of the diagnosis counts alike: a valve that sticks without a sustained cycle
 (``stick_jump``, ``stuck``) gets a ticket too, whose long text names the
 pattern and lists the stick-jump episodes.
 
@@ -370,9 +374,10 @@ def _checked_evidence(
     }
 
 
-def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[AnalysisRun]:
-    """Up to ``needed`` runs that found stiction on windows that do not overlap, newest
-    first, from the loop's unbroken streak of stiction findings (module docstring)."""
+def _confirming_runs(session: Session, loop_id: str, needed: int,
+                     verdict: str = "stiction") -> list[AnalysisRun]:
+    """Up to ``needed`` runs that found ``verdict`` on windows that do not overlap, newest
+    first, from the loop's unbroken streak of such findings (module docstring)."""
     newest_first = (
         select(AnalysisRun)
         .where(AnalysisRun.loop_id == loop_id)
@@ -382,7 +387,7 @@ def _confirming_runs(session: Session, loop_id: str, needed: int) -> list[Analys
     confirmations: list[AnalysisRun] = []
     with session.scalars(newest_first) as runs:
         for run in runs:
-            if run.status != "ok" or run.verdict != "stiction":
+            if run.status != "ok" or run.verdict != verdict:
                 break
             if not confirmations or _window(run)[1] <= _window(confirmations[-1])[0]:
                 confirmations.append(run)
@@ -531,6 +536,9 @@ def update_ticket_from_analysis(
     """
     if confirmations_needed < 1:
         raise ValueError(f"confirmations_needed must be at least 1, got {confirmations_needed}")
+    if verdict == "no_stiction":
+        return _note_not_confirmed(session, loop_id, valve_asset or loop_id,
+                                   confirmations_needed, now)
     if verdict != "stiction":
         return None
     streak = _confirming_runs(session, loop_id, confirmations_needed)
@@ -564,10 +572,12 @@ def update_ticket_from_analysis(
         ))
         session.add(ticket)
     elif ticket.evidence.get("run_id") == stored["run_id"] or (
-            priority == ticket.priority and not size_moved(ticket.evidence, stored)):
+            priority == ticket.priority and not size_moved(ticket.evidence, stored)
+            and not _last_not_confirmed(ticket)):
         return None
     else:
-        note = f"evidence updated: run {stored['run_id']}"
+        note = (f"confirmed again: run {stored['run_id']}" if _last_not_confirmed(ticket)
+                else f"evidence updated: run {stored['run_id']}")
         if priority != ticket.priority:
             note += f", priority {ticket.priority} -> {priority}"
         ticket.events.append(TicketEvent(
@@ -577,6 +587,42 @@ def update_ticket_from_analysis(
         ticket.description = _describe(stored)
         ticket.priority = priority
         ticket.updated_at = now
+    session.flush()
+    return ticket
+
+
+NOT_CONFIRMED = "not confirmed"
+"""Start of the event a ticket gets when its valve is found healthy (module docstring)."""
+
+
+def _last_not_confirmed(ticket: Ticket) -> bool:
+    return bool(ticket.events) and ticket.events[-1].note.startswith(NOT_CONFIRMED)
+
+
+def _note_not_confirmed(session: Session, loop_id: str, asset: str, needed: int,
+                        now: float) -> Ticket | None:
+    """Record on the valve's active ticket, once, that ``needed`` analyses of separate
+    windows in a row found no stiction; the ticket, or None if untouched.  The state
+    stays (maintenance closes tickets), and a later confirmation resets the note."""
+    ticket = session.scalars(
+        select(Ticket)
+        .where(Ticket.valve_asset == asset, Ticket.state.in_(ACTIVE_STATES))
+        .order_by(Ticket.id)
+        .with_for_update()
+    ).first()
+    if ticket is None or _last_not_confirmed(ticket):
+        return None
+    streak = _confirming_runs(session, loop_id, needed, verdict="no_stiction")
+    if len(streak) < needed:
+        return None
+    latest = streak[0]
+    ticket.events.append(TicketEvent(
+        at=now, from_state=ticket.state, to_state=ticket.state, actor=ANALYSIS_ACTOR,
+        note=f"{NOT_CONFIRMED}: the last {len(streak)} analyses of separate windows find no "
+             f"stiction (latest run {latest.id}, window {_utc_clock(_window(latest)[0])} "
+             f"to {_utc_clock(_window(latest)[1])}); check the valve before repairing it",
+    ))
+    ticket.updated_at = now
     session.flush()
     return ticket
 

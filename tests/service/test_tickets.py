@@ -176,13 +176,42 @@ def test_any_other_run_ends_the_streak(store, breaker):
         assert ticket.malfunction_start == T0 + 2 * WINDOW_S
 
 
-def test_a_verdict_other_than_stiction_changes_nothing(store):
+def test_an_undecided_verdict_changes_nothing(store):
     with store.session() as s:
         ticket = opened_ticket(s)
-        run = add_run(s, at=T0 + 700, verdict="no_stiction")
-        assert analyse(s, run, needed=1) is None
+        assert analyse(s, add_run(s, at=T0 + 2 * WINDOW_S, verdict="undecided"), needed=1) is None
         assert ticket.state == "open"
         assert len(ticket.events) == 1
+
+
+def test_a_valve_found_healthy_again_is_noted_once_and_never_closed(store):
+    """Issue 19: a planner must hear when the analyses stop confirming a ticket (the
+    demo's FV-501 ticket, opened before the unit model was fixed, stayed as if
+    confirmed), yet only maintenance closes it: one ``not confirmed`` event after
+    the confirmations needed on separate windows, and ``confirmed again`` after it
+    if stiction comes back."""
+    with store.session() as s:
+        add_loop(s)
+        analyse(s, add_run(s, at=T0 + WINDOW_S), needed=2)
+        ticket = analyse(s, add_run(s, at=T0 + 2 * WINDOW_S), needed=2)
+        assert len(ticket.events) == 1
+        # one healthy window is not enough with two confirmations needed
+        assert analyse(s, add_run(s, at=T0 + 3 * WINDOW_S, verdict="no_stiction"),
+                       needed=2) is None
+        # nor is a second one on an overlapping window
+        assert analyse(s, add_run(s, at=T0 + 3.5 * WINDOW_S, verdict="no_stiction"),
+                       needed=2) is None
+        noted = analyse(s, add_run(s, at=T0 + 4 * WINDOW_S, verdict="no_stiction"), needed=2)
+        assert noted is ticket and ticket.state == "open"
+        assert ticket.events[-1].note.startswith(
+            "not confirmed: the last 2 analyses of separate windows find no stiction")
+        assert analyse(s, add_run(s, at=T0 + 5 * WINDOW_S, verdict="no_stiction"),
+                       needed=2) is None  # said once
+        assert len(ticket.events) == 2
+        analyse(s, add_run(s, at=T0 + 6 * WINDOW_S), needed=2)
+        again = analyse(s, add_run(s, at=T0 + 7 * WINDOW_S), needed=2)
+        assert again is ticket and ticket.events[-1].note.startswith("confirmed again: run")
+        assert [e.to_state for e in ticket.events] == ["open"] * 3
 
 
 def test_confirmations_needed_must_be_positive(store):
