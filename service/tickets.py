@@ -549,12 +549,7 @@ def update_ticket_from_analysis(
     size = stored["S"] if stored["S"] is not None else stored["episode_stick_band"]
     priority = ticket_priority(S=size, amplitude_pv=stored["amplitude_pv"],
                                importance=importance)
-    ticket = session.scalars(
-        select(Ticket)
-        .where(Ticket.valve_asset == asset, Ticket.state.in_(ACTIVE_STATES))
-        .order_by(Ticket.id)
-        .with_for_update()
-    ).first()
+    ticket = _active_ticket(session, asset)
     if ticket is None:
         oldest = streak[-1]
         pattern = "" if stored["pattern"] is None else f", pattern {stored['pattern']}"
@@ -595,6 +590,16 @@ NOT_CONFIRMED = "not confirmed"
 """Start of the event a ticket gets when its valve is found healthy (module docstring)."""
 
 
+def _active_ticket(session: Session, asset: str) -> Ticket | None:
+    """The valve's active ticket (at most one, module docstring), locked for the update."""
+    return session.scalars(
+        select(Ticket)
+        .where(Ticket.valve_asset == asset, Ticket.state.in_(ACTIVE_STATES))
+        .order_by(Ticket.id)
+        .with_for_update()
+    ).first()
+
+
 def _last_not_confirmed(ticket: Ticket) -> bool:
     return bool(ticket.events) and ticket.events[-1].note.startswith(NOT_CONFIRMED)
 
@@ -603,13 +608,8 @@ def _note_not_confirmed(session: Session, loop_id: str, asset: str, needed: int,
                         now: float) -> Ticket | None:
     """Record on the valve's active ticket, once, that ``needed`` analyses of separate
     windows in a row found no stiction; the ticket, or None if untouched.  The state
-    stays (maintenance closes tickets), and a later confirmation resets the note."""
-    ticket = session.scalars(
-        select(Ticket)
-        .where(Ticket.valve_asset == asset, Ticket.state.in_(ACTIVE_STATES))
-        .order_by(Ticket.id)
-        .with_for_update()
-    ).first()
+    stays (maintenance closes tickets), and a later confirmation adds ``confirmed again``."""
+    ticket = _active_ticket(session, asset)
     if ticket is None or _last_not_confirmed(ticket):
         return None
     streak = _confirming_runs(session, loop_id, needed, verdict="no_stiction")
