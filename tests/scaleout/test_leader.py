@@ -110,8 +110,16 @@ def test_the_advisory_lock_is_exclusive_and_freed_when_its_session_ends(
             {"low": a.key & 0xFFFFFFFF},
         ).scalars().all()
         assert len(held) == 1
-        # the leader's session ends as it would when its process is killed
+        # the leader's session ends as it would when its process is killed; the backend
+        # exits after pg_terminate_backend returns, so wait until it has gone
         admin.execute(text("SELECT pg_terminate_backend(:pid)"), {"pid": held[0]})
+        admin.commit()
+        for _ in range(200):
+            if not admin.execute(text("SELECT 1 FROM pg_stat_activity WHERE pid = :pid"),
+                                 {"pid": held[0]}).first():
+                break
+            admin.rollback()  # a fresh snapshot of pg_stat_activity
+            time.sleep(0.05)
     assert b.poll()  # the server released the lock with the session
     assert not a.poll() and not a.is_leader  # a finds its session gone and stands by
     b.stop()
