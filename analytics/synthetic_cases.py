@@ -49,10 +49,12 @@ from analytics.valves import HeValve, IdealValve, KanoValve, ValveModel
 
 __all__ = [
     "PROCESSES",
+    "SWEEP_SCENARIOS",
     "TRANSIENT_PROCESSES",
     "SyntheticCase",
     "synthetic_library",
     "transient_library",
+    "transient_sweep",
     "window_start",
 ]
 
@@ -527,4 +529,44 @@ def transient_library(samples: int = 2000) -> tuple[SyntheticCase, ...]:
         )
     names = [c.name for c in cases]
     assert len(set(names)) == len(names), "case names must be unique"
+    return tuple(cases)
+
+
+SWEEP_SCENARIOS = ("sp-steps", "sp-ramp", "load-steps", "slow-sine", "random-walk", "saturation")
+"""Scenarios of :func:`transient_sweep` (:func:`_events`)."""
+
+
+def transient_sweep(seeds: range = range(3001, 3013), samples: int = 2000
+                    ) -> tuple[SyntheticCase, ...]:
+    """The flow and level loops of :func:`transient_library` in every scenario of
+    :data:`SWEEP_SCENARIOS`, on other seeds, each with a He valve (S 2, J 0.5), a
+    Kano valve (S 2, J 0.5) and a healthy valve.
+
+    A check of how the transient detectors generalise beyond the library they
+    were tuned on: the same loops and events, new noise and random walks, and
+    every scenario with every valve (the library pairs each scenario with some
+    valves only).  Named ``{process}-{valve}-{scenario}-seed{seed}``; PI control
+    at ts 1 s (flow) and 5 s (level), the library's sensor noise levels cycled
+    by seed.
+    """
+    valves: dict[str, tuple[ValveModel, Label]] = {
+        "he": (HeValve(1.25, 0.75), "stiction"),
+        "kano": (KanoValve(2.0, 0.5), "stiction"),
+        "ideal": (IdealValve(), "no_stiction"),
+    }
+    cases: list[SyntheticCase] = []
+    for pname, ts in (("flow", 1.0), ("level", 5.0)):
+        proc = TRANSIENT_PROCESSES[pname]
+        for scenario in SWEEP_SCENARIOS:
+            for seed in seeds:
+                setpoint, loads = _events(scenario, proc, samples, ts, seed)
+                noise = _noise(proc.noise_levels[seed % len(proc.noise_levels)], seed)
+                for vname, (valve, label) in valves.items():
+                    S, J = (None, None) if label == "no_stiction" else (2.0, 0.5)
+                    cases.append(SyntheticCase(
+                        f"{pname}-{vname}-{scenario}-seed{seed}", label,
+                        "stick_jump" if S else scenario, proc.kind, ts, S, J, valve,
+                        proc.model, PIDController.ideal(proc.Kc, proc.Ti), (*loads, noise),
+                        samples, setpoint,
+                    ))
     return tuple(cases)

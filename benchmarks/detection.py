@@ -51,9 +51,11 @@ from analytics.stiction.stick_jump import (  # noqa: E402
     analyse_window,
 )
 from analytics.synthetic_cases import (  # noqa: E402
+    SWEEP_SCENARIOS,
     SyntheticCase,
     synthetic_library,
     transient_library,
+    transient_sweep,
 )
 from service.loop_csv import read_loop_csv  # noqa: E402
 
@@ -267,6 +269,34 @@ def synthetic(transient: bool = False) -> None:
     print()
 
 
+def sweep() -> None:
+    """The transient loops on other seeds, every scenario with every valve
+    (:func:`analytics.synthetic_cases.transient_sweep`): how the detectors
+    generalise beyond the library they were tuned on."""
+    print("== Sweep: the non-oscillating loops on seeds 3001-3012, every scenario, "
+          "He / Kano (S 2, J 0.5) / healthy valve, process type given ==")
+    tally: dict[tuple[str, str, str], list[str]] = defaultdict(list)
+    for case in transient_sweep():
+        result = case.simulate()
+        d = diagnose_loop(ts=case.ts, op=result.op[0], pv=result.pv[0], sp=result.sp[0],
+                          process_type=case.process_type)
+        process, valve, scenario = case.name.split("-", 2)
+        tally[(process, scenario.rsplit("-seed", 1)[0], valve)].append(d.stiction.verdict)
+    print(f"{'loop':6s} {'scenario':12s} {'He found':>9s} {'Kano found':>11s} "
+          f"{'healthy: sticky':>16s} {'no_stiction':>12s}")
+    for process in ("flow", "level"):
+        for scenario in SWEEP_SCENARIOS:
+            he, kano, ideal = (tally[(process, scenario, v)] for v in ("he", "kano", "ideal"))
+            print(f"{process:6s} {scenario:12s} {he.count('stiction'):>5d}/{len(he):<3d} "
+                  f"{kano.count('stiction'):>7d}/{len(kano):<3d} "
+                  f"{ideal.count('stiction'):>12d}/{len(ideal):<3d} "
+                  f"{ideal.count('no_stiction'):>8d}/{len(ideal):<3d}")
+    sticky = [v for (_, _, valve), got in tally.items() if valve != "ideal" for v in got]
+    healthy = [v for (_, _, valve), got in tally.items() if valve == "ideal" for v in got]
+    print(f"sweep: {sticky.count('stiction')}/{len(sticky)} sticky found, "
+          f"{healthy.count('stiction')}/{len(healthy)} healthy called sticky\n")
+
+
 def timing(repeats: int = 7) -> None:
     print("== Speed on a 10,000-sample loop (CPU time of this process, median of "
           f"{repeats} runs) ==")
@@ -333,5 +363,6 @@ if __name__ == "__main__":
     isdb()
     synthetic()
     synthetic(transient=True)
+    sweep()
     timing()
     hour_window_timing()

@@ -13,7 +13,7 @@ import pytest
 
 from analytics.diagnosis import diagnose_loop
 from analytics.stiction.stick_jump import MIN_TRAVEL
-from analytics.synthetic_cases import synthetic_library, transient_library
+from analytics.synthetic_cases import synthetic_library, transient_library, transient_sweep
 from tests.shared_data import SHARED_DATA, isdb_labels, load_isdb_loop, require_file
 
 CASES = {c.name: c for c in synthetic_library()}
@@ -200,6 +200,30 @@ def test_transient_library_floor():
             false_alarms += d.stiction.verdict == "stiction"
     assert found >= 17
     assert false_alarms == 0
+
+
+@pytest.mark.slow
+def test_sweep_set_point_and_load_steps_floor():
+    """The library's loops on other seeds (transient_sweep), in the scenarios the
+    stick-jump method is built for: set-point steps and ramps, load steps.  Today
+    137 of 144 sticky valves found and 2 of 72 healthy valves called sticky; the
+    random walks and saturation, where it is weak, are printed by
+    benchmarks/detection.py, not held to a floor."""
+    found = sticky = false_alarms = 0
+    for case in transient_sweep():
+        if case.name.split("-", 2)[2].rsplit("-seed", 1)[0] not in (
+                "sp-steps", "sp-ramp", "load-steps"):
+            continue
+        r = case.simulate()
+        d = diagnose_loop(ts=case.ts, op=r.op[0], pv=r.pv[0], sp=r.sp[0],
+                          process_type=case.process_type)
+        if case.label == "stiction":
+            sticky += 1
+            found += d.stiction.verdict == "stiction"
+        else:
+            false_alarms += d.stiction.verdict == "stiction"
+    assert found >= 0.9 * sticky
+    assert false_alarms <= 3
 
 
 def plant_dev_windows(parts=((0.0, 1.0),)):
