@@ -19,18 +19,20 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
 from analytics.lti import TransferFunction
 from analytics.quantification import VALVE_MODELS
 from analytics.simulation import PIDController
-from analytics.stiction.signature import fit_signature_ellipse
+from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
 from analytics.synthetic_cases import synthetic_library
 from analytics.valves import ChoudhuryValve, KanoValve
 from service import plots
 from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings
 from service.server import build_service
+from service.store.models import AnalysisRun
 from tests.service.test_api import ADMIN, T0, plant, simulated_batch
 
 SVG = "{http://www.w3.org/2000/svg}"
@@ -524,6 +526,32 @@ def test_signature_and_spectrum_show_what_the_analysis_measured(analysed):
     assert marker(acf_panel, "period")[0] == pytest.approx(period, abs=resolution(acf_panel, "x"))
     periods, power = drawn(spectrum_panel, "pv")
     assert periods[np.argmax(power)] == pytest.approx(period, rel=0.1)
+
+
+def test_signature_draws_the_ellipse_the_analysis_stored(analysed, service):
+    """The OP-PV ellipse is the analysis's (issue 25), not fitted a second time; an
+    analysis stored before the geometry was kept gets it fitted on the same window."""
+    def store(apparent_stiction):
+        with service.state.store.session() as session:
+            run = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "FIC-1")
+                                  .order_by(AnalysisRun.id.desc())).first()
+            run.result = {**run.result, "apparent_stiction": apparent_stiction}
+            session.commit()
+
+    diagnosis = analysed.get("/api/v1/loops/FIC-1/health", headers=HEADERS).json()["diagnosis"]
+    stored = diagnosis["apparent_stiction"]
+    pv_panel, _ = panels(parse(get_plot(analysed, "FIC-1", "signature").text))
+    x, y = drawn(pv_panel, "ellipse")
+    ex, ey = plots.ellipse_points(EllipseFit.from_dict(stored))
+    np.testing.assert_allclose(x, ex, atol=resolution(pv_panel, "x"))
+    np.testing.assert_allclose(y, ey, atol=resolution(pv_panel, "y"))
+    store({**stored, "centre": [stored["centre"][0] + 1.0, stored["centre"][1]]})
+    moved, _ = panels(parse(get_plot(analysed, "FIC-1", "signature").text))
+    np.testing.assert_allclose(drawn(moved, "ellipse")[0], ex + 1.0, atol=resolution(moved, "x"))
+    store({k: v for k, v in stored.items() if k not in ("centre", "semi_axes", "angle")})
+    refitted, _ = panels(parse(get_plot(analysed, "FIC-1", "signature").text))
+    np.testing.assert_allclose(drawn(refitted, "ellipse")[0], ex, atol=resolution(pv_panel, "x"))
+    np.testing.assert_allclose(drawn(refitted, "ellipse")[1], ey, atol=resolution(pv_panel, "y"))
 
 
 def test_trend_draws_the_samples_of_the_data_endpoint(analysed):

@@ -7,9 +7,11 @@ builders of :mod:`service.plots`.  Kinds:
 * ``trend``: SP, PV, OP, MV between ``start`` and ``end`` (default: the last
   hour), from the same query as ``GET /loops/{id}/data``.
 * ``signature``, ``spectrum``: the window of the latest analysis, in % of
-  span as the analysis saw it, with the period it used; the signature also
-  shows the fitted stiction model (the valve and process of the latest
-  stiction estimate replayed on the window's OP).
+  span as the analysis saw it, with the period it used; the signature shows
+  the OP-PV ellipse the analysis fitted (stored with a stiction verdict; fitted
+  here for other verdicts, older analyses and the OP-MV signature) and the
+  fitted stiction model (the valve and process of the latest stiction
+  estimate replayed on the window's OP).
 * ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
   the latest stiction estimate, the configured controller and Choudhury's
   describing function at the estimated (S, J) (thesis Eq. 3.16).
@@ -130,9 +132,19 @@ def _analysed_period(diagnosis: dict[str, Any]) -> float | None:
     return None if period is None else float(period)
 
 
+def _stored_ellipse(diagnosis: dict[str, Any]) -> EllipseFit | None:
+    """The OP-PV ellipse the analysis fitted (a stiction verdict on a cycle), or None
+    (no such fit, or a diagnosis stored before the ellipse's geometry was kept)."""
+    stored = diagnosis.get("apparent_stiction")
+    if not stored or "centre" not in stored:
+        return None
+    return EllipseFit.from_dict(stored)
+
+
 def _ellipse(op: np.ndarray | None, valve: np.ndarray | None, period_samples: float | None
              ) -> EllipseFit | None:
-    """The signature ellipse, or None without a period, with gaps or too few cycles."""
+    """The signature ellipse fitted here, or None without a period, with gaps or too few
+    cycles: for the OP-MV signature, and for OP-PV when the analysis stored none."""
     if op is None or valve is None or period_samples is None:
         return None
     if not (np.isfinite(op).all() and np.isfinite(valve).all()):
@@ -204,7 +216,8 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
     period_samples = None if period is None else period / window.ts
     return plots.signature_figure(
         window.op, window.pv, mv=window.mv,
-        pv_fit=_ellipse(window.op, window.pv, period_samples),
+        pv_fit=(_stored_ellipse(run.result or {})
+                or _ellipse(window.op, window.pv, period_samples)),
         mv_fit=_ellipse(window.op, window.mv, period_samples),
         model=_fitted_model(window.op, window.pv, window.ts, run.result or {}),
         title=_title(loop, "valve signature", window.t[0], window.t[-1]),
