@@ -1484,6 +1484,11 @@ class CycleAgreement:
         error = self.predicted_period_error
         return error is not None and abs(error) <= PERIOD_TOLERANCE
 
+    @property
+    def agree(self) -> bool:
+        """The model reproduces the measured cycle in simulation and in prediction."""
+        return self.reproduces and self.predicted_agrees
+
     def explanation(self) -> str:
         """What agrees and what does not, in words.
 
@@ -1525,7 +1530,7 @@ class CycleAgreement:
             "amplitude_error": {"predicted": self.predicted_amplitude_error,
                                 "simulated": self.simulated_amplitude_error},
             "reproduces": self.reproduces,
-            "agree": self.reproduces and self.predicted_agrees,
+            "agree": self.agree,
             "explanation": self.explanation(),
         }
 
