@@ -238,7 +238,6 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
         model = identified_loop(loop.config, run.result)
     except ModelUnavailableError as exc:
         raise HTTPException(404, str(exc)) from None
-    estimate = (run.result or {})["quantification"]
     try:
         prediction = predict_limit_cycles(model.process, model.controller, model.valve,
                                           hold_delay=model.hold_delay)
@@ -251,7 +250,7 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
     return plots.nyquist_figure(
         curves, prediction=prediction,
         title=f"{_name(loop)}: Nyquist plot, identified model, "
-              f"S = {estimate['S']:.2f} %, J = {estimate['J'] or 0.0:.2f} %",
+              f"S = {model.valve.S:.2f} %, J = {model.valve.J:.2f} %",
     )
 
 
