@@ -22,8 +22,9 @@ from service.api.routes import advice, loops, model_check, tickets, unit_diagnos
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
+from tests.service.api.stored import store_run
 from tests.service.api.test_advice import HEADERS, demo
-from tests.service.api.test_unit_prediction import plant_data, store_run
+from tests.service.api.test_unit_prediction import plant_data
 from tests.service.test_api import ADMIN, T0
 
 __all__ = ["demo"]  # the fixture, imported

@@ -27,7 +27,8 @@ from analytics.valves import ChoudhuryValve, IdealValve
 from service.config import ConfigError, PlantConfig, Settings, parse_plant_config
 from service.server import build_service
 from service.store.db import Store
-from service.store.models import AnalysisRun, UnitAnalysisRun
+from service.store.models import UnitAnalysisRun
+from tests.service.api.stored import store_run
 from tests.service.test_api import ADMIN, T0, key
 
 TEMPERATURE = TransferFunction.fopdt(0.4346, 27.58, 6.0)  # thesis Eq. 5.42
@@ -74,18 +75,6 @@ def client(store: Store) -> Iterator[TestClient]:
     yield TestClient(svc.app)
     svc.executor.shutdown()
     svc.state.store.close()
-
-
-def store_run(client: TestClient, loop_id: str, verdict: str,
-              estimate: dict[str, float] | None = None) -> int:
-    """A finished analysis of ``loop_id`` with a stiction verdict and estimate."""
-    state = client.app.state.loopwatch  # type: ignore[attr-defined]
-    with state.store.session() as session:
-        run = AnalysisRun(loop_id=loop_id, started_at=T0, finished_at=T0, status="ok",
-                          verdict=verdict, result={"quantification": estimate})
-        session.add(run)
-        session.flush()
-        return int(run.id)
 
 
 def store_unit_run(client: TestClient, at: float, period_s: float | None,
