@@ -176,8 +176,8 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
         for s in data.series if s.signal in plots.SIGNAL_LABELS
     }
     if not any(t.size for t, _ in series.values()):
-        raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:g} and "
-                                 f"{data.end:g}")
+        raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:.0f} and "
+                                 f"{data.end:.0f}")
     return plots.trend_figure(
         series, title=_title(loop, "trend", data.start, data.end),
         unit="plant units",
