@@ -25,7 +25,8 @@ from service.buffer import LoopBuffers
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun
-from tests.service.test_api import ADMIN, T0, plant, simulated_batch
+from tests.service.api.stored import store_run
+from tests.service.test_api import ADMIN, T0, key, plant, simulated_batch
 from tests.service.test_plots import HEADERS, SVG, drawn, marker, panels, parse, resolution
 
 
@@ -225,3 +226,81 @@ def test_the_trend_of_a_loop_with_a_mode_tag_draws_its_signals(store):
     assert "Controller output" in response.text
     svc.executor.shutdown()
     svc.state.store.close()
+
+
+# ----------------------------------------------------------------------------- status codes
+# Analyses written into the store (tests.service.api.stored): each refusal's exact detail.
+
+WINDOW = (T0 - 3600.0, T0)
+
+
+def refusal(client, loop_id, kind, headers=HEADERS, **params):
+    answer = client.get(f"/api/v1/loops/{loop_id}/plots/{kind}", params=params,
+                        headers=headers)
+    return answer.status_code, answer.json()["detail"]
+
+
+def test_keys_kinds_and_formats(client):
+    assert refusal(client, "FIC-1", "trend", {}) == (401, "Missing API key (header X-API-Key)")
+    assert refusal(client, "FIC-1", "trend", key(client, "historian")) == (
+        403, "Role 'historian' may not read")
+    assert refusal(client, "FIC-1", "bode") == (422, [{
+        "loc": ["path", "kind"], "type": "literal_error",
+        "msg": "Input should be 'trend', 'signature', 'spectrum', 'nyquist' or 'history'"}])
+    assert refusal(client, "FIC-1", "trend", format="gif") == (422, [{
+        "loc": ["query", "format"], "type": "literal_error",
+        "msg": "Input should be 'svg' or 'png'"}])
+    assert refusal(client, "FIC-1", "trend", start=T0 - 9000, end=T0 - 8000) == (
+        404, f"No samples of loop FIC-1 between {T0 - 9000:.0f} and {T0 - 8000:.0f}")
+
+
+@pytest.mark.parametrize("kind", ["signature", "spectrum"])
+def test_the_window_of_the_analysis_must_still_be_there(client, kind):
+    store_run(client, "FIC-1", "no_stiction", window=WINDOW)
+    assert refusal(client, "FIC-1", kind) == (
+        404, "Samples of the analysed window are no longer stored")
+    assert client.post("/api/v1/ingest", json=simulated_batch(200),
+                       headers=HEADERS).status_code == 200
+    store_run(client, "FIC-1", "no_stiction", window=WINDOW,
+              manual={"share": 1.0, "judged_from": None, "judged_to": None})
+    assert refusal(client, "FIC-1", kind) == (
+        404, "The loop was in manual over the whole analysed window")
+
+
+def test_the_signature_needs_op_and_pv(client):
+    body = {"ts": 1.0, "tags": {"op": "FIC-9.OP"}}
+    assert client.put("/api/v1/loops/FIC-9", json=body, headers=HEADERS).status_code == 200
+    op = {"tag": "FIC-9.OP", "items": [{"timestamp": T0 - k, "value": 50.0} for k in range(9)]}
+    assert client.post("/api/v1/ingest", json=[op], headers=HEADERS).status_code == 200
+    store_run(client, "FIC-9", "no_stiction", window=WINDOW)
+    assert refusal(client, "FIC-9", "signature") == (
+        404, "The valve signature needs both OP and PV tags")
+
+
+@pytest.mark.parametrize(("estimate", "detail"), [
+    (None, "the latest analysis has no stiction estimate (S, J) with an identified process "
+           "model"),
+    ({"S": 4.0, "J": 2.0, "process": {"K": -1.0, "tau": 10.0, "theta": 2.0,
+                                      "integrating": False}},
+     "the identified process gain -1 and the controller action 'reverse' make positive "
+     "feedback"),
+])
+def test_the_nyquist_plot_needs_a_model(client, estimate, detail):
+    store_run(client, "FIC-1", "stiction", estimate, window=WINDOW)
+    assert refusal(client, "FIC-1", "nyquist") == (404, detail)
+
+
+def test_the_model_check_plot_needs_an_overlay_of_equal_lengths(client):
+    url = "/api/v1/loops/FIC-1/plots/model-check"
+    empty = {"t": [], "pv": [], "pv_base": [], "pv_extended": [], "scored": []}
+    body = {"overlay": empty, "cause": {"effect": "valve_stiction"}}
+    answer = client.post(url, json=body, headers=HEADERS)
+    assert (answer.status_code, answer.json()) == (422, {"detail": "The overlay has no samples"})
+    body["overlay"] = {**empty, "t": [T0, T0 + 1], "pv": [1.0, 2.0], "pv_base": [1.0, 2.0],
+                       "pv_extended": [1.0], "scored": [True, True]}
+    answer = client.post(url, json=body, headers=HEADERS)
+    assert (answer.status_code, answer.json()) == (422, {"detail": (
+        "model_check_figure: t, pv, pv_base, pv_extended and scored differ in shape: "
+        "[(1,), (2,)]")})
+    answer = client.post("/api/v1/loops/NOPE/plots/model-check", json=body, headers=HEADERS)
+    assert (answer.status_code, answer.json()) == (404, {"detail": "Loop not found"})
