@@ -145,7 +145,8 @@ class LoopDiagnosis:
         Hammerstein estimate of S, J (% of OP span), fs, fd with fit quality;
         None unless the verdict is stiction.
     ellipse : EllipseFit or None
-        Apparent stiction from the valve signature (Choudhury et al. 2008).
+        Apparent stiction from the OP-PV valve signature (Choudhury et al. 2008),
+        with the ellipse's geometry, which the signature plot draws.
     pattern : str or None
         How the sticky valve shows (one of :data:`PATTERNS`); None unless
         the verdict is stiction.
@@ -242,12 +243,7 @@ class LoopDiagnosis:
             },
             "quantification": None if self.quantification is None
             else self.quantification.to_dict(),
-            "apparent_stiction": None if self.ellipse is None else {
-                "apparent_stiction": self.ellipse.apparent_stiction,
-                "width_ratio": self.ellipse.width_ratio,
-                "op_amplitude": self.ellipse.op_amplitude,
-                "residual": self.ellipse.residual,
-            },
+            "apparent_stiction": None if self.ellipse is None else self.ellipse.to_dict(),
         }
 
 

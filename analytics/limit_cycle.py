@@ -295,18 +295,23 @@ class LimitCycleReport:
         """True if prediction and simulation agree on whether the loop oscillates."""
         return self.prediction.oscillates == self.simulated.oscillating
 
+    def comparison_to_dict(self) -> dict[str, Any]:
+        """JSON form of the comparison: ``agree``, ``matched_omega``, ``period_error_pct``
+        and ``amplitude_error_pct``."""
+        return {
+            "agree": self.agree,
+            "matched_omega": None if self.matched is None else self.matched.omega,
+            "period_error_pct": self.period_error_pct,
+            "amplitude_error_pct": list(self.amplitude_error_pct),
+        }
+
     def to_dict(self) -> dict[str, Any]:
         """JSON form for ``loopwatch predict``: the prediction's keys plus
-        ``"simulated"`` and ``"comparison"``."""
+        ``"simulated"`` and ``"comparison"`` (:meth:`comparison_to_dict`)."""
         return {
             **self.prediction.to_dict(),
             "simulated": self.simulated.to_dict(),
-            "comparison": {
-                "agree": self.agree,
-                "matched_omega": None if self.matched is None else self.matched.omega,
-                "period_error_pct": self.period_error_pct,
-                "amplitude_error_pct": list(self.amplitude_error_pct),
-            },
+            "comparison": self.comparison_to_dict(),
         }
 
 

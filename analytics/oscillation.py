@@ -61,13 +61,13 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import fft as sfft
 from scipy import signal
 from scipy.stats import f as f_dist
 
 from analytics.errors import DataError
-from analytics.signals import zero_crossings
+from analytics.signals import Spectrum, detrend, spectrum, zero_crossings
 from analytics.types import FloatArray
 
 __all__ = [
@@ -244,37 +244,6 @@ class LoopOscillation:
 # spectral machinery
 
 
-@dataclass(frozen=True)
-class _Spectrum:
-    x: FloatArray  # detrended signal
-    n: int
-    nfft: int
-    X: NDArray[np.complex128]  # rfft of x zero-padded to nfft (>= 2n: no wrap-around)
-    P: FloatArray  # |X|^2
-    f: FloatArray  # frequency of each channel, cycles per sample
-    total: float  # sum(P[1:]), proportional to the variance
-
-
-def _detrend(x: FloatArray) -> FloatArray:
-    """Remove mean and least-squares linear trend."""
-    n = x.size
-    k = np.arange(n, dtype=np.float64)
-    k -= k.mean()
-    xc = x - x.mean()
-    kk = float(np.dot(k, k))
-    slope = float(np.dot(k, xc)) / kk if kk > 0 else 0.0
-    return np.asarray(xc - slope * k, dtype=np.float64)
-
-
-def _spectrum(x: FloatArray) -> _Spectrum:
-    n = x.size
-    nfft = sfft.next_fast_len(2 * n, real=True)
-    X = sfft.rfft(x, nfft)
-    P = X.real**2 + X.imag**2
-    f = np.arange(P.size, dtype=np.float64) / nfft
-    return _Spectrum(x, n, nfft, X, P, f, float(P[1:].sum()))
-
-
 def _bandpass_gain(f: FloatArray, fc: float, band_ratio: float, order: int) -> FloatArray:
     """Squared magnitude of an analogue Butterworth band-pass centred at ``fc``.
 
@@ -291,7 +260,7 @@ def _bandpass_gain(f: FloatArray, fc: float, band_ratio: float, order: int) -> F
 
 
 def _filterbank(
-    spec: _Spectrum, centres: FloatArray, band_ratio: float, order: int
+    spec: Spectrum, centres: FloatArray, band_ratio: float, order: int
 ) -> tuple[FloatArray, FloatArray]:
     """Power fraction and mean spectral density of each band of a constant-Q bank.
 
@@ -325,7 +294,7 @@ def _filterbank(
 
 
 def _acf_regularity(
-    spec: _Spectrum, f_lo: float, f_hi: float, n_intervals: int
+    spec: Spectrum, f_lo: float, f_hi: float, n_intervals: int
 ) -> tuple[float, float, int]:
     """Period (samples), regularity and number of intervals from the ACF.
 
@@ -371,7 +340,7 @@ def bandpass(
     >>> round(float(np.max(np.abs(y[200:-200]))), 2)
     1.0
     """
-    spec = _spectrum(_detrend(np.asarray(x, dtype=np.float64)))
+    spec = spectrum(detrend(np.asarray(x, dtype=np.float64)), pad=True)
     gain = _bandpass_gain(spec.f, 1.0 / period_samples, band_ratio, order)
     return np.asarray(sfft.irfft(spec.X * gain, spec.nfft)[: spec.n], dtype=np.float64)
 
@@ -389,7 +358,7 @@ def _cycle_amplitude(y: FloatArray) -> float:
     return float(np.sqrt(2.0) * np.std(y))
 
 
-def _measure(spec: _Spectrum, period: float, band_ratio: float, order: int) -> tuple[float, float]:
+def _measure(spec: Spectrum, period: float, band_ratio: float, order: int) -> tuple[float, float]:
     """Amplitude and power fraction of the component at ``period`` (samples).
 
     The component is extracted with the zero-phase Butterworth band-pass of
@@ -486,7 +455,7 @@ def _scan_window(x: FloatArray, s: _Settings) -> _Scan:
     not hide a small regular one riding on it.
     """
     n = x.size
-    spec = _spectrum(_detrend(x))
+    spec = spectrum(detrend(x), pad=True)
     if spec.total <= 0:
         return _Scan(())
     f_hi = min(1.0 / s.min_period_samples, 0.5 / s.band_ratio)
@@ -630,7 +599,7 @@ class _Cluster:
     spans: list[tuple[int, int]]
 
 
-def _envelope(spec: _Spectrum, gain: FloatArray) -> FloatArray:
+def _envelope(spec: Spectrum, gain: FloatArray) -> FloatArray:
     """Hilbert envelope of the signal filtered by the zero-phase ``gain``.
 
     The analytic signal is the inverse DFT of the band-passed spectrum with
@@ -655,7 +624,7 @@ def _envelope(spec: _Spectrum, gain: FloatArray) -> FloatArray:
     return np.asarray(np.interp(t, np.arange(size) * (spec.nfft / size), z), dtype=np.float64)
 
 
-def _presence(spec: _Spectrum, gain: FloatArray, period: float) -> tuple[FloatArray, int, int]:
+def _presence(spec: Spectrum, gain: FloatArray, period: float) -> tuple[FloatArray, int, int]:
     """Where the component passed by ``gain`` (period ``period`` samples) is present.
 
     Returns the band-passed component and the first and last (exclusive)
@@ -852,8 +821,8 @@ def detect_oscillations(
         raise DataError("need min_period_samples >= 2 and 0 < max_period_fraction <= 1")
     n = xa.size
     span = float(xa.max() - xa.min())
-    xd = _detrend(xa)
-    spec = _spectrum(xd)
+    xd = detrend(xa)
+    spec = spectrum(xd, pad=True)
 
     if spec.total <= 0 or span == 0:
         note = "signal is constant after detrending"
@@ -1052,7 +1021,7 @@ def detect_loop_oscillation(
     def amp_at(sig: FloatArray | None, period_s: float) -> float | None:
         if sig is None:
             return None
-        spec = _spectrum(_detrend(sig))
+        spec = spectrum(detrend(sig), pad=True)
         if spec.total <= 0:
             return 0.0
         return _measure(spec, period_s / ts, band_ratio, order)[0]

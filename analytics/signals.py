@@ -1,19 +1,25 @@
-"""Signal helpers shared by the detectors: zero crossings and the autocorrelation.
+"""Signal helpers shared by the detectors: zero crossings, the autocorrelation, the
+detrended signal and its spectrum.
 
 Each is written once here; the oscillation detection (Thornhill et al. 2003:
-ACF zero crossings), the cycle shapes (cycles cut at PV's upward crossings),
-the OP-PV cross-correlation test, the model check's correlation time and the
-dashboard's ACF plot use them.
+ACF zero crossings, the band-pass filters and the spectral peaks), the
+oscillation groups of a unit (band spectra), the cycle shapes (cycles cut at
+PV's upward crossings), the OP-PV cross-correlation test, the model check's
+correlation time and the dashboard's spectrum and ACF plots use them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
+from scipy import fft as sfft
 
 from analytics.types import FloatArray
 
-__all__ = ["autocorrelation", "upward_crossings", "zero_crossings"]
+__all__ = ["Spectrum", "autocorrelation", "detrend", "spectrum", "upward_crossings",
+           "zero_crossings"]
 
 
 def zero_crossings(y: FloatArray) -> FloatArray:
@@ -58,3 +64,67 @@ def autocorrelation(x: ArrayLike, max_lag: int) -> FloatArray:
     spectrum = np.fft.rfft(centred, 2 * n)
     acf = np.fft.irfft(spectrum * np.conj(spectrum), 2 * n)[: min(max_lag, n - 1) + 1]
     return np.asarray(acf / acf[0] if acf[0] > 0 else acf, dtype=np.float64)
+
+
+def detrend(x: ArrayLike) -> FloatArray:
+    """``x`` less its mean and its least-squares straight line.
+
+    >>> detrend([1.0, 3.0, 5.0, 7.0]).tolist()
+    [0.0, 0.0, 0.0, 0.0]
+    """
+    values = np.asarray(x, dtype=np.float64)
+    k = np.arange(values.size, dtype=np.float64)
+    k -= k.mean()
+    centred = values - values.mean()
+    kk = float(np.dot(k, k))
+    slope = float(np.dot(k, centred)) / kk if kk > 0 else 0.0
+    return np.asarray(centred - slope * k, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """The discrete Fourier transform of a real signal and its power per channel.
+
+    Attributes
+    ----------
+    n : int
+        Samples of the signal.
+    nfft : int
+        Length of the transform (the signal zero-padded to it).
+    X : ndarray of complex
+        ``rfft`` of the signal zero-padded to ``nfft``: channels ``0 .. nfft // 2``.
+    P : ndarray
+        ``|X|^2``, the periodogram up to a constant factor.
+    f : ndarray
+        Frequency of each channel, cycles per sample (``k / nfft``).
+    total : float
+        ``sum(P[1:])``: proportional to the variance of the signal about its mean.
+    """
+
+    n: int
+    nfft: int
+    X: NDArray[np.complex128]
+    P: FloatArray
+    f: FloatArray
+    total: float
+
+
+def spectrum(x: ArrayLike, *, pad: bool = False) -> Spectrum:
+    """The DFT of ``x`` as given (remove the mean or the trend first) and its power.
+
+    With ``pad`` the signal is zero-padded to a fast length of at least twice
+    its own, so that multiplying ``X`` by a filter's gain and transforming back
+    filters linearly, without wrap-around (the band-pass filters and the
+    band ACF of :mod:`analytics.oscillation`); without, ``nfft = n``.
+
+    >>> s = spectrum(np.cos(2 * np.pi * np.arange(8) / 4))
+    >>> s.nfft, float(s.f[int(np.argmax(s.P))]), round(s.total, 6)
+    (8, 0.25, 16.0)
+    """
+    values = np.asarray(x, dtype=np.float64)
+    n = values.size
+    nfft = sfft.next_fast_len(2 * n, real=True) if pad else n
+    X = np.asarray(sfft.rfft(values, nfft), dtype=np.complex128)
+    P = np.asarray(X.real**2 + X.imag**2, dtype=np.float64)
+    f = np.arange(P.size, dtype=np.float64) / nfft
+    return Spectrum(n, nfft, X, P, f, float(P[1:].sum()))

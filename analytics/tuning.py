@@ -63,7 +63,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -724,6 +724,15 @@ class Tuning:
     def to_dict(self) -> dict[str, float | None]:
         """``{"Kc", "Ti"}`` (``Ti`` null for P control)."""
         return {"Kc": self.kc, "Ti": _json_float(self.ti)}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Tuning:
+        """The tuning of :meth:`to_dict`'s form (``Ti`` null: P control).
+
+        >>> Tuning.from_dict({"Kc": 2.0, "Ti": None})
+        Tuning(kc=2.0, ti=inf)
+        """
+        return cls(float(d["Kc"]), math.inf if d["Ti"] is None else float(d["Ti"]))
 
 
 @dataclass(frozen=True)
@@ -1475,6 +1484,11 @@ class CycleAgreement:
         error = self.predicted_period_error
         return error is not None and abs(error) <= PERIOD_TOLERANCE
 
+    @property
+    def agree(self) -> bool:
+        """The model reproduces the measured cycle in simulation and in prediction."""
+        return self.reproduces and self.predicted_agrees
+
     def explanation(self) -> str:
         """What agrees and what does not, in words.
 
@@ -1516,7 +1530,7 @@ class CycleAgreement:
             "amplitude_error": {"predicted": self.predicted_amplitude_error,
                                 "simulated": self.simulated_amplitude_error},
             "reproduces": self.reproduces,
-            "agree": self.reproduces and self.predicted_agrees,
+            "agree": self.agree,
             "explanation": self.explanation(),
         }
 
@@ -1580,8 +1594,59 @@ def cycle_origin(envelope_variation: float | None, cycles: float, saturation: fl
                       "detuning would not remove it; look for its source")
 
 
+@dataclass(frozen=True)
+class Detuning:
+    """Result of :func:`detune`: ``Kc`` lowered by each gain margin, ``Ti`` kept.
+
+    Attributes
+    ----------
+    current : Tuning
+        The loop's tuning, at its ultimate point.
+    ultimate_period_s : float
+        The measured period, taken as the ultimate period, s.
+    gain_margins : tuple of float
+        The gain margins offered: ``Kc / m`` for each ``m``.
+    notes : tuple of str
+        What the advice assumes.
+    """
+
+    current: Tuning
+    ultimate_period_s: float
+    gain_margins: tuple[float, ...]
+    notes: tuple[str, ...]
+
+    @property
+    def recommendations(self) -> tuple[Tuning, ...]:
+        """The detuned tunings, one per gain margin."""
+        return tuple(dataclasses.replace(self.current, kc=self.current.kc / m)
+                     for m in self.gain_margins)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (the advice endpoint's ``detuning``)."""
+        return {
+            "kind": "detuning",
+            "current": [self.current.to_dict()],
+            "ultimate_period_s": self.ultimate_period_s,
+            "recommendations": [{
+                "tunings": [tuning.to_dict()],
+                "source": f"ultimate point at the measured period: Kc / {m:g}",
+                "gain_margin": m,
+                "predicted": {"oscillating": False, "period_s": None},
+            } for m, tuning in zip(self.gain_margins, self.recommendations, strict=True)],
+            "notes": list(self.notes),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Detuning:
+        """The detuning of :meth:`to_dict`'s form (the recommendations are derived)."""
+        (current,) = d["current"]
+        return cls(Tuning.from_dict(current), float(d["ultimate_period_s"]),
+                   tuple(float(r["gain_margin"]) for r in d["recommendations"]),
+                   tuple(d["notes"]))
+
+
 def detune(tuning: Tuning, period_s: float,
-           gain_margins: Sequence[float] = DETUNING_GAIN_MARGINS) -> dict[str, Any]:
+           gain_margins: Sequence[float] = DETUNING_GAIN_MARGINS) -> Detuning:
     """Detuning of a loop that cycles by itself (a linear oscillation: over-tuned).
 
     A loop whose linear closed loop cycles steadily sits at its ultimate
@@ -1596,26 +1661,15 @@ def detune(tuning: Tuning, period_s: float,
     Examples
     --------
     >>> advice = detune(Tuning(3.0, 4.0), 11.5)
-    >>> [(r["tunings"][0]["Kc"], r["gain_margin"]) for r in advice["recommendations"]]
+    >>> [(t.kc, m) for t, m in zip(advice.recommendations, advice.gain_margins)]
     [(1.5, 2.0), (1.0, 3.0)]
     """
     if not period_s > 0 or any(not m > 1 for m in gain_margins):
         raise ModelSpecError(f"need a period > 0 and gain margins > 1, got {period_s}, "
                              f"{list(gain_margins)}")
-    return {
-        "kind": "detuning",
-        "current": [tuning.to_dict()],
-        "ultimate_period_s": period_s,
-        "recommendations": [{
-            "tunings": [dataclasses.replace(tuning, kc=tuning.kc / m).to_dict()],
-            "source": f"ultimate point at the measured period: Kc / {m:g}",
-            "gain_margin": m,
-            "predicted": {"oscillating": False, "period_s": None},
-        } for m in gain_margins],
-        "notes": [
-            f"the loop cycles at {period_s:.3g} s with a healthy valve: taken as its "
-            "ultimate point (gain margin 1 now), lowering Kc by m gives a gain margin of "
-            "at least m; if the cycle comes from a disturbance entering the loop, detuning "
-            "does not remove it (its period would not change with Kc)",
-        ],
-    }
+    return Detuning(tuning, period_s, tuple(gain_margins), (
+        f"the loop cycles at {period_s:.3g} s with a healthy valve: taken as its "
+        "ultimate point (gain margin 1 now), lowering Kc by m gives a gain margin of "
+        "at least m; if the cycle comes from a disturbance entering the loop, detuning "
+        "does not remove it (its period would not change with Kc)",
+    ))

@@ -51,7 +51,7 @@ from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
 from analytics.lti import TransferFunction, simulate_open_loop
-from analytics.signals import autocorrelation
+from analytics.signals import autocorrelation, detrend, spectrum
 from analytics.stiction.signature import EllipseFit
 from analytics.types import FloatArray
 from analytics.valves import ValveModel
@@ -178,19 +178,23 @@ def format_utc(t: float) -> str:
 def power_spectrum(x: ArrayLike, ts: float) -> tuple[FloatArray, FloatArray]:
     """Periods (s, longest first) and power of ``x`` normalised to its largest peak.
 
-    A Hann-windowed periodogram of the linearly detrended signal (non-finite
-    samples are left out of the mean and treated as its value).  The
-    zero-frequency channel is dropped, so the first period is the window length.
+    A Hann-windowed periodogram of the linearly detrended signal
+    (:func:`analytics.signals.spectrum`; non-finite samples are left out of
+    the mean and treated as its value), one-sided: the Nyquist channel, which
+    has no negative-frequency twin, counts once.  The zero-frequency channel is
+    dropped, so the first period is the window length.
     """
     values = np.asarray(x, dtype=np.float64)
     finite = np.isfinite(values)
     if finite.sum() < 8:
         raise ValueError(f"power_spectrum needs at least 8 finite samples, got {finite.sum()}")
     filled = np.where(finite, values, np.mean(values[finite]))
-    frequency, power = sps.periodogram(filled, fs=1.0 / ts, window="hann", detrend="linear")
-    frequency, power = frequency[1:], power[1:]
+    spec = spectrum(detrend(filled) * sps.get_window("hann", filled.size))
+    power = spec.P[1:].copy()
+    if spec.nfft % 2 == 0:
+        power[-1] /= 2.0
     peak = float(power.max())
-    return 1.0 / frequency, power / peak if peak > 0 else power
+    return spec.nfft * ts / np.arange(1, spec.P.size), power / peak if peak > 0 else power
 
 
 def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, FloatArray]:

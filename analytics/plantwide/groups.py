@@ -50,7 +50,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import fft as sfft
 
 from analytics.errors import DataError
 from analytics.oscillation import (
@@ -59,6 +58,7 @@ from analytics.oscillation import (
     detect_oscillations,
     envelope_variation,
 )
+from analytics.signals import spectrum
 from analytics.types import FloatArray
 
 __all__ = [
@@ -133,11 +133,6 @@ class OscillationGroup:
     def signals(self) -> tuple[str, ...]:
         """Names of the member signals."""
         return tuple(m.signal for m in self.members)
-
-
-def _power_spectrum(x: FloatArray) -> FloatArray:
-    """Periodogram of ``x`` without its mean (channel ``i`` at ``i / len(x)``)."""
-    return np.asarray(np.abs(sfft.rfft(x - x.mean())) ** 2, dtype=np.float64)
 
 
 def _band_spectrum(power: FloatArray, samples: int, period_samples: float) -> FloatArray:
@@ -246,7 +241,8 @@ def find_oscillation_groups(
     ]
     candidates.sort(key=lambda c: c[1].power_fraction, reverse=True)
     samples = next(iter(lengths))
-    power = {name: _power_spectrum(a) for name, a in arrays.items()}
+    # periodograms without the mean: channel i at i / samples
+    power = {name: spectrum(a - a.mean()).P for name, a in arrays.items()}
     groups: list[list[tuple[str, Oscillation, float]]] = []
     for name, osc in candidates:
         for members in groups:

@@ -55,8 +55,9 @@ References
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -128,6 +129,36 @@ class EllipseFit:
     def width_ratio(self) -> float:
         """Apparent stiction over the OP peak-to-peak: ``|sin phi|`` of the OP-PV phase."""
         return self.apparent_stiction / (2.0 * self.op_amplitude)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form: the apparent stiction, ``width_ratio``, ``op_amplitude`` and
+        ``residual``, and the geometry (``centre``, ``semi_axes``, ``angle``) that a plot
+        draws (the ``apparent_stiction`` of a loop diagnosis)."""
+        return {
+            "apparent_stiction": self.apparent_stiction,
+            "width_ratio": self.width_ratio,
+            "op_amplitude": self.op_amplitude,
+            "residual": self.residual,
+            "centre": list(self.centre),
+            "semi_axes": list(self.semi_axes),
+            "angle": self.angle,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EllipseFit:
+        """The fit of :meth:`to_dict`'s form (``width_ratio`` is derived, so not read).
+
+        Raises
+        ------
+        KeyError
+            If a field is missing: diagnoses stored before the geometry was kept
+            have no ``centre``, ``semi_axes`` and ``angle``.
+        """
+        cx, cy = d["centre"]
+        m, n = d["semi_axes"]
+        return cls(centre=(float(cx), float(cy)), semi_axes=(float(m), float(n)),
+                   angle=float(d["angle"]), apparent_stiction=float(d["apparent_stiction"]),
+                   op_amplitude=float(d["op_amplitude"]), residual=float(d["residual"]))
 
 
 def fit_signature_ellipse(

@@ -27,6 +27,7 @@ from analytics.simulation import ClosedLoopModel, Loop, PIDController
 from analytics.synthetic_cases import synthetic_library
 from analytics.tuning import (
     TABLE_5_11,
+    Detuning,
     FirstOrderProcess,
     OscillationEffect,
     SafeTuningMap,
@@ -34,6 +35,7 @@ from analytics.tuning import (
     advise,
     analyse_single_loop,
     cycle_origin,
+    detune,
     excited_model,
     safe_tuning_map,
     table_5_11_rule,
@@ -583,3 +585,17 @@ def test_a_forced_cycle_is_told_from_the_loops_own(name, origin):
     d = diagnose_loop(ts=case.ts, op=sim.op[0], pv=sim.pv[0])
     cycles = d.samples * d.ts / d.oscillation.period_s
     assert cycle_origin(d.envelope_variation, cycles, 0.0)[0] == origin
+
+
+@pytest.mark.parametrize("tuning", [Tuning(3.0, 4.0), Tuning(-0.5, math.inf)])
+def test_detuning_is_its_json_read_back(tuning):
+    """``Kc / m`` for each gain margin m (the phase crossover stays at the measured
+    period), and ``from_dict`` inverts ``to_dict`` through JSON text (P control: Ti null)."""
+    detuning = detune(tuning, 11.5)
+    assert [t.kc for t in detuning.recommendations] == [tuning.kc / 2, tuning.kc / 3]
+    assert all(t.ti == tuning.ti for t in detuning.recommendations)
+    stored = json.loads(json.dumps(detuning.to_dict()))
+    assert Detuning.from_dict(stored) == detuning
+    assert Tuning.from_dict(stored["current"][0]) == tuning
+    with pytest.raises(ModelSpecError, match="gain margins > 1"):
+        detune(tuning, 11.5, (1.0,))

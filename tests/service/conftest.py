@@ -1,4 +1,8 @@
-"""Store fixtures: every store test runs on SQLite and on a real PostgreSQL."""
+"""Store and service fixtures: every store test runs on SQLite and on a real PostgreSQL.
+
+``service`` and ``client`` are the two-loop test plant of :func:`tests.service.test_api.plant`
+on ``store``; a test module that needs other settings overrides ``service`` with
+``make_service(...)``."""
 
 from collections.abc import Iterator
 from concurrent.futures import Executor, ThreadPoolExecutor
@@ -6,6 +10,7 @@ from itertools import count
 from typing import Any
 
 import pytest
+from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
 from service.config import Settings
@@ -61,3 +66,15 @@ def make_service(store):
             release.set()
         svc.executor.shutdown(wait=False, cancel_futures=True)
         svc.state.store.close()
+
+
+@pytest.fixture
+def service(make_service) -> Service:
+    """The two-loop test plant on ``store`` (tickets after two confirmations)."""
+    return make_service(ticket_confirmations=2)
+
+
+@pytest.fixture
+def client(service: Service) -> TestClient:
+    """A client of ``service`` (send a key: ``tests.service.test_api.ADMIN`` or ``key(...)``)."""
+    return TestClient(service.app)

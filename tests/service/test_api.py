@@ -9,12 +9,10 @@ and inspected through the API with keys of every role.
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import pytest
-from fastapi.testclient import TestClient
 
 from analytics.synthetic_cases import synthetic_library
 from service.buffer import LoopBuffers
-from service.config import PlantConfig, Settings
+from service.config import PlantConfig
 from service.server import build_service
 from service.store.models import AnalysisRun
 
@@ -48,21 +46,6 @@ def simulated_batch(samples: int = 3600) -> list[dict]:
                           "items": [{"timestamp": float(a), "value": float(b)}
                                     for a, b in zip(t, values, strict=True)]})
     return batch
-
-
-@pytest.fixture
-def service(store):
-    settings = Settings(database_url=store.url, api_key=ADMIN, window_s=3600,
-                        buffer_horizon_s=7200, ticket_confirmations=2)
-    svc = build_service(settings, plant(), executor=ThreadPoolExecutor(1), clock=lambda: T0)
-    yield svc
-    svc.executor.shutdown()
-    svc.state.store.close()
-
-
-@pytest.fixture
-def client(service):
-    return TestClient(service.app)
 
 
 def key(client, role):

@@ -36,8 +36,8 @@ from service.config import ConfigError, PlantConfig, Settings
 from service.server import Service, build_service
 from service.store.db import migrate
 from service.store.models import ApiKey
+from tests.service.api.test_model_check import case_batch
 from tests.service.test_api import ADMIN, T0, plant
-from tests.service.test_model_check_api import case_batch
 from tests.service.test_security import api_routes
 
 HEADERS = {"X-API-Key": ADMIN}

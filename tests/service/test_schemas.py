@@ -22,9 +22,10 @@ from service.api.routes import advice, loops, model_check, tickets, unit_diagnos
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
-from tests.service.test_advice import HEADERS, demo
+from tests.service.api.stored import store_run
+from tests.service.api.test_advice import HEADERS, demo
+from tests.service.api.test_unit_prediction import plant_data
 from tests.service.test_api import ADMIN, T0
-from tests.service.test_unit_prediction import plant_data, store_run
 
 __all__ = ["demo"]  # the fixture, imported
 
@@ -95,7 +96,7 @@ def test_the_loop_diagnosis_of_health_is_the_stored_one(demo) -> None:
 
 @pytest.fixture
 def unit_client(tmp_path) -> Iterator[TestClient]:
-    """The units of :func:`tests.service.test_unit_prediction.plant_data` on SQLite."""
+    """The units of :func:`tests.service.api.test_unit_prediction.plant_data` on SQLite."""
     settings = Settings(database_url=f"sqlite:///{tmp_path / 'p.db'}", api_key=ADMIN)
     svc = build_service(settings, PlantConfig.model_validate(plant_data()),
                         executor=ThreadPoolExecutor(1), clock=lambda: T0)

@@ -3,13 +3,14 @@ cycle: retunes for a sticky valve verified by simulation, detuning for an over-t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import Any
 
 from fastapi import APIRouter, HTTPException
 
 from analytics.errors import AnalyticsError
-from analytics.tuning import CycleAgreement, Tuning, advise, cycle_origin, detune
+from analytics.tuning import CycleAgreement, Detuning, Tuning, advise, cycle_origin, detune
 from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, error_responses
 from service.api.schemas.advice import LoopAdvice
 from service.loop_model import ModelUnavailableError, identified_loop
@@ -37,11 +38,11 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
     return {"kind": "stiction", **advice.to_dict(), "measured_cycle": agreement.to_dict()}
 
 
-def _detuning(config: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+def _detuning(config: dict[str, Any], period_s: float) -> Detuning:
     """Detuning of a loop that cycles with a healthy valve (:func:`analytics.tuning.detune`)."""
     controller = config["controller"]
     tuning = Tuning(float(controller["Kc"]), float(controller.get("Ti") or "inf"))
-    return detune(tuning, float(result["oscillation"]["period_s"]))
+    return detune(tuning, period_s)
 
 
 @router.get("/loops/{loop_id}/advice", response_model=LoopAdvice)
@@ -92,9 +93,9 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
             (result.get("kpis") or {}).get("saturation"))
         if origin == "forced":
             raise HTTPException(409, f"Advice not available: {why}")
-        detuning = _detuning(loop.config, result)
-        return {"loop_id": loop_id, "run_id": run.id, **detuning,
-                "notes": [*detuning["notes"], why]}
+        detuning = _detuning(loop.config, float(oscillation["period_s"]))
+        return {"loop_id": loop_id, "run_id": run.id,
+                **dataclasses.replace(detuning, notes=(*detuning.notes, why)).to_dict()}
     try:
         identified_loop(loop.config, result)
     except ModelUnavailableError as exc:

@@ -10,6 +10,7 @@ overlay for the dashboard, stamped with the window's times.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Any
 
 import numpy as np
@@ -64,10 +65,14 @@ def _longest_complete_stretch(signals: list[NDArray[np.float64]]) -> tuple[int, 
     return int(starts[longest]), int(stops[longest])
 
 
-def _check(op: NDArray[np.float64], pv: NDArray[np.float64], ts: float,
-           sp: NDArray[np.float64] | None, model: LoopModel | None) -> dict[str, Any]:
-    """The model check and its overlay as JSON (run in the analysis process)."""
-    return check_model(op, pv, ts, sp=sp, model=model).to_dict(overlay=True)
+def _check(op: NDArray[np.float64], pv: NDArray[np.float64], t: NDArray[np.float64],
+           ts: float, sp: NDArray[np.float64] | None, model: LoopModel | None
+           ) -> dict[str, Any]:
+    """The model check and its overlay as JSON (run in the analysis process), the overlay
+    stamped with the samples' times ``t``."""
+    check = check_model(op, pv, ts, sp=sp, model=model)
+    stamped = dataclasses.replace(check, overlay=dataclasses.replace(check.overlay, t=t))
+    return stamped.to_dict(overlay=True)
 
 
 @router.post("/loops/{loop_id}/model-check", response_model=ModelCheckPublic)
@@ -119,11 +124,10 @@ def loop_model_check(
                  f"({window.t.size} samples at {window.ts:g} s) has {stop - start}")
     part = slice(start, stop)
     try:
-        out = state.analyse(_check, op[part], pv[part], window.ts,
+        out = state.analyse(_check, op[part], pv[part], window.t[part], window.ts,
                             None if sp is None else sp[part], model)
     except AnalyticsError as exc:
         raise HTTPException(422, f"Model check not possible: {exc}") from None
-    out["overlay"]["t"] = window.t[part].tolist()
     return {"loop_id": loop_id, "window_start": float(window.t[start]),
             "window_end": float(window.t[stop - 1]), "ts": window.ts, "samples": stop - start,
             **out}

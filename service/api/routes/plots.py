@@ -7,9 +7,11 @@ builders of :mod:`service.plots`.  Kinds:
 * ``trend``: SP, PV, OP, MV between ``start`` and ``end`` (default: the last
   hour), from the same query as ``GET /loops/{id}/data``.
 * ``signature``, ``spectrum``: the window of the latest analysis, in % of
-  span as the analysis saw it, with the period it used; the signature also
-  shows the fitted stiction model (the valve and process of the latest
-  stiction estimate replayed on the window's OP).
+  span as the analysis saw it, with the period it used; the signature shows
+  the OP-PV ellipse the analysis fitted (stored with a stiction verdict; fitted
+  here for other verdicts, older analyses and the OP-MV signature) and the
+  fitted stiction model (the valve and process of the latest stiction
+  estimate replayed on the window's OP).
 * ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
   the latest stiction estimate, the configured controller and Choudhury's
   describing function at the estimated (S, J) (thesis Eq. 3.16).
@@ -130,9 +132,19 @@ def _analysed_period(diagnosis: dict[str, Any]) -> float | None:
     return None if period is None else float(period)
 
 
+def _stored_ellipse(diagnosis: dict[str, Any]) -> EllipseFit | None:
+    """The OP-PV ellipse the analysis fitted (a stiction verdict on a cycle), or None
+    (no such fit, or a diagnosis stored before the ellipse's geometry was kept)."""
+    stored = diagnosis.get("apparent_stiction")
+    if not stored or "centre" not in stored:
+        return None
+    return EllipseFit.from_dict(stored)
+
+
 def _ellipse(op: np.ndarray | None, valve: np.ndarray | None, period_samples: float | None
              ) -> EllipseFit | None:
-    """The signature ellipse, or None without a period, with gaps or too few cycles."""
+    """The signature ellipse fitted here, or None without a period, with gaps or too few
+    cycles: for the OP-MV signature, and for OP-PV when the analysis stored none."""
     if op is None or valve is None or period_samples is None:
         return None
     if not (np.isfinite(op).all() and np.isfinite(valve).all()):
@@ -164,8 +176,8 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
         for s in data.series if s.signal in plots.SIGNAL_LABELS
     }
     if not any(t.size for t, _ in series.values()):
-        raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:g} and "
-                                 f"{data.end:g}")
+        raise HTTPException(404, f"No samples of loop {loop.id} between {data.start:.0f} and "
+                                 f"{data.end:.0f}")
     return plots.trend_figure(
         series, title=_title(loop, "trend", data.start, data.end),
         unit="plant units",
@@ -204,7 +216,8 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
     period_samples = None if period is None else period / window.ts
     return plots.signature_figure(
         window.op, window.pv, mv=window.mv,
-        pv_fit=_ellipse(window.op, window.pv, period_samples),
+        pv_fit=(_stored_ellipse(run.result or {})
+                or _ellipse(window.op, window.pv, period_samples)),
         mv_fit=_ellipse(window.op, window.mv, period_samples),
         model=_fitted_model(window.op, window.pv, window.ts, run.result or {}),
         title=_title(loop, "valve signature", window.t[0], window.t[-1]),
@@ -225,7 +238,6 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
         model = identified_loop(loop.config, run.result)
     except ModelUnavailableError as exc:
         raise HTTPException(404, str(exc)) from None
-    estimate = (run.result or {})["quantification"]
     try:
         prediction = predict_limit_cycles(model.process, model.controller, model.valve,
                                           hold_delay=model.hold_delay)
@@ -238,7 +250,7 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
     return plots.nyquist_figure(
         curves, prediction=prediction,
         title=f"{_name(loop)}: Nyquist plot, identified model, "
-              f"S = {estimate['S']:.2f} %, J = {estimate['J'] or 0.0:.2f} %",
+              f"S = {model.valve.S:.2f} %, J = {model.valve.J:.2f} %",
     )
 
 

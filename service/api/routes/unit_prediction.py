@@ -20,6 +20,7 @@ from fastapi import APIRouter, HTTPException
 from sqlalchemy.orm import Session
 
 from analytics.errors import AnalyticsError
+from analytics.limit_cycle import LimitCycleReport
 from analytics.tuning import CycleAgreement
 from service.api.deps import (
     ERROR_RESPONSES,
@@ -43,11 +44,11 @@ CONFIGURE_MATRIX = (
 )
 
 
-def _prediction_for(spec: str) -> dict[str, Any]:
+def _prediction_for(spec: str) -> LimitCycleReport:
     """The prediction is a pure function of the model (cached by its JSON with
     :meth:`service.runtime.AppState.analyse_cached`)."""
     _, report = predict_spec(json.loads(spec), source="unit model")
-    return report.to_dict()
+    return report
 
 
 def _controller(loop: Loop) -> dict[str, Any]:
@@ -63,8 +64,10 @@ def _controller(loop: Loop) -> dict[str, Any]:
     return controller
 
 
-def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
-    """The loop's valve from its latest analysis, and what is not known about it.
+def _valve(session: Session, loop_id: str
+           ) -> tuple[dict[str, Any], dict[str, Any] | None, str | None]:
+    """Where the loop's valve comes from (its entry of ``valves``), the valve in the
+    model-file form (None: healthy) and what is not known about it.
 
     A stiction finding gives a Choudhury valve of the estimated S and J (or He's
     fs, fd when only those were estimated); no finding gives a healthy valve,
@@ -74,27 +77,26 @@ def _valve(session: Session, loop_id: str) -> tuple[dict[str, Any], str | None]:
     """
     run = latest_loop_run(session, loop_id)
     if run is None:
-        return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None},
+        return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None}, None,
                 f"{loop_id}: not analysed yet; its valve is taken as healthy")
-    entry = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
+    healthy = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
     final = (run.result or {}).get("valve") or {}
     if final.get("decided_by") == "unit" and run.verdict != "stiction":
-        entry["cleared_by_unit_run"] = final["unit_run_id"]
-        return entry, None
+        return {**healthy, "cleared_by_unit_run": final["unit_run_id"]}, None, None
     if run.verdict != "stiction":
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
-        return entry, unknown
+        return healthy, None, unknown
     estimate = (run.result or {}).get("quantification") or {}
     size = final or estimate  # the final verdict's size, the unit's when the loop has none
     if size.get("S") is not None:
-        entry["valve"] = {"model": "choudhury", "S": size["S"], "J": size.get("J") or 0.0}
+        valve = {"model": "choudhury", "S": size["S"], "J": size.get("J") or 0.0}
     elif estimate.get("fs") is not None and estimate.get("fd") is not None:
-        entry["valve"] = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
+        valve = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
     else:
         raise HTTPException(409, f"Prediction not available: loop {loop_id!r} has a stiction "
                                  f"finding (analysis {run.id}) without a size estimate (S, J)")
-    return entry, None
+    return {**healthy, "valve": valve}, valve, None
 
 
 def _measured_cycle(session: Session, unit_id: str, sticky: str
@@ -116,20 +118,20 @@ def _measured_cycle(session: Session, unit_id: str, sticky: str
     return float(group["period_s"]), None if member is None else member.get("amplitude"), None
 
 
-def _against_measured(prediction: dict[str, Any], loops: list[str], sticky: str,
-                      period_s: float | None, amplitude: float | None) -> dict[str, Any]:
+def _against_measured(report: LimitCycleReport, loops: list[str], sticky: str,
+                      period_s: float | None, amplitude: float | None) -> CycleAgreement:
     """The model's cycle against the measured one, for loop ``sticky``: the stable
     predicted cycle closest in period to the measured one (the slowest without a measured
     cycle) and the simulated cycle."""
     i = loops.index(sticky)
-    stable = [c for c in prediction["limit_cycles"] if c["stable"]]
+    stable = list(report.prediction.stable_cycles)
     if period_s is not None:
-        stable.sort(key=lambda c: abs(c["period_s"] - period_s))
-    predicted = (stable[0]["period_s"], stable[0]["op_amplitudes"][i]) if stable else (None, None)
-    simulated = prediction["simulated"]
-    sim = ((simulated["period_s"], simulated["amplitudes"][i]) if simulated["oscillating"]
+        stable.sort(key=lambda c: abs(c.period_s - period_s))
+    predicted = (stable[0].period_s, stable[0].op_amplitudes[i]) if stable else (None, None)
+    simulated = report.simulated
+    sim = ((simulated.period_s, simulated.amplitudes[i]) if simulated.oscillating
            else (None, None))
-    return CycleAgreement.between(period_s, amplitude, predicted, sim).to_dict()
+    return CycleAgreement.between(period_s, amplitude, predicted, sim)
 
 
 @router.get("/units/{unit_id}/prediction", response_model=UnitPrediction,
@@ -166,10 +168,11 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                                      "the store")
         loops.append(loop)
     controllers = [_controller(loop) for loop in loops]
-    valves, unknown = [], []
+    sources, valves, unknown = [], [], []
     for loop in loops:
-        entry, note = _valve(session, loop.id)
-        valves.append(entry)
+        source, valve, note = _valve(session, loop.id)
+        sources.append(source)
+        valves.append(valve)
         if note:
             unknown.append(note)
     intervals = sorted({float(loop.config["ts"]) for loop in loops})
@@ -177,30 +180,28 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
         unknown.append(f"the loops are sampled every {intervals} s; the model is predicted "
                        f"and simulated at the shortest, {intervals[0]} s")
     answer = {"unit_id": unit_id, "loops": unit.process.loops, "dt": intervals[0],
-              "valves": valves, "unknown": unknown}
-    if all(v["valve"] is None for v in valves):
+              "valves": sources, "unknown": unknown}
+    if all(valve is None for valve in valves):
         return {**answer, "limit_cycles": [], "simulated": None, "comparison": None,
                 "note": "no valve of the unit has a stiction finding: no stiction limit "
                         "cycle to predict"}
     spec = {"dt": intervals[0], "process": {"matrix": unit.process.matrix},
-            "controllers": controllers, "valves": [v["valve"] for v in valves],
-            "names": unit.process.loops}
+            "controllers": controllers, "valves": valves, "names": unit.process.loops}
     try:
-        prediction = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
+        report = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
     except (ModelError, AnalyticsError) as exc:
         raise HTTPException(422, f"Prediction not available: {exc}") from None
-    sticky = next(v["loop"] for v in valves if v["valve"] is not None)
+    sticky = next(loop.id for loop, valve in zip(loops, valves, strict=True) if valve is not None)
     period_s, amplitude, note = _measured_cycle(session, unit_id, sticky)
     if note:
         unknown.append(note)
-    measured = _against_measured(prediction, unit.process.loops, sticky, period_s, amplitude)
-    comparison = prediction["comparison"]
+    measured = _against_measured(report, unit.process.loops, sticky, period_s, amplitude)
+    agree = report.agree
     if note is None:  # a diagnosis exists: the model must reproduce what it measured
         if period_s is None:  # ... which is no cycle of the sticky loop
-            cycles = (any(c["stable"] for c in prediction["limit_cycles"])
-                      or prediction["simulated"]["oscillating"])
-            matches = not cycles
+            agree = agree and not (report.prediction.oscillates or report.simulated.oscillating)
         else:
-            matches = measured["agree"]
-        comparison = {**comparison, "agree": comparison["agree"] and matches}
-    return {**answer, **prediction, "comparison": {**comparison, "measured_cycle": measured}}
+            agree = agree and measured.agree
+    return {**answer, **report.to_dict(),
+            "comparison": {**report.comparison_to_dict(), "agree": agree,
+                           "measured_cycle": measured.to_dict()}}

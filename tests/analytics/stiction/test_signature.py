@@ -6,6 +6,7 @@ with sticky and healthy valves, and the labelled ISDB loops."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from functools import cache
 
@@ -28,6 +29,7 @@ from analytics.stiction.evidence import (
 )
 from analytics.stiction.signature import (
     EllipseDetector,
+    EllipseFit,
     ParallelogramDetector,
     fit_signature_ellipse,
 )
@@ -164,6 +166,21 @@ class TestFitSignatureEllipse:
         assert fit.apparent_stiction == 0.0
         assert fit.semi_axes[1] == 0.0
         assert fit.width_ratio == 0.0
+
+    @pytest.mark.parametrize("phase_deg", [0, 60, 90])
+    def test_the_fit_is_its_json_read_back(self, phase_deg: float) -> None:
+        """``from_dict`` inverts ``to_dict`` through JSON text, the degenerate segment
+        (``phase 0``, MV = OP) included; a diagnosis stored without the geometry is
+        refused with the missing key."""
+        op, pv = lissajous(math.radians(phase_deg), pv_amplitude=1.5)
+        fit = fit_signature_ellipse(op, op if phase_deg == 0 else pv, 100)
+        stored = json.loads(json.dumps(fit.to_dict()))
+        assert EllipseFit.from_dict(stored) == fit
+        assert stored["width_ratio"] == fit.width_ratio
+        old = {k: stored[k] for k in ("apparent_stiction", "width_ratio", "op_amplitude",
+                                      "residual")}
+        with pytest.raises(KeyError, match="centre"):
+            EllipseFit.from_dict(old)
 
     def test_band_limited_noise_is_not_an_ellipse(self) -> None:
         rng = np.random.default_rng(3)

@@ -19,7 +19,7 @@ from analytics.model_check.cases import HiddenEffectCase, hidden_effect_case
 from service.buffer import LoopBuffers
 from service.config import Settings
 from service.server import build_service
-from tests.service.test_api import ADMIN, T0, plant
+from tests.service.test_api import ADMIN, T0, key, plant
 
 SAMPLES = 3000
 """Samples ingested: the last 3000 s of the 3600 s window (the first 600 s are empty)."""
@@ -127,6 +127,20 @@ def test_without_a_model_one_is_identified(client) -> None:
 def test_refusals_say_why(client, loop_id, body, status, detail) -> None:
     response = client.post(URL.format(loop_id), json=body, headers=HEADERS)
     assert (response.status_code, response.json()) == (status, {"detail": detail})
+
+
+def test_keys_and_a_loop_without_a_pv_tag(client) -> None:
+    anonymous = client.post(URL.format("FIC-1"))
+    assert (anonymous.status_code, anonymous.json()) == (
+        401, {"detail": "Missing API key (header X-API-Key)"})
+    refused = client.post(URL.format("FIC-1"), headers=key(client, "historian"))
+    assert (refused.status_code, refused.json()) == (
+        403, {"detail": "Role 'historian' may not read"})
+    body = {"ts": 1.0, "tags": {"op": "FIC-9.OP"}}
+    assert client.put("/api/v1/loops/FIC-9", json=body, headers=HEADERS).status_code == 200
+    answer = client.post(URL.format("FIC-9"), headers=HEADERS)
+    assert (answer.status_code, answer.json()) == (
+        422, {"detail": "A model check needs OP and PV; loop FIC-9 has no PV tag"})
 
 
 def test_a_window_with_too_few_complete_samples_is_refused(tmp_path, gain_case) -> None:

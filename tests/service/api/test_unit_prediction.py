@@ -26,8 +26,10 @@ from analytics.simulation import ClosedLoopModel, Loop, PIDController
 from analytics.valves import ChoudhuryValve, IdealValve
 from service.config import ConfigError, PlantConfig, Settings, parse_plant_config
 from service.server import build_service
+from service.store import models
 from service.store.db import Store
-from service.store.models import AnalysisRun, UnitAnalysisRun
+from service.store.models import UnitAnalysisRun
+from tests.service.api.stored import store_run
 from tests.service.test_api import ADMIN, T0, key
 
 TEMPERATURE = TransferFunction.fopdt(0.4346, 27.58, 6.0)  # thesis Eq. 5.42
@@ -74,18 +76,6 @@ def client(store: Store) -> Iterator[TestClient]:
     yield TestClient(svc.app)
     svc.executor.shutdown()
     svc.state.store.close()
-
-
-def store_run(client: TestClient, loop_id: str, verdict: str,
-              estimate: dict[str, float] | None = None) -> int:
-    """A finished analysis of ``loop_id`` with a stiction verdict and estimate."""
-    state = client.app.state.loopwatch  # type: ignore[attr-defined]
-    with state.store.session() as session:
-        run = AnalysisRun(loop_id=loop_id, started_at=T0, finished_at=T0, status="ok",
-                          verdict=verdict, result={"quantification": estimate})
-        session.add(run)
-        session.flush()
-        return int(run.id)
 
 
 def store_unit_run(client: TestClient, at: float, period_s: float | None,
@@ -238,8 +228,35 @@ def test_missing_configuration_and_estimates_are_named(client: TestClient) -> No
 def test_a_unit_unstable_without_stiction_is_refused(client: TestClient) -> None:
     store_run(client, "TIC-3", "stiction", {"S": 4.0, "J": 2.0})
     response = client.get("/api/v1/units/u3/prediction", headers=key(client, "viewer"))
-    assert response.status_code == 422
-    assert "unstable without stiction" in response.json()["detail"]
+    assert (response.status_code, response.json()) == (422, {"detail": (
+        "Prediction not available: unit model: unstable without stiction, so no limit "
+        "cycle: the loop is unstable with healthy valves (2 right-half-plane roots): "
+        "oscillations grow instead of settling on a limit cycle")})
+
+
+def test_who_may_ask_and_what_the_configuration_lacks(client: TestClient) -> None:
+    """401/403 for keys; 409 for a loop of the matrix without a controller, and for one the
+    plant file names but the store lacks (another replica's plant file)."""
+    url = "/api/v1/units/u3/prediction"
+    assert (client.get(url).status_code, client.get(url).json()) == (
+        401, {"detail": "Missing API key (header X-API-Key)"})
+    refused = client.get(url, headers=key(client, "historian"))
+    assert (refused.status_code, refused.json()) == (
+        403, {"detail": "Role 'historian' may not read"})
+    admin = {"X-API-Key": ADMIN}
+    body = {"unit": "u3", "ts": 1.0, "tags": {"op": "TIC-3.OP", "pv": "TIC-3.PV"}}
+    assert client.put("/api/v1/loops/TIC-3", json=body, headers=admin).status_code == 200
+    answer = client.get(url, headers=admin)
+    assert (answer.status_code, answer.json()) == (409, {"detail": (
+        "Prediction not available: loop 'TIC-3' has no controller (Kc, Ti) in its "
+        "configuration")})
+    state = client.app.state.loopwatch  # type: ignore[attr-defined]
+    with state.store.session() as session:
+        session.delete(session.get(models.Loop, "TIC-3"))
+    answer = client.get(url, headers=admin)
+    assert (answer.status_code, answer.json()) == (409, {"detail": (
+        "Prediction not available: the process matrix of unit 'u3' names loop 'TIC-3', "
+        "which is not in the store")})
 
 
 # ----------------------------------------------------------------------------- the plant file

@@ -7,6 +7,9 @@ the two windows, then the advice of each loop is read through the REST API.  The
 are checked against the simulated plant itself: the measured period against the
 simulated valve's, the detuning's gain margin against the true process and controller of
 the simulated over-tuned loop.
+
+Every refusal of ``GET /loops/{id}/advice`` is checked for its status code and exact
+``detail`` on the two-loop test plant, with analyses written into the store.
 """
 
 from concurrent.futures import ThreadPoolExecutor
@@ -16,10 +19,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from analytics.synthetic_cases import synthetic_library
+from analytics.tuning import cycle_origin
 from connectors.plant_sim import PlantSimulator
 from service.config import PlantConfig, Settings
 from service.server import build_service
-from tests.service.test_api import ADMIN, T0
+from tests.service.api.stored import store_run
+from tests.service.test_api import ADMIN, T0, key
 
 HEADERS = {"X-API-Key": ADMIN}
 HISTORY_S = 7200.0
@@ -134,3 +139,81 @@ def test_a_loop_without_a_controller_is_told_what_to_configure(demo):
     answer = advice(client, "FIC-109")
     assert answer.status_code == 409
     assert "configure controller: {type: PI, Kc, Ti, action}" in answer.json()["detail"]
+
+
+# ----------------------------------------------------------------------------- status codes
+# The two-loop test plant (conftest ``client``) with analyses written into the store.
+
+CYCLING = {"detected": True, "period_s": 100.0, "amplitude_op": 2.0}
+"""A cycle of 100 s in a window of 3600 samples of 1 s: 36 periods."""
+
+
+def refusal(client: TestClient, loop_id: str, headers: dict[str, str] = HEADERS
+            ) -> tuple[int, str]:
+    answer = client.get(f"/api/v1/loops/{loop_id}/advice", headers=headers)
+    return answer.status_code, answer.json()["detail"]
+
+
+def test_who_and_which_loop(client) -> None:
+    assert refusal(client, "NOPE") == (404, "Loop not found")
+    assert refusal(client, "FIC-1", {}) == (401, "Missing API key (header X-API-Key)")
+    assert refusal(client, "FIC-1", key(client, "historian")) == (
+        403, "Role 'historian' may not read")
+
+
+def test_no_controller_and_no_analysis_are_409(client) -> None:
+    assert refusal(client, "FIC-1") == (
+        409, "Advice not available: the loop has not been analysed yet")
+    body = {"name": "No controller", "ts": 1.0, "tags": {"op": "FIC-9.OP", "pv": "FIC-9.PV"}}
+    assert client.put("/api/v1/loops/FIC-9", json=body, headers=HEADERS).status_code == 200
+    assert refusal(client, "FIC-9") == (
+        409, "Advice not available: the loop's configuration has no controller; configure "
+             "controller: {type: PI, Kc, Ti, action} (plant file or PUT /api/v1/loops/FIC-9)")
+
+
+@pytest.mark.parametrize(("verdict", "result", "detail"), [
+    ("no_stiction", {"oscillation": {"detected": False}},
+     "the loop does not cycle and its valve is not sticky; there is nothing to retune"),
+    ("no_stiction", {"oscillation": CYCLING, "valve": {
+        "verdict": "no_stiction", "decided_by": "unit", "reason": "cycles because FV-2 sticks",
+        "unit_id": "u1"}},
+     "the loop cycles because FV-2 sticks (unit u1's diagnosis); retuning it would not "
+     "remove the cause: see the advice for that valve's loop"),
+    ("undecided", {"oscillation": CYCLING},
+     "the loop cycles but whether its valve sticks is undecided; no model to advise from"),
+    ("stiction", {"oscillation": CYCLING},
+     "the latest analysis has no stiction estimate (S, J) with an identified process model"),
+    ("stiction", {"oscillation": CYCLING, "quantification": {
+        "S": 4.0, "J": 2.0, "process": {"K": -1.0, "tau": 10.0, "theta": 2.0,
+                                        "integrating": False}}},
+     "the identified process gain -1 and the controller action 'reverse' make positive "
+     "feedback"),
+])
+def test_what_the_analysis_lacks_is_a_409_with_the_reason(client, verdict, result,
+                                                          detail) -> None:
+    store_run(client, "FIC-1", verdict, **{"stiction": {"verdict": verdict}, **result})
+    assert refusal(client, "FIC-1") == (409, f"Advice not available: {detail}")
+
+
+@pytest.mark.parametrize(("envelope", "origin"), [(0.01, "forced"), (0.4, "own")])
+def test_a_healthy_valve_cycling_gets_detuning_unless_the_cycle_is_forced(
+    client, envelope, origin
+) -> None:
+    """A steady amplitude is a cycle forced from outside (409 with why); one that waxes and
+    wanes is the loop's own (:func:`analytics.tuning.cycle_origin`): detuning, and why."""
+    oscillation = {**CYCLING, "envelope_variation": envelope}
+    run_id = store_run(client, "FIC-1", "no_stiction", stiction={"verdict": "no_stiction"},
+                       oscillation=oscillation, samples=3600, ts=1.0, kpis={"saturation": 0.0})
+    _, why = cycle_origin(envelope, 36.0, 0.0)
+    answer = client.get("/api/v1/loops/FIC-1/advice", headers=HEADERS)
+    if origin == "forced":
+        assert (answer.status_code, answer.json()) == (
+            409, {"detail": f"Advice not available: {why}"})
+        return
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert (body["kind"], body["run_id"], body["ultimate_period_s"]) == ("detuning", run_id,
+                                                                        100.0)
+    assert [r["tunings"] for r in body["recommendations"]] == [
+        [{"Kc": 0.25, "Ti": 8.0}], [{"Kc": 0.5 / 3, "Ti": 8.0}]]
+    assert body["notes"][-1] == why
