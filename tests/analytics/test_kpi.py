@@ -7,7 +7,9 @@ import pytest
 from scipy.signal import lfilter
 
 from analytics.kpi import (
+    DeadTimeEstimate,
     LoopKpis,
+    _lag_gram,
     error_statistics,
     harris_index,
     identify_dead_time,
@@ -302,6 +304,44 @@ def test_a_loop_under_feedback_alone_leaves_the_dead_time_unknown_and_says_why()
                      mode=np.zeros(3600), mode_mapping={0: "manual"})  # manual, OP held
     assert held.dead_time_source == "unknown"
     assert held.dead_time_note.startswith("unknown: no set-point moves beyond noise and no")
+
+
+def test_the_delay_scans_gram_matrix_equals_that_of_the_stacked_lags():
+    """:func:`analytics.kpi._lag_gram` sums only the products with a lag-0 column and
+    follows the rest along the diagonals: on signals far from zero, with gaps in both, it
+    gives the rows and the Gram matrix of the stacked, centred lags to rounding; a signal
+    held over the rows gives exact zeros (a singular matrix), as the stacked lags do."""
+    rng = np.random.default_rng(3)
+    y = 1e3 + np.cumsum(rng.normal(size=2000))
+    u = 50.0 + np.repeat(rng.normal(scale=5.0, size=100), 20)
+    y[rng.random(2000) < 0.003] = np.nan
+    u[700:760] = np.nan
+    na, start = 4, 33
+    rows, gram = _lag_gram(y, u, na, start)
+    t = np.arange(start, y.size)
+    lagged = np.column_stack([y[t - i] for i in range(na + 1)]
+                             + [u[t - j] for j in range(start + 1)])
+    lagged = lagged[np.isfinite(lagged).all(axis=1)]
+    lagged -= lagged.mean(axis=0)
+    assert rows == lagged.shape[0] and 1000 < rows < 1900
+    assert gram[0, 0] == rows and not gram[0, 1:].any() and not gram[1:, 0].any()
+    scale = np.sqrt(np.outer(np.diag(lagged.T @ lagged), np.diag(lagged.T @ lagged)))
+    np.testing.assert_array_less(np.abs(gram[1:, 1:] - lagged.T @ lagged) / scale, 1e-12)
+    rows, gram = _lag_gram(np.full(2000, 0.1), u, na, start)  # PV held
+    assert not gram[1:na + 2].any() and not gram[:, 1:na + 2].any()
+
+
+def test_a_noise_free_response_to_set_point_steps_is_said_so():
+    """PV an exact, noise-free function of SP's lags: the smallest loss is rounding error
+    (either sign), and the scan says there is no noise to judge the fit by rather than
+    ranking rounding errors."""
+    steps = 50.0 + np.repeat(np.random.default_rng(11).choice([-4.0, 4.0], size=36), 100)
+    pv = 50.0 + lfilter([0.0, 0.0, 0.0, 0.3], [1.0, -0.7], steps - 50.0)
+    for na, nb, max_delay in ((4, 4, 30), (2, 3, 12)):
+        estimate = identify_dead_time(np.full(3600, 40.0), pv, steps, max_delay=max_delay,
+                                      na=na, nb=nb)
+        assert estimate == DeadTimeEstimate(None, "unknown: from set-point steps, PV follows "
+                                                  "them exactly: no noise to judge the fit by")
 
 
 # ---------------------------------------------------------------- valve travel
