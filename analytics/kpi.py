@@ -422,8 +422,8 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
 
 def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = None,
                        manual: NDArray[np.bool_] | None = None, *, max_delay: int = 30,
-                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47)
-                       ) -> DeadTimeEstimate:
+                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47),
+                       pv_noise: float | None = None) -> DeadTimeEstimate:
     """The loop's dead time in samples, from the window's external excitation only.
 
     Under feedback alone OP is a function of past PV, and the data do not
@@ -451,6 +451,9 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     a guess.  The model's first lag
     counts the hold's sample, as :func:`harris_index` wants it.  Samples
     where a signal is missing are left out with the rows that lag them.
+    ``pv_noise`` is PV's noise standard deviation outside manual when the
+    caller has it already (:func:`analytics.stiction.stick_jump.robust_noise`
+    of those samples, as :func:`setpoint_responses` takes it too).
 
     Examples
     --------
@@ -477,8 +480,7 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     if sp is not None:
         s = np.where(hand, np.nan, np.asarray(sp, dtype=np.float64))
         auto_pv = np.where(hand, np.nan, y)
-        finite_pv = auto_pv[np.isfinite(auto_pv)]
-        floor = 3.0 * robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+        floor = 3.0 * (_pv_noise(auto_pv) if pv_noise is None else pv_noise)
         if _moves_beyond_noise(s, floor):
             sources.append(("set-point steps", s, auto_pv))
     if not sources:
@@ -494,14 +496,15 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     return DeadTimeEstimate(None, "unknown: " + "; ".join(reasons))
 
 
-def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
-    """OP moves beyond noise as :func:`analytics.stiction.stick_jump.op_travel` counts them."""
-    return travel_increments(moving_average(op, smoothing), noise_sigmas * robust_noise(op))
-
-
 def _finite(x: FloatArray) -> FloatArray:
     x = np.asarray(x, dtype=np.float64)
     return x[np.isfinite(x)]
+
+
+def _pv_noise(pv: FloatArray) -> float:
+    """PV's noise standard deviation over its present samples (0 for fewer than three)."""
+    finite_pv = _finite(pv)
+    return robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
 
 
 def valve_travel_per_day(op: FloatArray, ts: float) -> float:
@@ -543,17 +546,29 @@ def reversals_per_day(op: FloatArray, ts: float) -> float:
     >>> reversals_per_day(op, 216.0)
     2.0
     """
+    return _valve_figures(op, ts)[1]
+
+
+def _valve_figures(op: FloatArray, ts: float) -> tuple[float, float]:
+    """:func:`valve_travel_per_day` and :func:`reversals_per_day` of ``op`` together.
+
+    One smoothing, noise estimate and backlash pass for both (:func:`loop_kpis`
+    wants both): the moves :func:`analytics.stiction.stick_jump.op_travel`
+    sums, OP smoothed over three samples with a backlash of three noise
+    standard deviations.
+    """
     x = _finite(op)
     if x.size < 2:
-        return 0.0
+        return 0.0, 0.0
     smoothed = moving_average(x, 3)
-    moves = _moves(x)
+    moves = travel_increments(smoothed, 3.0 * robust_noise(x))
     idx = np.flatnonzero(moves > 0)
     idx = idx[idx > 0]
     direction = np.sign(smoothed[idx] - smoothed[idx - 1])
     direction = direction[direction != 0]
     reversals = int(np.count_nonzero(direction[1:] != direction[:-1]))
-    return reversals * DAY_S / (x.size * ts)
+    return (float(moves.sum()) * DAY_S / (x.size * ts),
+            reversals * DAY_S / (x.size * ts))
 
 
 def saturation(op: FloatArray, low: float = 0.0, high: float = 100.0,
@@ -604,15 +619,16 @@ class SetpointResponse:
 
 
 def setpoint_responses(sp: FloatArray, pv: FloatArray, ts: float, *, min_step: float = 1.0,
-                       band: float = 0.02, noise_sigmas: float = 3.0
-                       ) -> tuple[SetpointResponse, ...]:
+                       band: float = 0.02, noise_sigmas: float = 3.0,
+                       pv_noise: float | None = None) -> tuple[SetpointResponse, ...]:
     """Overshoot, settling time and IAE of each set-point step in the window.
 
     A step is a change of SP of at least ``min_step`` (% of span) from one
     sample to the next; its response runs until the next step or the window's
     end.  The settling band is ``band`` of the step (2 %, Astrom and
     Hagglund 2006, sec. 4.2) but no narrower than ``noise_sigmas`` noise
-    standard deviations of PV (:func:`analytics.stiction.stick_jump.robust_noise`),
+    standard deviations of PV (:func:`analytics.stiction.stick_jump.robust_noise`
+    of its present samples, or ``pv_noise`` when the caller has it already),
     so measurement noise alone does not keep a loop from settling.
 
     References
@@ -625,8 +641,7 @@ def setpoint_responses(sp: FloatArray, pv: FloatArray, ts: float, *, min_step: f
     steps = np.flatnonzero(np.abs(np.nan_to_num(ds)) >= min_step) + 1
     if steps.size == 0:
         return ()
-    finite_pv = _finite(p)
-    noise = robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+    noise = _pv_noise(p) if pv_noise is None else pv_noise
     ends = np.append(steps[1:], s.size)
     out = []
     for k, end in zip(steps, ends, strict=True):
@@ -859,11 +874,13 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
         error = error_statistics(sp, pv, ts, pv_limits)
-        responses = setpoint_responses(sp, pv, ts)
+        # PV's noise outside manual, once for the identification and the responses
+        noise = None if configured or op is None else _pv_noise(pv)
+        responses = setpoint_responses(sp, pv, ts, pv_noise=noise)
         if not configured:
             note = "unknown: no OP to identify it from"
             if op is not None and whole_pv is not None:
-                estimate = identify_dead_time(op, whole_pv, whole_sp, manual)
+                estimate = identify_dead_time(op, whole_pv, whole_sp, manual, pv_noise=noise)
                 dead_time, note = estimate.samples, estimate.note
         if dead_time is None:
             notes.append(f"dead time {note}; no minimum-variance (Harris) index")
@@ -875,7 +892,7 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         notes.append("no SP or no PV: no error statistics")
     travel = reversals = sat = None
     if op is not None and np.isfinite(op).any():
-        travel, reversals = valve_travel_per_day(op, ts), reversals_per_day(op, ts)
+        travel, reversals = _valve_figures(op, ts)
         sat = saturation(np.where(manual, np.nan, op))
     osc = None if oscillation is None else oscillation_index(
         bool(oscillation.get("detected")), oscillation.get("regularity"))

@@ -284,6 +284,27 @@ def test_the_operators_op_moves_in_manual_tell_the_dead_time():
                                            rel=0.05)
 
 
+def test_the_kpis_estimate_pvs_noise_once_for_identification_and_responses():
+    """loop_kpis passes PV's noise outside manual to identify_dead_time and
+    setpoint_responses (``pv_noise``); each alone estimates the same from PV, so the
+    figures are those of the two functions called on their own."""
+    rng = np.random.default_rng(7)
+    r = telegraph(rng, 4100, 0.01, 4.0)
+    hand = np.full(4100, np.nan)
+    hand[1000:1600] = np.repeat(rng.uniform(-6.0, 6.0, size=5), 120)
+    y, op = stepped_loop(rng.normal(size=4100), r, 3, 0.9, 0.0, 0.2, hand)
+    manual = np.isfinite(hand)[500:]
+    sp, pv, op = 50.0 + r[500:], 50.0 + y[500:], 40.0 + op[500:]
+    k = loop_kpis(1.0, op=op, pv=pv, sp=sp, mode=manual.astype(int),
+                  mode_mapping={1: "manual", 0: "auto"})
+    auto_sp, auto_pv = np.where(manual, np.nan, sp), np.where(manual, np.nan, pv)
+    assert k.setpoint_responses == setpoint_responses(auto_sp, auto_pv, 1.0)
+    assert len(k.setpoint_responses) > 10
+    estimate = identify_dead_time(op, pv, sp, manual)
+    assert (k.dead_time_samples, k.dead_time_note) == (estimate.samples, estimate.note)
+    assert estimate == identify_dead_time(op, pv, sp, manual,
+                                          pv_noise=robust_noise(auto_pv[~manual]))
+
 def test_a_loop_under_feedback_alone_leaves_the_dead_time_unknown_and_says_why():
     """No set-point moves and no manual: the window cannot tell the delay, whatever OP
     does -- a white dither added to OP (which the data cannot tell from the controller's
@@ -492,6 +513,12 @@ def test_loop_kpis_together_and_json_ready():
     assert k.service_factor.manual_s == 600.0
     assert k.oscillation_index == pytest.approx(0.3)
     assert len(k.setpoint_responses) == 1
+    # one backlash pass for both valve figures: the same numbers as the two functions
+    moving = op + np.repeat(rng.choice([-3.0, 3.0], size=36), 100)
+    moving[rng.random(3600) < 0.01] = np.nan
+    valve = loop_kpis(1.0, op=moving)
+    assert valve.travel_per_day == valve_travel_per_day(moving, 1.0) > 0
+    assert valve.reversals_per_day == reversals_per_day(moving, 1.0) > 0
     d = k.to_dict()
     assert d["harris"]["dead_time"] == 2 and d["setpoint_responses"][0]["step"] == 5.0
     unknown = loop_kpis(1.0, op=op, pv=pv, sp=sp)
