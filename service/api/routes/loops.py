@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
+import math
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, ValidationError
-from sqlalchemy import func, select
+from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session
 
 from service.analysis import stiction_pattern_text
@@ -321,7 +323,7 @@ def loop_kpis(
     since: Annotated[float | None, Query(ge=0)] = None,
     until: Annotated[float | None, Query(ge=0)] = None,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
-) -> KpiHistoryPublic:
+) -> Response:
     """The KPIs of the loop's successful runs started between ``since`` and ``until``
     (UNIX s; default: the last 30 days), oldest first.
 
@@ -349,14 +351,28 @@ def loop_kpis(
         (numbered.c.rn - 1) % ((numbered.c.total + (limit - 1)) // limit) == 0).subquery()
     rows = session.execute(
         select(AnalysisRun.id, AnalysisRun.started_at, AnalysisRun.window_start,
-               AnalysisRun.window_end, AnalysisRun.health, AnalysisRun.kpis, chosen.c.total)
+               AnalysisRun.window_end, AnalysisRun.health, cast(AnalysisRun.kpis, Text),
+               chosen.c.total)
         .join(chosen, AnalysisRun.id == chosen.c.id)
         .order_by(AnalysisRun.started_at, AnalysisRun.id)
     ).all()
-    data = [KpiPointPublic(run_id=r[0], started_at=r[1], window_start=r[2], window_end=r[3],
-                           health=r[4], kpis=r[5]) for r in rows]
-    return KpiHistoryPublic(loop_id=loop_id, since=since, until=until, data=data,
-                            count=len(data), total=rows[0][6] if rows else 0)
+    # The answer is written here as the response model would write it, key for key, with
+    # each run's KPIs passed on as the JSON text stored (the run's LoopKpis.to_dict, which
+    # KpisPublic keeps as it is): parsing a thousand of them, validating them into models
+    # and serialising them back took a third of the answer's time.
+    data = ",".join(
+        f'{{"run_id":{r[0]},"started_at":{_json_number(r[1])},'
+        f'"window_start":{_json_number(r[2])},"window_end":{_json_number(r[3])},'
+        f'"health":{_json_number(r[4])},"kpis":{r[5] or "null"}}}' for r in rows)
+    return Response(
+        f'{{"loop_id":{json.dumps(loop_id)},"since":{_json_number(since)},'
+        f'"until":{_json_number(until)},"data":[{data}],"count":{len(rows)},'
+        f'"total":{rows[0][6] if rows else 0}}}', media_type="application/json")
+
+
+def _json_number(value: float | None) -> str:
+    """A float field in JSON as pydantic writes it: ``null`` for None, NaN and infinities."""
+    return repr(float(value)) if value is not None and math.isfinite(value) else "null"
 
 
 @router.get("/loops/{loop_id}/data", response_model=LoopDataPublic)
