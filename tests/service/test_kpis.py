@@ -205,6 +205,29 @@ def test_the_kpi_history_answers_what_its_response_model_would(service, client):
     assert KpiHistoryPublic.model_validate(body).model_dump(mode="json",
                                                             exclude_unset=True) == body
 
+@pytest.mark.parametrize("limit", [1, 7, 40, 1000])
+def test_the_thinned_history_is_every_kth_run_back_from_the_newest(service, client, limit):
+    """Runs written in shuffled order (ids unrelated to time; some started at the same
+    second, ordered by id), failed runs and runs outside the range among them: the
+    history is every k-th ok run in the range counting back from the newest,
+    k = ceil(total / limit), computed here from the runs themselves."""
+    rng = np.random.default_rng(limit)
+    started = T0 - 10.0 * rng.permutation(np.repeat(np.arange(120), 2)[:230])
+    with service.state.store.session() as session:
+        for i, t in enumerate(started):
+            session.add(AnalysisRun(loop_id="FIC-1", started_at=float(t),
+                                    status="failed" if i % 9 == 4 else "ok",
+                                    result={"kpis": {"i": i}}, round_end=T0 + i))
+    with service.state.store.session() as session:
+        ok = sorted(((r.started_at, r.id) for r in session.query(AnalysisRun).filter(
+            AnalysisRun.loop_id == "FIC-1", AnalysisRun.status == "ok",
+            AnalysisRun.started_at >= T0 - 1000.0)), reverse=True)
+    step = -(-len(ok) // limit)
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=key(client, "viewer"),
+                      params={"since": T0 - 1000.0, "limit": limit}).json()
+    assert body["total"] == len(ok) > 150
+    assert [p["run_id"] for p in body["data"]] == [i for _, i in reversed(ok[::step])]
+
 def test_kpi_history_refusals(client):
     viewer, historian = key(client, "viewer"), key(client, "historian")
     url = "/api/v1/loops/FIC-1/kpis"
