@@ -294,6 +294,8 @@ def _lag_gram(y: FloatArray, u: FloatArray, na: int, start: int
     gives exact zeros, hence a singular matrix, as the stacked lags would.
     """
     n = y.size
+    if u.size != n:
+        raise ValueError("y and u must have the same length")
     starts = np.empty(n, dtype=np.int64)
     stops = np.empty(n, dtype=np.int64)
     runs = 0

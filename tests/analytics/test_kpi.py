@@ -350,6 +350,8 @@ def test_the_delay_scans_gram_matrix_equals_that_of_the_stacked_lags():
     np.testing.assert_array_less(np.abs(gram[1:, 1:] - lagged.T @ lagged) / scale, 1e-12)
     rows, gram = _lag_gram(np.full(2000, 0.1), u, na, start)  # PV held
     assert not gram[1:na + 2].any() and not gram[:, 1:na + 2].any()
+    with pytest.raises(ValueError, match="same length"):
+        _lag_gram(y, u[:-1], na, start)
 
 
 def test_a_noise_free_response_to_set_point_steps_is_said_so():
