@@ -49,6 +49,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import solve_toeplitz
 
@@ -256,6 +257,106 @@ def _moves_beyond_noise(x: FloatArray, floor: float = 0.0) -> bool:
                                       strict=True) if stop - start > 1)
 
 
+@njit(cache=True)
+def _lagged_dot(a: FloatArray, b: FloatArray, lag_a: int, lag_b: int,
+                starts: NDArray[np.int64], stops: NDArray[np.int64]) -> float:
+    """``sum_t a_{t-lag_a} b_{t-lag_b}`` over the rows ``starts[s] <= t < stops[s]``."""
+    total = 0.0
+    for s in range(starts.size):
+        lo, hi = starts[s], stops[s]
+        total += np.dot(a[lo - lag_a:hi - lag_a], b[lo - lag_b:hi - lag_b])
+    return total
+
+
+@njit(cache=True)
+def _lag_gram(y: FloatArray, u: FloatArray, na: int, start: int
+              ) -> tuple[int, FloatArray]:
+    """The rows and Gram matrix of the ARX delay scan's regressors (:func:`_arx_delay`).
+
+    Rows are the samples ``t`` whose lags ``y_t .. y_{t-na}`` and
+    ``u_t .. u_{t-start}`` are all present; columns the constant, then those
+    lags, each centred on its mean over the rows (so the constant is
+    orthogonal to them: ``gram[0, 0]`` is the number of rows, the rest of
+    its row and column 0).
+
+    Equal in exact arithmetic to stacking the centred lags into a matrix
+    ``X`` and forming ``X.T @ X``, but in ``O(N (na + start))`` instead of
+    ``O(N (na + start)^2)``: only the products with a column of lag 0 are
+    summed over the rows; every other one follows along its diagonal, since
+    over a run of rows ``lo <= t < hi``
+    ``sum_t a_{t-i} b_{t-j} = sum_t a_{t-i+1} b_{t-j+1} + a_{lo-i} b_{lo-j}
+    - a_{hi-i} b_{hi-j}`` (the sum shifted by one sample, plus the product
+    entering at the run's start and minus the one leaving at its end; all of
+    these samples are lags of the run's rows, so present).  The signals are
+    offset by their first row's values before summing and the column means
+    taken off at the end, ``G_qr = S_qr - s_q s_r / N``, so the products
+    stay of the size of the signals' variation; a signal held over the rows
+    gives exact zeros, hence a singular matrix, as the stacked lags would.
+    """
+    n = y.size
+    if u.size != n:
+        raise ValueError("y and u must have the same length")
+    starts = np.empty(n, dtype=np.int64)
+    stops = np.empty(n, dtype=np.int64)
+    runs = 0
+    run_y = run_u = 0
+    inside = False
+    for t in range(n):  # the runs of rows, from the lengths of the runs of present samples
+        run_y = run_y + 1 if np.isfinite(y[t]) else 0
+        run_u = run_u + 1 if np.isfinite(u[t]) else 0
+        if t >= start and run_y > na and run_u > start:
+            if not inside:
+                starts[runs] = t
+                inside = True
+        elif inside:
+            stops[runs] = t
+            runs += 1
+            inside = False
+    if inside:
+        stops[runs] = n
+        runs += 1
+    starts, stops = starts[:runs], stops[:runs]
+    rows = int(np.sum(stops - starts))
+    p = na + start + 2  # columns: y at lags 0 .. na, then u at lags 0 .. start
+    gram = np.zeros((p + 1, p + 1))
+    gram[0, 0] = rows
+    if rows == 0:
+        return 0, gram
+    ys = y - y[starts[0]]
+    us = u - u[starts[0]]
+    lag = np.empty(p, dtype=np.int64)
+    for q in range(p):
+        lag[q] = q if q <= na else q - na - 1
+    sums = np.empty(p)  # s_q: column sums over the rows
+    products = np.empty((p, p))  # S_qr for q <= r
+    for q in range(p):
+        x = ys if q <= na else us
+        i = lag[q]
+        if i == 0:
+            sums[q] = 0.0
+            for s in range(runs):
+                sums[q] += np.sum(x[starts[s]:stops[s]])
+        else:
+            sums[q] = sums[q - 1]
+            for s in range(runs):
+                sums[q] += x[starts[s] - i] - x[stops[s] - i]
+        for r in range(q, p):
+            z = ys if r <= na else us
+            j = lag[r]
+            if i == 0 or j == 0:
+                products[q, r] = _lagged_dot(x, z, i, j, starts, stops)
+            else:
+                total = products[q - 1, r - 1]
+                for s in range(runs):
+                    total += (x[starts[s] - i] * z[starts[s] - j]
+                              - x[stops[s] - i] * z[stops[s] - j])
+                products[q, r] = total
+    for q in range(p):
+        for r in range(q, p):
+            gram[q + 1, r + 1] = gram[r + 1, q + 1] = products[q, r] - sums[q] * sums[r] / rows
+    return rows, gram
+
+
 def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
                chi2: tuple[float, float]) -> tuple[int | None, str]:
     """The delay from ``u`` to ``y`` by an ARX delay scan, or None and why not.
@@ -264,9 +365,10 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
     ``y_t = c + sum_{i=1}^{na} a_i y_{t-i} + sum_{j=0}^{nb-1} b_j u_{t-k-j} + e_t``
     is fitted by least squares over the rows whose lags are all present
     (Bjorklund and Ljung 2003, sec. 3; all from one Gram matrix of the lagged
-    signals, so a delay costs one small solve) and its loss ``V_k`` (residual
-    mean square) compared by ``N ln(V_k / V_min)``, chi-square distributed
-    when the delays fit alike (Ljung 1999, sec. 16.4).  Delays shorter than
+    signals, :func:`_lag_gram`, so a delay costs one small solve) and its
+    loss ``V_k`` (residual mean square) compared by ``N ln(V_k / V_min)``,
+    chi-square distributed when the delays fit alike (Ljung 1999, sec.
+    16.4).  Delays shorter than
     the true one fit as well as it whenever their ``nb`` lags reach it, so the
     delay is the *longest* one whose loss is not significantly above the
     smallest (below ``chi2[1]``).  It stands only when the test tells it
@@ -276,29 +378,17 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
     samples before it (those no longer reach it).  ``u`` must explain ``y``
     beyond ``y``'s own past by the test at ``chi2[1]``.  A delay of 0 (PV
     moving with ``u`` at the same sample, as no sampled process can) or of
-    ``max_delay`` is no estimate.
+    ``max_delay`` is no estimate.  A smallest loss under ``1e-10`` of ``y``'s
+    variance is rounding error: ``y`` a noise-free function of the lags, and
+    no noise to judge the fit by.
     """
     start = max(na, max_delay + nb - 1)
-    n = y.size - start
-    if n < 10 * (1 + na + nb):
+    if y.size - start < 10 * (1 + na + nb):
         return None, "too few samples"
-    # Columns: 1, y_t, y_{t-1..t-na}, u_{t-0..t-start}; rows t = start .. end.
-    # Rows whose lags are all present, from the running counts of present samples.
-    present = np.concatenate(([0], np.cumsum(np.isfinite(y)))), np.concatenate(
-        ([0], np.cumsum(np.isfinite(u))))
-    t = np.arange(start, y.size)
-    complete = ((present[0][t + 1] - present[0][t - na] == na + 1)
-                & (present[1][t + 1] - present[1][t - start] == start + 1))
-    rows = int(complete.sum())
+    # Columns: 1, y_t, y_{t-1..t-na}, u_{t-0..t-start}; rows t whose lags are all present.
+    rows, gram = _lag_gram(y, u, na, start)
     if rows < 10 * (1 + na + nb):
         return None, "too few complete samples"
-    lagged = np.column_stack(
-        [y[start - i:start - i + n][complete] for i in range(na + 1)]
-        + [u[start - j:start - j + n][complete] for j in range(start + 1)])
-    lagged -= lagged.mean(axis=0)  # conditions the Gram matrix; the constant absorbs it
-    gram = np.zeros((lagged.shape[1] + 1,) * 2)
-    gram[0, 0] = rows  # the constant, orthogonal to the centred columns
-    gram[1:, 1:] = lagged.T @ lagged
     past = [0, *range(2, na + 2)]  # the constant and y's own past
 
     def losses_of(columns: NDArray[np.intp]) -> FloatArray:
@@ -315,7 +405,7 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
     except np.linalg.LinAlgError:  # PV held, or its lags collinear with the input's
         return None, "PV or they do not vary enough to fit"
     best = float(losses.min())
-    if not best > 0.0:
+    if not best > 1e-10 * gram[1, 1] / rows:
         return None, "PV follows them exactly: no noise to judge the fit by"
     if rows * np.log(own_past / best) < chi2[1]:
         return None, "they explain nothing of PV beyond PV's own past"
@@ -334,8 +424,8 @@ def _arx_delay(u: FloatArray, y: FloatArray, max_delay: int, na: int, nb: int,
 
 def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = None,
                        manual: NDArray[np.bool_] | None = None, *, max_delay: int = 30,
-                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47)
-                       ) -> DeadTimeEstimate:
+                       na: int = 4, nb: int = 4, chi2: tuple[float, float] = (9.49, 18.47),
+                       pv_noise: float | None = None) -> DeadTimeEstimate:
     """The loop's dead time in samples, from the window's external excitation only.
 
     Under feedback alone OP is a function of past PV, and the data do not
@@ -363,6 +453,9 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     a guess.  The model's first lag
     counts the hold's sample, as :func:`harris_index` wants it.  Samples
     where a signal is missing are left out with the rows that lag them.
+    ``pv_noise`` is PV's noise standard deviation outside manual when the
+    caller has it already (:func:`analytics.stiction.stick_jump.robust_noise`
+    of those samples, as :func:`setpoint_responses` takes it too).
 
     Examples
     --------
@@ -389,8 +482,7 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     if sp is not None:
         s = np.where(hand, np.nan, np.asarray(sp, dtype=np.float64))
         auto_pv = np.where(hand, np.nan, y)
-        finite_pv = auto_pv[np.isfinite(auto_pv)]
-        floor = 3.0 * robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+        floor = 3.0 * (_pv_noise(auto_pv) if pv_noise is None else pv_noise)
         if _moves_beyond_noise(s, floor):
             sources.append(("set-point steps", s, auto_pv))
     if not sources:
@@ -406,14 +498,15 @@ def identify_dead_time(op: FloatArray, pv: FloatArray, sp: FloatArray | None = N
     return DeadTimeEstimate(None, "unknown: " + "; ".join(reasons))
 
 
-def _moves(op: FloatArray, smoothing: int = 3, noise_sigmas: float = 3.0) -> FloatArray:
-    """OP moves beyond noise as :func:`analytics.stiction.stick_jump.op_travel` counts them."""
-    return travel_increments(moving_average(op, smoothing), noise_sigmas * robust_noise(op))
-
-
 def _finite(x: FloatArray) -> FloatArray:
     x = np.asarray(x, dtype=np.float64)
     return x[np.isfinite(x)]
+
+
+def _pv_noise(pv: FloatArray) -> float:
+    """PV's noise standard deviation over its present samples (0 for fewer than three)."""
+    finite_pv = _finite(pv)
+    return robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
 
 
 def valve_travel_per_day(op: FloatArray, ts: float) -> float:
@@ -455,17 +548,29 @@ def reversals_per_day(op: FloatArray, ts: float) -> float:
     >>> reversals_per_day(op, 216.0)
     2.0
     """
+    return _valve_figures(op, ts)[1]
+
+
+def _valve_figures(op: FloatArray, ts: float) -> tuple[float, float]:
+    """:func:`valve_travel_per_day` and :func:`reversals_per_day` of ``op`` together.
+
+    One smoothing, noise estimate and backlash pass for both (:func:`loop_kpis`
+    wants both): the moves :func:`analytics.stiction.stick_jump.op_travel`
+    sums, OP smoothed over three samples with a backlash of three noise
+    standard deviations.
+    """
     x = _finite(op)
     if x.size < 2:
-        return 0.0
+        return 0.0, 0.0
     smoothed = moving_average(x, 3)
-    moves = _moves(x)
+    moves = travel_increments(smoothed, 3.0 * robust_noise(x))
     idx = np.flatnonzero(moves > 0)
     idx = idx[idx > 0]
     direction = np.sign(smoothed[idx] - smoothed[idx - 1])
     direction = direction[direction != 0]
     reversals = int(np.count_nonzero(direction[1:] != direction[:-1]))
-    return reversals * DAY_S / (x.size * ts)
+    return (float(moves.sum()) * DAY_S / (x.size * ts),
+            reversals * DAY_S / (x.size * ts))
 
 
 def saturation(op: FloatArray, low: float = 0.0, high: float = 100.0,
@@ -516,15 +621,16 @@ class SetpointResponse:
 
 
 def setpoint_responses(sp: FloatArray, pv: FloatArray, ts: float, *, min_step: float = 1.0,
-                       band: float = 0.02, noise_sigmas: float = 3.0
-                       ) -> tuple[SetpointResponse, ...]:
+                       band: float = 0.02, noise_sigmas: float = 3.0,
+                       pv_noise: float | None = None) -> tuple[SetpointResponse, ...]:
     """Overshoot, settling time and IAE of each set-point step in the window.
 
     A step is a change of SP of at least ``min_step`` (% of span) from one
     sample to the next; its response runs until the next step or the window's
     end.  The settling band is ``band`` of the step (2 %, Astrom and
     Hagglund 2006, sec. 4.2) but no narrower than ``noise_sigmas`` noise
-    standard deviations of PV (:func:`analytics.stiction.stick_jump.robust_noise`),
+    standard deviations of PV (:func:`analytics.stiction.stick_jump.robust_noise`
+    of its present samples, or ``pv_noise`` when the caller has it already),
     so measurement noise alone does not keep a loop from settling.
 
     References
@@ -537,8 +643,7 @@ def setpoint_responses(sp: FloatArray, pv: FloatArray, ts: float, *, min_step: f
     steps = np.flatnonzero(np.abs(np.nan_to_num(ds)) >= min_step) + 1
     if steps.size == 0:
         return ()
-    finite_pv = _finite(p)
-    noise = robust_noise(finite_pv) if finite_pv.size > 2 else 0.0
+    noise = _pv_noise(p) if pv_noise is None else pv_noise
     ends = np.append(steps[1:], s.size)
     out = []
     for k, end in zip(steps, ends, strict=True):
@@ -771,11 +876,13 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
     responses: tuple[SetpointResponse, ...] = ()
     if sp is not None and pv is not None:
         error = error_statistics(sp, pv, ts, pv_limits)
-        responses = setpoint_responses(sp, pv, ts)
+        # PV's noise outside manual, once for the identification and the responses
+        noise = None if configured or op is None else _pv_noise(pv)
+        responses = setpoint_responses(sp, pv, ts, pv_noise=noise)
         if not configured:
             note = "unknown: no OP to identify it from"
             if op is not None and whole_pv is not None:
-                estimate = identify_dead_time(op, whole_pv, whole_sp, manual)
+                estimate = identify_dead_time(op, whole_pv, whole_sp, manual, pv_noise=noise)
                 dead_time, note = estimate.samples, estimate.note
         if dead_time is None:
             notes.append(f"dead time {note}; no minimum-variance (Harris) index")
@@ -787,7 +894,7 @@ def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None 
         notes.append("no SP or no PV: no error statistics")
     travel = reversals = sat = None
     if op is not None and np.isfinite(op).any():
-        travel, reversals = valve_travel_per_day(op, ts), reversals_per_day(op, ts)
+        travel, reversals = _valve_figures(op, ts)
         sat = saturation(np.where(manual, np.nan, op))
     osc = None if oscillation is None else oscillation_index(
         bool(oscillation.get("detected")), oscillation.get("regularity"))

@@ -45,6 +45,19 @@ both scans run (the worst case): 5.7 ms instead of 1.24 ms, the scans
 window without set-point moves or manual skips it: the KPIs of the
 healthy flow loop of the library then take 0.55 ms).
 
+Since then (branch h24c against main, run alternately three times each on
+2026-11-26 at a load of 7 on the 2 shared cores): the delay scan's Gram
+matrix by the diagonal recursion (:func:`analytics.kpi._lag_gram`) instead
+of stacking 39 lag columns, one valve pass and one PV noise estimate for all
+the KPIs: with both scans 7.1, 11.9, 8.2 ms before and 1.56, 2.07, 1.35 ms
+after (identify_dead_time 5.4, 6.8, 3.9 -> 0.67, 0.82, 0.55 ms; with a
+configured dead time 1.47, 1.37, 1.46 -> 1.40, 1.63, 1.12 ms); when a scan
+finds the dead time the Harris index adds its 0.27 ms.  The history route,
+its KPIs passed on as the JSON text stored and, on PostgreSQL, the run ids
+gathered into one array by the index-only scan and every k-th picked from
+it (no window functions): 179, 212, 149 ms before, 51, 63, 27 ms after (500
+points: 149, 150, 109 -> 36, 43, 22 ms).
+
 Run with ``.venv/bin/python benchmarks/kpi.py [--history]``.
 """
 

@@ -352,8 +352,8 @@ const KPI_COLUMNS = [
   ["osc", "Osc. index", (k) => k.oscillation_index, (v) => num(v, 2),
     "oscillation index: 0 none, 1 a strongly regular cycle", true],
   ["harris", "Harris index", (k) => k.harris && k.harris.ratio, (v) => num(v, 2),
-    "minimum variance / mean square error: 1 at minimum-variance control, towards 0 worse",
-    false],
+    "minimum variance / mean square error: 1 at minimum-variance control, towards 0 worse; "
+    + "below it, where its dead time came from", false],
   ["error", "Error SD (%)", (k) => k.error && k.error.std, (v) => num(v, 2),
     "standard deviation of SP - PV, % of span", true],
   ["travel", "Travel (%/day)", (k) => k.travel_per_day, (v) => num(v, 0),
@@ -365,6 +365,41 @@ const KPI_COLUMNS = [
   ["service", "Auto / cascade", (k) => k.service_factor && k.service_factor.normal, percent0,
     "service factor: share of time in normal mode (needs a mode tag)", false],
 ];
+
+/** Where one run's Harris index took its dead time from, in words: "Dead time:
+ * configured", "Dead time: identified from set-point steps (3 samples, 2 s)", or "Dead
+ * time: unknown: ..." with the reason; null for runs stored before the KPIs said so. */
+function deadTimeNote(k) {
+  if (!k || !k.dead_time_note) return null;
+  const d = k.dead_time_samples === null || k.dead_time_samples === undefined ? ""
+    : ` (${k.dead_time_samples} samples, ${num(k.dead_time_s, 3)} s)`;
+  return `Dead time: ${k.dead_time_note}${d}`;
+}
+
+/** The same in a few words, under the overview's Harris index: the source of the run's
+ * KPIs (configured, identified, unknown) and, when identified, from what (the note of
+ * analytics.kpi.identify_dead_time); null for runs stored before the KPIs said so. */
+function deadTimeSource(k) {
+  if (!k || !k.dead_time_source) return null;
+  if (k.dead_time_source !== "identified") return `dead time ${k.dead_time_source}`;
+  const note = k.dead_time_note || "";
+  if (note.startsWith("identified from set-point")) return "dead time from SP steps";
+  if (note.startsWith("identified from the operator's OP moves")) {
+    return "dead time from manual OP moves";
+  }
+  return "dead time identified";
+}
+
+/** An overview cell of one KPI column; the Harris index says where its dead time came
+ * from below the figure, and in full (as the loop page does) in its tooltip. */
+function kpiCell(key, kpis, value, text) {
+  const v = kpis ? value(kpis) : null;
+  const source = key === "harris" ? deadTimeSource(kpis) : null;
+  if (!source) return h("td", { "data-kpi": key, "data-value": v ?? "" }, text(v));
+  return h("td", { "data-kpi": key, "data-value": v ?? "",
+    title: deadTimeNote(kpis) || source },
+  text(v), h("div", { class: "sub", "data-dead-time": kpis.dead_time_source }, source));
+}
 
 /** Sortable columns of the overview besides the KPIs: key -> [value, larger is worse]. */
 const OVERVIEW_SORTS = {
@@ -471,10 +506,7 @@ async function renderOverview(params) {
             : "—"),
           healthCell(l.health),
           scoreCell(scores.get(l.id)),
-          KPI_COLUMNS.map(([key, , value, text]) => {
-            const v = kpis ? value(kpis) : null;
-            return h("td", { "data-kpi": key, "data-value": v ?? "" }, text(v));
-          }),
+          KPI_COLUMNS.map(([key, , value, text]) => kpiCell(key, kpis, value, text)),
           h("td", {}, oscillationText(l)),
           h("td", {}, verdictPill(l.verdict, l.confidence)),
           h("td", {}, l.S === null ? "—" : `${num(l.S)} / ${num(l.J)}`),
@@ -524,16 +556,11 @@ const KPI_TRENDS = [
     [key, label, (p) => (p.kpis ? value(p.kpis) : null)]),
 ];
 
-/** Where the latest run's Harris index took its dead time from, in words: "configured",
- * "identified from set-point steps", or "unknown: ..." with the reason (null for runs
- * stored before the KPIs said so). */
+/** Where the latest run's Harris index took its dead time from, in words (deadTimeNote;
+ * null for runs stored before the KPIs said so). */
 function deadTimeText(history) {
   const latest = [...history.data].reverse().find((p) => p.kpis && p.kpis.dead_time_note);
-  if (!latest) return null;
-  const k = latest.kpis;
-  const d = k.dead_time_samples === null || k.dead_time_samples === undefined ? ""
-    : ` (${k.dead_time_samples} samples, ${num(k.dead_time_s, 3)} s)`;
-  return `Dead time: ${k.dead_time_note}${d}`;
+  return latest ? deadTimeNote(latest.kpis) : null;
 }
 
 const SVG_NS = "http://www.w3.org/2000/svg";

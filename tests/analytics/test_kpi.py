@@ -7,7 +7,9 @@ import pytest
 from scipy.signal import lfilter
 
 from analytics.kpi import (
+    DeadTimeEstimate,
     LoopKpis,
+    _lag_gram,
     error_statistics,
     harris_index,
     identify_dead_time,
@@ -282,6 +284,27 @@ def test_the_operators_op_moves_in_manual_tell_the_dead_time():
                                            rel=0.05)
 
 
+def test_the_kpis_estimate_pvs_noise_once_for_identification_and_responses():
+    """loop_kpis passes PV's noise outside manual to identify_dead_time and
+    setpoint_responses (``pv_noise``); each alone estimates the same from PV, so the
+    figures are those of the two functions called on their own."""
+    rng = np.random.default_rng(7)
+    r = telegraph(rng, 4100, 0.01, 4.0)
+    hand = np.full(4100, np.nan)
+    hand[1000:1600] = np.repeat(rng.uniform(-6.0, 6.0, size=5), 120)
+    y, op = stepped_loop(rng.normal(size=4100), r, 3, 0.9, 0.0, 0.2, hand)
+    manual = np.isfinite(hand)[500:]
+    sp, pv, op = 50.0 + r[500:], 50.0 + y[500:], 40.0 + op[500:]
+    k = loop_kpis(1.0, op=op, pv=pv, sp=sp, mode=manual.astype(int),
+                  mode_mapping={1: "manual", 0: "auto"})
+    auto_sp, auto_pv = np.where(manual, np.nan, sp), np.where(manual, np.nan, pv)
+    assert k.setpoint_responses == setpoint_responses(auto_sp, auto_pv, 1.0)
+    assert len(k.setpoint_responses) > 10
+    estimate = identify_dead_time(op, pv, sp, manual)
+    assert (k.dead_time_samples, k.dead_time_note) == (estimate.samples, estimate.note)
+    assert estimate == identify_dead_time(op, pv, sp, manual,
+                                          pv_noise=robust_noise(auto_pv[~manual]))
+
 def test_a_loop_under_feedback_alone_leaves_the_dead_time_unknown_and_says_why():
     """No set-point moves and no manual: the window cannot tell the delay, whatever OP
     does -- a white dither added to OP (which the data cannot tell from the controller's
@@ -302,6 +325,46 @@ def test_a_loop_under_feedback_alone_leaves_the_dead_time_unknown_and_says_why()
                      mode=np.zeros(3600), mode_mapping={0: "manual"})  # manual, OP held
     assert held.dead_time_source == "unknown"
     assert held.dead_time_note.startswith("unknown: no set-point moves beyond noise and no")
+
+
+def test_the_delay_scans_gram_matrix_equals_that_of_the_stacked_lags():
+    """:func:`analytics.kpi._lag_gram` sums only the products with a lag-0 column and
+    follows the rest along the diagonals: on signals far from zero, with gaps in both, it
+    gives the rows and the Gram matrix of the stacked, centred lags to rounding; a signal
+    held over the rows gives exact zeros (a singular matrix), as the stacked lags do."""
+    rng = np.random.default_rng(3)
+    y = 1e3 + np.cumsum(rng.normal(size=2000))
+    u = 50.0 + np.repeat(rng.normal(scale=5.0, size=100), 20)
+    y[rng.random(2000) < 0.003] = np.nan
+    u[700:760] = np.nan
+    na, start = 4, 33
+    rows, gram = _lag_gram(y, u, na, start)
+    t = np.arange(start, y.size)
+    lagged = np.column_stack([y[t - i] for i in range(na + 1)]
+                             + [u[t - j] for j in range(start + 1)])
+    lagged = lagged[np.isfinite(lagged).all(axis=1)]
+    lagged -= lagged.mean(axis=0)
+    assert rows == lagged.shape[0] and 1000 < rows < 1900
+    assert gram[0, 0] == rows and not gram[0, 1:].any() and not gram[1:, 0].any()
+    scale = np.sqrt(np.outer(np.diag(lagged.T @ lagged), np.diag(lagged.T @ lagged)))
+    np.testing.assert_array_less(np.abs(gram[1:, 1:] - lagged.T @ lagged) / scale, 1e-12)
+    rows, gram = _lag_gram(np.full(2000, 0.1), u, na, start)  # PV held
+    assert not gram[1:na + 2].any() and not gram[:, 1:na + 2].any()
+    with pytest.raises(ValueError, match="same length"):
+        _lag_gram(y, u[:-1], na, start)
+
+
+def test_a_noise_free_response_to_set_point_steps_is_said_so():
+    """PV an exact, noise-free function of SP's lags: the smallest loss is rounding error
+    (either sign), and the scan says there is no noise to judge the fit by rather than
+    ranking rounding errors."""
+    steps = 50.0 + np.repeat(np.random.default_rng(11).choice([-4.0, 4.0], size=36), 100)
+    pv = 50.0 + lfilter([0.0, 0.0, 0.0, 0.3], [1.0, -0.7], steps - 50.0)
+    for na, nb, max_delay in ((4, 4, 30), (2, 3, 12)):
+        estimate = identify_dead_time(np.full(3600, 40.0), pv, steps, max_delay=max_delay,
+                                      na=na, nb=nb)
+        assert estimate == DeadTimeEstimate(None, "unknown: from set-point steps, PV follows "
+                                                  "them exactly: no noise to judge the fit by")
 
 
 # ---------------------------------------------------------------- valve travel
@@ -452,6 +515,12 @@ def test_loop_kpis_together_and_json_ready():
     assert k.service_factor.manual_s == 600.0
     assert k.oscillation_index == pytest.approx(0.3)
     assert len(k.setpoint_responses) == 1
+    # one backlash pass for both valve figures: the same numbers as the two functions
+    moving = op + np.repeat(rng.choice([-3.0, 3.0], size=36), 100)
+    moving[rng.random(3600) < 0.01] = np.nan
+    valve = loop_kpis(1.0, op=moving)
+    assert valve.travel_per_day == valve_travel_per_day(moving, 1.0) > 0
+    assert valve.reversals_per_day == reversals_per_day(moving, 1.0) > 0
     d = k.to_dict()
     assert d["harris"]["dead_time"] == 2 and d["setpoint_responses"][0]["step"] == 5.0
     unknown = loop_kpis(1.0, op=op, pv=pv, sp=sp)

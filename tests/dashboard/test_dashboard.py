@@ -18,6 +18,7 @@ instead under ``LOOPWATCH_REQUIRE_ALL=1``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import threading
@@ -36,7 +37,7 @@ import uvicorn
 from pypdf import PdfReader
 from sqlalchemy import delete, select
 
-from analytics.synthetic_cases import synthetic_library
+from analytics.synthetic_cases import synthetic_library, window_start
 from service.analysis import analyse_window
 from service.config import Settings
 from service.server import Service, build_service
@@ -501,6 +502,21 @@ def test_kpi_columns_sort_the_report_downloads_and_the_loop_page_draws_the_kpi_t
                                 for c in AnalysisRun.__table__.columns if c.name != "id"})
         session.add(newest)  # the latest run stays the latest (the highest id)
         added.append(newest)
+        # FIC-2's latest run: its set point stepped by 5 % every 150 s, so its KPIs take
+        # the dead time from the steps (tests/service/test_kpis.py)
+        first = window_start(3600, 1.0)  # the simulation's time of the window's start
+        steps = tuple((first + 150 * (k + 1), 50.0 + 2.5 * (-1) ** k) for k in range(24))
+        sim = dataclasses.replace(cases["flow-noise-ts1"], setpoint=((0.0, 50.0), *steps))
+        sim = sim.simulate()
+        result = analyse_window(service.state.registry.plant.loop("FIC-2").model_dump(
+            mode="json"), 1.0, T0 - 3600 + 1 + np.arange(3600.0), {
+            "op": sim.op[0], "pv": sim.pv[0], "sp": sim.sp[0], "mv": None})
+        assert result["kpis"]["dead_time_source"] == "identified"
+        stepped = AnalysisRun(loop_id="FIC-2", started_at=T0, finished_at=T0,
+                              window_start=T0 - 3600, window_end=T0, status="ok",
+                              health=result["health"], result=result)
+        session.add(stepped)
+        added.append(stepped)
     try:
         check_kpi_views(running, browser, tmp_path_factory)
     finally:
@@ -522,12 +538,36 @@ def check_kpi_views(running: RunningService, browser: Browser,
         row = page.locator(f'#loops tr[data-loop-id="{loop_id}"]')
         cell = row.locator('td[data-kpi="travel"]')
         assert float(cell.get_attribute("data-value") or "nan") == travel[loop_id]
+        # The Harris index, and below it where its dead time came from; in full, as the
+        # loop page says it, in the tooltip.  FIC-1 has no dead time configured and no
+        # set-point moves: unknown, no index; FIC-2's set-point steps tell it.
         harris = row.locator('td[data-kpi="harris"]')
-        assert harris.inner_text() == "—"  # no dead time configured: no Harris index
+        k = b["kpis"]
+        index = "—" if k["harris"] is None else f"{k['harris']['ratio']:.2f}"
+        short = {"FIC-1": "dead time unknown", "FIC-2": "dead time from SP steps"}[loop_id]
+        assert harris.inner_text().splitlines() == [index, short]
+        assert harris.locator("[data-dead-time]").get_attribute("data-dead-time") == \
+            k["dead_time_source"]
+        samples = "" if k["dead_time_samples"] is None else (
+            f" ({k['dead_time_samples']} samples, {k['dead_time_s']:.3f} s)")
+        assert harris.get_attribute("title") == f"Dead time: {k['dead_time_note']}{samples}"
         sf = row.locator('td[data-kpi="service"]')
         assert sf.inner_text() == "—"  # no mode tag
         assert row.locator('td[data-kpi="osc"]').inner_text() == \
             f"{b['kpis']['oscillation_index']:.2f}"
+    assert ranked["FIC-1"]["kpis"]["harris"] is None
+    assert ranked["FIC-2"]["kpis"]["dead_time_note"] == "identified from set-point steps"
+    # the other sources in the same words (configured: a process model's dead time;
+    # the operator's OP moves in manual; stored before the KPIs said)
+    assert page.evaluate("""[
+        deadTimeSource({dead_time_source: 'configured', dead_time_note: 'configured'}),
+        deadTimeSource({dead_time_source: 'identified',
+                        dead_time_note: "identified from the operator's OP moves in manual"}),
+        deadTimeSource({}), deadTimeNote({dead_time_source: 'unknown'})]""") == [
+        "dead time configured", "dead time from manual OP moves", None, None]
+    shot = tmp_path_factory.mktemp("artefacts") / "dashboard-kpi-columns.png"
+    page.locator("#loops-table").screenshot(path=str(shot))
+    print(f"KPI columns screenshot: {shot}")
     order = "rows => rows.map(r => r.dataset.loopId)"
     header = page.locator('th:has(button[data-sort="travel"])')
     header.get_by_role("button").click()

@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from pypdf import PdfReader
-from sqlalchemy import event
+from sqlalchemy import event, null, update
 
 from analytics.kpi import oscillation_index
 from analytics.synthetic_cases import synthetic_library, window_start
 from service.analysis import analyse_window
+from service.api.routes.loops import KpiHistoryPublic
 from service.cli import main
 from service.config import PlantConfig, Settings
 from service.server import build_service
@@ -171,6 +172,61 @@ def test_the_kpi_history_reads_the_kpis_column_not_the_whole_diagnosis(service, 
                   .filter(AnalysisRun.loop_id == "FIC-1").order_by(AnalysisRun.started_at)]
     assert [p["kpis"] for p in body["data"]] == stored and len(stored) == 2
 
+
+def test_the_kpi_history_answers_what_its_response_model_would(service, client):
+    """The route writes the stored KPIs' JSON text into its answer instead of validating
+    and serialising models: the answer is KpiHistoryPublic's own JSON of it -- for runs
+    without KPIs (SQL NULL or JSON null), stored by older versions with fewer or other
+    keys, with small and whole numbers, a missing health and window."""
+    stored = [
+        None, {"i": 1, "notes": ["a \"quoted\" note", "é"]},
+        {"harris": {"ratio": 1e-07, "dead_time": 3}, "dead_time_s": 2.0, "travel_per_day": 12,
+         "setpoint_responses": [{"step": -5.0, "settling_time_s": None}], "error": None},
+        {"harris": None, "dead_time_note": "unknown: no SP or no PV"},
+    ]
+    with service.state.store.session() as session:
+        for i, kpis in enumerate(stored):
+            session.add(AnalysisRun(loop_id="FIC-1", started_at=T0 - 60.0 * i - 0.125,
+                                    status="ok", health=None if i == 1 else 50.0 + i / 3,
+                                    window_start=None if i == 2 else T0 - 3600.0 * (i + 1),
+                                    window_end=T0 - 60.0 * i, result={"kpis": kpis},
+                                    kpis=kpis, round_end=T0 - 60.0 * i))
+        session.add(AnalysisRun(loop_id="FIC-1", started_at=T0 - 1000.0, status="ok",
+                                health=1.0, result={}, round_end=T0 - 1000.0))
+        session.flush()
+        session.execute(update(AnalysisRun).where(AnalysisRun.started_at == T0 - 1000.0)
+                        .values(kpis=null()))  # as migration 0007 left a run without KPIs
+    answer = client.get("/api/v1/loops/FIC-1/kpis", headers=key(client, "viewer"),
+                        params={"since": T0 - 3000.5})
+    assert answer.status_code == 200 and answer.headers["content-type"] == "application/json"
+    body = answer.json()
+    assert body["count"] == body["total"] == 5 and body["since"] == T0 - 3000.5
+    assert [p["kpis"] for p in body["data"]] == [None, *reversed(stored)]
+    assert KpiHistoryPublic.model_validate(body).model_dump(mode="json",
+                                                            exclude_unset=True) == body
+
+@pytest.mark.parametrize("limit", [1, 7, 40, 1000])
+def test_the_thinned_history_is_every_kth_run_back_from_the_newest(service, client, limit):
+    """Runs written in shuffled order (ids unrelated to time; some started at the same
+    second, ordered by id), failed runs and runs outside the range among them: the
+    history is every k-th ok run in the range counting back from the newest,
+    k = ceil(total / limit), computed here from the runs themselves."""
+    rng = np.random.default_rng(limit)
+    started = T0 - 10.0 * rng.permutation(np.repeat(np.arange(120), 2)[:230])
+    with service.state.store.session() as session:
+        for i, t in enumerate(started):
+            session.add(AnalysisRun(loop_id="FIC-1", started_at=float(t),
+                                    status="failed" if i % 9 == 4 else "ok",
+                                    result={"kpis": {"i": i}}, round_end=T0 + i))
+    with service.state.store.session() as session:
+        ok = sorted(((r.started_at, r.id) for r in session.query(AnalysisRun).filter(
+            AnalysisRun.loop_id == "FIC-1", AnalysisRun.status == "ok",
+            AnalysisRun.started_at >= T0 - 1000.0)), reverse=True)
+    step = -(-len(ok) // limit)
+    body = client.get("/api/v1/loops/FIC-1/kpis", headers=key(client, "viewer"),
+                      params={"since": T0 - 1000.0, "limit": limit}).json()
+    assert body["total"] == len(ok) > 150
+    assert [p["run_id"] for p in body["data"]] == [i for _, i in reversed(ok[::step])]
 
 def test_kpi_history_refusals(client):
     viewer, historian = key(client, "viewer"), key(client, "historian")
