@@ -12,14 +12,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 import numpy as np
 
 from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, ModelCheck, check_model
 from analytics.model_check.model import PROCESS_JSON_TYPES
-from service.commands import CliError, read_json_file, read_loop_file
+from service.commands import CliError, Subcommands, read_json_file, read_loop_file
 
 __all__ = ["print_report", "register"]
 
@@ -123,7 +123,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(commands: Any) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``model-check`` to the ``loopwatch`` subcommands."""
     parser = commands.add_parser(
         "model-check",
