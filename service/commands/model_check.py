@@ -43,7 +43,7 @@ def _num(x: float | None, spec: str = ".4g") -> str:
 def print_report(result: ModelCheck, source: str, out: TextIO) -> None:
     """The readable report of ``loopwatch model-check``."""
     base = result.base_model
-    p, c, v = base.process, base.controller, base.valve.base
+    p, c, v = base.process, base.controller.as_ideal(), base.valve.base
     valve = ", ".join(f"{k} = {x:.3g}" for k, x in v.to_dict().items() if k != "model")
     print(f"{source}: {result.overlay.t.size} samples at {base.dt:g} s", file=out)
     print(

@@ -212,6 +212,32 @@ class TestJson:
         model = LoopModel.from_dict(spec)
         assert LoopModel.from_dict(json.loads(json.dumps(model.to_dict()))) == model
 
+    def test_controller_gains_round_trip_bit_for_bit(self) -> None:
+        # Kc and Ti as written, not Kc / (Kc / Ti): issue 25's 1-ulp trap.
+        rng = np.random.default_rng(25)
+        kc = 10 ** rng.uniform(-3, 1, 500) * rng.choice([-1.0, 1.0], 500)
+        ti = 10 ** rng.uniform(-1, 3, 500)
+        inexact = 0
+        for k, t in zip(kc.tolist(), ti.tolist(), strict=True):
+            spec = {**BASE, "controller": {"type": "PI", "Kc": k, "Ti": t,
+                                           "op_limits": [-10.0, 110.0]}}
+            text = json.dumps(LoopModel.from_dict(spec).to_dict())
+            again = LoopModel.from_dict(json.loads(text))
+            assert json.loads(json.dumps(again.to_dict()))["controller"] == spec["controller"]
+            assert again.controller.ki == k / t  # the gain the loop is simulated with
+            inexact += k / (k / t) != t
+        assert inexact > 10  # a Ti derived from the gains would fail this test
+
+    def test_the_loop_sets_its_controller_to_its_operating_point(self) -> None:
+        base = model_with()
+        model = LoopModel(base.dt, base.process, PIDController.ideal(0.5, 10.0), base.valve,
+                          op_bias=45.0)
+        assert model.controller.op_bias == 45.0 and model == base
+        with pytest.raises(ModelSpecError, match="no derivative action, action 'reverse'"):
+            replace(base, controller=PIDController.ideal(0.5, 10.0, Td=1.0, op_bias=45.0))
+        with pytest.raises(ModelSpecError, match="no derivative action, action 'reverse'"):
+            replace(base, controller=PIDController.ideal(0.5, 10.0, action="direct"))
+
     @pytest.mark.parametrize(
         ("change", "message"),
         [
@@ -250,8 +276,8 @@ class TestIdentification:
         sp = res.sp[0] if measured_sp else None
         fit = identify_controller(res.op[0][50:], res.pv[0][50:], res.dt, sp if sp is None
                                   else sp[50:])
-        assert fit.controller.Kc == pytest.approx(0.1, rel=1e-6)
-        assert fit.controller.Ti == pytest.approx(0.1 / 0.09, rel=1e-6)
+        assert fit.controller.as_ideal().Kc == pytest.approx(0.1, rel=1e-6)
+        assert fit.controller.as_ideal().Ti == pytest.approx(0.1 / 0.09, rel=1e-6)
         assert fit.r2 == pytest.approx(1.0, abs=1e-9)
         if not measured_sp:
             assert fit.setpoint == pytest.approx(float(res.sp[0][-1]), rel=1e-6)
