@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -44,12 +44,42 @@ from analytics.valves import (
 )
 
 
+class IdealGains(NamedTuple):
+    """The gains of a PID controller in the ideal form ``Kc (1 + 1/(Ti s) + Td s)``
+    (thesis Eq. 5.2).
+
+    Attributes
+    ----------
+    Kc : float
+        Proportional gain (negative: the other action, as in thesis Eq. 2.12).
+    Ti : float
+        Integral time, s; ``inf`` without integral action.
+    Td : float
+        Derivative time, s.
+
+    Examples
+    --------
+    >>> IdealGains(2.0, 10.0).parallel()
+    (2.0, 0.2, 0.0)
+    """
+
+    Kc: float
+    Ti: float = math.inf
+    Td: float = 0.0
+
+    def parallel(self) -> tuple[float, float, float]:
+        """``(kp, ki, kd) = (Kc, Kc / Ti, Kc Td)``, ``ki = 0`` for ``Ti = inf``."""
+        return self.Kc, 0.0 if math.isinf(self.Ti) else self.Kc / self.Ti, self.Kc * self.Td
+
+
 @dataclass(frozen=True)
 class PIDController:
     """Digital PID controller in parallel form ``kp e + ki integral(e) + kd de/dt``.
 
     Use :meth:`ideal` for ``Kc (1 + 1/(Ti s) + Td s)`` (thesis Eq. 5.2) and
-    :meth:`parallel` for ``Kp + Ki/s`` (thesis Eqs. 2.11-2.13).
+    :meth:`parallel` for ``Kp + Ki/s`` (thesis Eqs. 2.11-2.13).  The one
+    controller type of the package: simulation, compensation, tuning,
+    limit-cycle prediction and the model check use it.
 
     At sample ``k``: ``e_k = SP_k - PV_k`` (reverse action) or ``PV_k - SP_k``
     (direct), ``I_k = I_{k-1} + ki dt e_k`` starting from ``op_bias``,
@@ -70,6 +100,18 @@ class PIDController:
         OP at rest (initial integrator value), % of span.
     derivative_filter : float
         ``N`` of the derivative filter.
+    ideal_form : IdealGains or None
+        The gains the controller was given in by :meth:`ideal`, from which ``kp``,
+        ``ki``, ``kd`` are derived (:meth:`IdealGains.parallel`); None for one given
+        in parallel gains.  Kept because the derivation does not invert exactly
+        (``Kc / (Kc / Ti)`` may differ from ``Ti`` in the last bit): a model written
+        in the ideal form reads back as written (:meth:`as_ideal`).
+
+    Examples
+    --------
+    >>> c = PIDController.ideal(0.1, 11.0)
+    >>> c.kp / c.ki, c.as_ideal().Ti
+    (10.999999999999998, 11.0)
     """
 
     kp: float
@@ -79,6 +121,7 @@ class PIDController:
     op_limits: tuple[float, float] = (0.0, 100.0)
     op_bias: float = 50.0
     derivative_filter: float = 10.0
+    ideal_form: IdealGains | None = None
 
     def __post_init__(self) -> None:
         for name in ("kp", "ki", "kd", "op_bias", "derivative_filter"):
@@ -100,17 +143,23 @@ class PIDController:
             )
         if self.derivative_filter <= 0:
             raise ModelSpecError("controller derivative_filter must be > 0")
+        if self.ideal_form is not None:
+            _check_ideal(self.ideal_form)
+            if (self.kp, self.ki, self.kd) != self.ideal_form.parallel():
+                raise ModelSpecError(
+                    f"controller gains kp={self.kp}, ki={self.ki}, kd={self.kd} are not "
+                    f"those of its ideal form {self.ideal_form}"
+                )
 
     @classmethod
     def ideal(
         cls, Kc: float, Ti: float = math.inf, Td: float = 0.0, **options: Any
     ) -> PIDController:
         """``Kc (1 + 1/(Ti s) + Td s)``; ``Ti = inf`` gives P or PD control."""
-        if not Ti > 0:
-            raise ModelSpecError(f"integral time Ti must be > 0 s, got {Ti}")
-        if Td < 0:
-            raise ModelSpecError(f"derivative time Td must be >= 0 s, got {Td}")
-        return cls(kp=Kc, ki=0.0 if math.isinf(Ti) else Kc / Ti, kd=Kc * Td, **options)
+        form = IdealGains(Kc, Ti, Td)
+        _check_ideal(form)
+        kp, ki, kd = form.parallel()
+        return cls(kp=kp, ki=ki, kd=kd, ideal_form=form, **options)
 
     @classmethod
     def parallel(cls, Kp: float, Ki: float = 0.0, Kd: float = 0.0, **options: Any) -> PIDController:
@@ -141,6 +190,32 @@ class PIDController:
             f"a controller needs 'Kc' (with 'Ti') or 'Kp' (with 'Ki'), got keys {sorted(spec)}"
         )
 
+    def as_ideal(self) -> IdealGains:
+        """This controller in the ideal form: the gains it was given in, else
+        ``Kc = kp``, ``Ti = kp / ki`` (inf without integral action), ``Td = kd / kp``.
+
+        Raises
+        ------
+        ModelSpecError
+            The parallel gains have no ideal form (``kp = 0`` with integral or
+            derivative action, or ``ki``, ``kd`` of the other sign than ``kp``).
+        """
+        if self.ideal_form is not None:
+            return self.ideal_form
+        if self.kp == 0 and (self.ki != 0 or self.kd != 0):
+            raise ModelSpecError("a controller without proportional gain has no ideal form")
+        form = IdealGains(
+            self.kp,
+            math.inf if self.ki == 0 else self.kp / self.ki,
+            0.0 if self.kd == 0 else self.kd / self.kp,
+        )
+        if not form.Ti > 0 or form.Td < 0:
+            raise ModelSpecError(
+                f"Kp = {self.kp:g}, Ki = {self.ki:g}, Kd = {self.kd:g} have no ideal form "
+                "(integral or derivative gain of the other sign)"
+            )
+        return form
+
     def stepper(self, dt: float, pv0: float) -> PIDStepper:
         """This controller one sample a call (:class:`PIDStepper`), from PV ``pv0``."""
         return PIDStepper(self, dt, pv0)
@@ -162,6 +237,13 @@ class PIDController:
             "op_limits": list(self.op_limits),
             "op_bias": self.op_bias,
         }
+
+
+def _check_ideal(form: IdealGains) -> None:
+    if not form.Ti > 0:
+        raise ModelSpecError(f"integral time Ti must be > 0 s, got {form.Ti}")
+    if form.Td < 0:
+        raise ModelSpecError(f"derivative time Td must be >= 0 s, got {form.Td}")
 
 
 class PIDStepper:

@@ -717,9 +717,9 @@ class Tuning:
         return cls(controller.kp, ti)
 
     def apply(self, controller: PIDController) -> PIDController:
-        """``controller`` with this tuning (action, limits and bias kept)."""
+        """``controller`` with this tuning (action, limits and bias kept), in parallel gains."""
         ki = 0.0 if math.isinf(self.ti) else self.kc / self.ti
-        return dataclasses.replace(controller, kp=self.kc, ki=ki)
+        return dataclasses.replace(controller, kp=self.kc, ki=ki, ideal_form=None)
 
     def to_dict(self) -> dict[str, float | None]:
         """``{"Kc", "Ti"}`` (``Ti`` null for P control)."""

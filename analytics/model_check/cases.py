@@ -42,13 +42,13 @@ from analytics.model_check.effects import EFFECTS
 from analytics.model_check.model import (
     LoopModel,
     PeriodicLoad,
-    PIController,
     Quantiser,
     StictionZone,
     Valve,
     friction_of,
     friction_valve,
 )
+from analytics.simulation import PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import ChoudhuryValve, HeValve
 
@@ -132,13 +132,15 @@ def _base_loop(
         K = float(rng.uniform(0.01, 0.04))
         closed = theta * float(rng.uniform(3.0, 6.0))
         process = FirstOrderProcess(INTEGRATING, K, 0.0, theta)
-        controller = PIController(1.0 / (K * (closed + theta)), 4.0 * (closed + theta))
+        controller = PIDController.ideal(1.0 / (K * (closed + theta)), 4.0 * (closed + theta))
     else:
         K = float(rng.uniform(0.6, 2.0))
         tau = float(rng.uniform(5.0, 40.0))
         closed = max(theta, tau / 4.0) * float(rng.uniform(1.0, 2.0))
         process = FirstOrderProcess(SELF_REGULATING, K, tau, theta)
-        controller = PIController(tau / (K * (closed + theta)), min(tau, 4.0 * (closed + theta)))
+        controller = PIDController.ideal(
+            tau / (K * (closed + theta)), min(tau, 4.0 * (closed + theta))
+        )
     kind = HeValve if rng.random() < 0.5 else ChoudhuryValve
     like = kind(0.0, 0.0)
     if rng.random() < 0.75:

@@ -47,10 +47,10 @@ from analytics.lti import FirstOrderProcess
 from analytics.model_check.cases import CATALOGUE, HiddenEffectCase
 from analytics.model_check.model import (
     LoopModel,
-    PIController,
     Valve,
     friction_valve,
 )
+from analytics.simulation import PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import (
     HE,
@@ -104,7 +104,7 @@ class _TrueLoop:
         """Closed loop from rest: measure PV, PI with anti-windup, valve, process."""
         base, n, dt = self.base, sp.size, self.base.dt
         c = base.controller
-        kc, ki = c.Kc, c.ki
+        kc, ki = c.kp, c.ki
         code = base.valve.base.code
         state = base.valve.base.initial_state(base.op_bias)
         delay = round(self.theta / dt)
@@ -159,13 +159,15 @@ def _base_loop(
         K = float(10 ** rng.uniform(-2.3, -1.2))
         lam = theta * float(rng.uniform(2.0, 5.0))
         process = FirstOrderProcess(INTEGRATING, K, 0.0, theta)
-        controller = PIController((2 * lam + theta) / (K * (lam + theta) ** 2), 2 * lam + theta)
+        controller = PIDController.ideal(
+            (2 * lam + theta) / (K * (lam + theta) ** 2), 2 * lam + theta
+        )
     else:
         K = float(10 ** rng.uniform(-0.5, 0.5))
         tau = float(rng.uniform(max(3.0 * ts, 4.0), 60.0))
         lam = max(theta, tau * float(rng.uniform(0.3, 1.0)))
         process = FirstOrderProcess(SELF_REGULATING, K, tau, theta)
-        controller = PIController(tau / (K * (lam + theta)), tau)
+        controller = PIDController.ideal(tau / (K * (lam + theta)), tau)
     family = (HeValve, ChoudhuryValve, KanoValve)[int(rng.integers(0, 3))]
     like = family(0.0, 0.0)
     if rng.random() < 0.7:

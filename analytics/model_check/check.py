@@ -600,7 +600,7 @@ def _controller_nmse(
     """NMSE of the model's PI law replayed on measured SP and PV against measured OP."""
     c = model.controller
     e = sp - pv
-    op_model = c.Kc * e + c.ki * model.dt * np.cumsum(e)
+    op_model = c.kp * e + c.ki * model.dt * np.cumsum(e)
     op_model += np.mean(op - op_model)  # the integrator's initial value
     op_model = np.clip(op_model, *c.op_limits)
     total = float(np.sum((op - op.mean()) ** 2))

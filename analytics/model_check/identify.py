@@ -34,8 +34,9 @@ import numpy as np
 from analytics.errors import DataError
 from analytics.lti import FirstOrderProcess
 from analytics.model_check.effects import ReplayData
-from analytics.model_check.model import LoopModel, PIController, Valve
+from analytics.model_check.model import LoopModel, Valve
 from analytics.quantification import quantify_stiction
+from analytics.simulation import PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray
 from analytics.valves import HeValve, KanoValve
 
@@ -48,7 +49,8 @@ class ControllerFit:
 
     Attributes
     ----------
-    controller : PIController
+    controller : PIDController
+        A PI controller on ``e = SP - PV``, in the ideal form ``Kc``, ``Ti``.
     setpoint : float or None
         The constant setpoint fitted when none was measured.
     r2 : float
@@ -57,7 +59,7 @@ class ControllerFit:
         Why the fit is doubtful (empty when it is not).
     """
 
-    controller: PIController
+    controller: PIDController
     setpoint: float | None
     r2: float
     note: str
@@ -75,7 +77,8 @@ def identify_controller(
     >>> e = 52.0 - pv
     >>> op = 40 + 0.8 * e + 0.8 / 20 * np.cumsum(e)
     >>> fit = identify_controller(op, pv, 1.0)
-    >>> round(fit.controller.Kc, 3), round(fit.controller.Ti, 2), round(fit.setpoint, 2)
+    >>> gains = fit.controller.as_ideal()
+    >>> round(gains.Kc, 3), round(gains.Ti, 2), round(fit.setpoint, 2)
     (0.8, 20.0, 52.0)
     """
     # OP held at a limit (its extreme values) does not follow the law
@@ -102,11 +105,11 @@ def identify_controller(
         note = f"a PI law explains only {r2:.0%} of the OP moves"
     ti = kc / ki if ki != 0.0 else math.inf
     limits = (min(0.0, float(op.min())), max(100.0, float(op.max())))
-    return ControllerFit(PIController(kc, ti, limits), setpoint, r2, note)
+    return ControllerFit(PIDController.ideal(kc, ti, op_limits=limits), setpoint, r2, note)
 
 
 def _linear_process(
-    op: FloatArray, pv: FloatArray, ts: float, op_bias: float, controller: PIController
+    op: FloatArray, pv: FloatArray, ts: float, op_bias: float, controller: PIDController
 ) -> LoopModel:
     """The healthy-valve FOPDT or integrating model (with ``controller``) whose OP replay
     fits PV best."""
@@ -166,9 +169,10 @@ def identify_model(
             f"no stiction model could be identified ({'; '.join(estimate.issues)}): "
             "healthy valve, process fitted to the OP replay"
         )
+    gains = fit.controller.as_ideal()
     notes.append(
-        f"PI controller identified from the OP moves: Kc = {fit.controller.Kc:.3g}, "
-        f"Ti = {fit.controller.Ti:.3g} s (R2 {fit.r2:.2f})"
+        f"PI controller identified from the OP moves: Kc = {gains.Kc:.3g}, "
+        f"Ti = {gains.Ti:.3g} s (R2 {fit.r2:.2f})"
         + (f"; {fit.note}" if fit.note else "")
     )
     return model, fit, tuple(notes)

@@ -59,6 +59,7 @@ from scipy.special import erfc
 
 from analytics.errors import DataError, ModelSpecError, ValveModelError
 from analytics.lti import FirstOrderProcess
+from analytics.simulation import PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 from analytics.valves import (
     HE,
@@ -78,12 +79,13 @@ from analytics.valves import (
 __all__ = [
     "PROCESS_JSON_TYPES",
     "LoopModel",
-    "PIController",
     "PeriodicLoad",
     "Quantiser",
     "SimulatedLoop",
     "StictionZone",
     "Valve",
+    "controller_from_dict",
+    "controller_to_dict",
     "friction_of",
     "friction_valve",
     "process_from_dict",
@@ -165,53 +167,64 @@ def process_to_dict(process: FirstOrderProcess) -> dict[str, Any]:
     return out
 
 
-@dataclass(frozen=True)
-class PIController:
-    """``OP = Kc (e + (1 / Ti) integral(e))``, e = SP - PV; ``Ti = inf`` is P-only.
+def _check_op_bias(op_bias: float, limits: tuple[float, float]) -> None:
+    low, high = limits
+    if not low <= op_bias <= high:
+        raise ModelSpecError(f"op_bias={op_bias} lies outside the OP limits {limits}")
 
-    A negative ``Kc`` is a direct-acting controller.
+
+def controller_from_dict(spec: Any, op_bias: float = 50.0) -> PIDController:
+    """The PI controller of ``{"type": "PI", "Kc", "Ti"[, "op_limits"]}`` (``Ti`` absent
+    or null: P-only), its integrator starting from the loop's ``op_bias``.
+
+    The law is ``OP = Kc (e + (1 / Ti) integral(e))`` with ``e = SP - PV``: a
+    negative ``Kc`` is a direct-acting controller.  ``Kc`` and ``Ti`` are kept
+    as read (:attr:`analytics.simulation.PIDController.ideal_form`), so
+    :func:`controller_to_dict` writes them back bit for bit.
+
+    Examples
+    --------
+    >>> c = controller_from_dict({"type": "PI", "Kc": 0.1, "Ti": 11.0})
+    >>> c.kp / c.ki, controller_to_dict(c)  # Ti from the gains would be 1 ulp off
+    (10.999999999999998, {'type': 'PI', 'Kc': 0.1, 'Ti': 11.0})
     """
+    spec = _object("controller", spec, ("Kc",), ("type", "Ti", "op_limits"))
+    if spec.get("type", "PI") not in ("PI", "P"):
+        raise ModelSpecError(f"controller type must be 'PI', got {spec['type']!r}")
+    ti = spec.get("Ti")
+    limits = spec.get("op_limits", [0.0, 100.0])
+    if not (isinstance(limits, list | tuple) and len(limits) == 2):
+        raise ModelSpecError(f"controller op_limits must be [low, high], got {limits!r}")
+    Kc = _number("controller Kc", spec["Kc"])
+    Ti = math.inf if ti is None else _number("controller Ti", ti)
+    op_limits = (_number("op_limits[0]", limits[0]), _number("op_limits[1]", limits[1]))
+    if not Ti > 0:
+        raise ModelSpecError(f"controller Ti must be > 0 s, got {Ti}")
+    if not op_limits[0] < op_limits[1]:
+        raise ModelSpecError(f"controller op_limits must have low < high, got {op_limits}")
+    _check_op_bias(op_bias, op_limits)
+    return PIDController.ideal(Kc, Ti, op_limits=op_limits, op_bias=op_bias)
 
-    Kc: float
-    Ti: float = math.inf
-    op_limits: tuple[float, float] = (0.0, 100.0)
 
-    def __post_init__(self) -> None:
-        if not self.Ti > 0:
-            raise ModelSpecError(f"controller Ti must be > 0 s, got {self.Ti}")
-        low, high = self.op_limits
-        if not low < high:
-            raise ModelSpecError(f"controller op_limits must have low < high, got {self.op_limits}")
+def controller_to_dict(controller: PIDController) -> dict[str, Any]:
+    """JSON form, the inverse of :func:`controller_from_dict`."""
+    gains = controller.as_ideal()
+    out: dict[str, Any] = {"type": "PI", "Kc": gains.Kc}
+    if math.isfinite(gains.Ti):
+        out["Ti"] = gains.Ti
+    if controller.op_limits != (0.0, 100.0):
+        out["op_limits"] = list(controller.op_limits)
+    return out
 
-    @property
-    def ki(self) -> float:
-        """Integral gain ``Kc / Ti``, 1/s."""
-        return 0.0 if math.isinf(self.Ti) else self.Kc / self.Ti
 
-    @classmethod
-    def from_dict(cls, spec: Any) -> PIController:
-        """``{"type": "PI", "Kc", "Ti"[, "op_limits"]}`` (``Ti`` absent or null: P-only)."""
-        spec = _object("controller", spec, ("Kc",), ("type", "Ti", "op_limits"))
-        if spec.get("type", "PI") not in ("PI", "P"):
-            raise ModelSpecError(f"controller type must be 'PI', got {spec['type']!r}")
-        ti = spec.get("Ti")
-        limits = spec.get("op_limits", [0.0, 100.0])
-        if not (isinstance(limits, list | tuple) and len(limits) == 2):
-            raise ModelSpecError(f"controller op_limits must be [low, high], got {limits!r}")
-        return cls(
-            _number("controller Kc", spec["Kc"]),
-            math.inf if ti is None else _number("controller Ti", ti),
-            (_number("op_limits[0]", limits[0]), _number("op_limits[1]", limits[1])),
+def _check_pi(controller: PIDController) -> None:
+    """What the model check simulates of a :class:`~analytics.simulation.PIDController`."""
+    if controller.kd != 0 or controller.action != "reverse":
+        raise ModelSpecError(
+            "the model check simulates a PI controller on e = SP - PV (a negative Kc acts "
+            f"directly): no derivative action, action 'reverse'; got kd={controller.kd}, "
+            f"action {controller.action!r}"
         )
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON form, the inverse of :meth:`from_dict`."""
-        out: dict[str, Any] = {"type": "PI", "Kc": self.Kc}
-        if math.isfinite(self.Ti):
-            out["Ti"] = self.Ti
-        if self.op_limits != (0.0, 100.0):
-            out["op_limits"] = list(self.op_limits)
-        return out
 
 
 def friction_parameters(like: FrictionValve, S: ArrayLike, j: ArrayLike) -> FloatArray:
@@ -714,11 +727,17 @@ class LoopModel:
 
     ``pv_bias`` (the PV at rest with MV at ``op_bias``) is optional: the check
     estimates it from the data when it is absent.
+
+    The controller is the package's :class:`~analytics.simulation.PIDController`
+    as a PI controller on ``e = SP - PV`` (read and written by
+    :func:`controller_from_dict`, :func:`controller_to_dict`).  The model has one
+    operating point: the controller's ``op_bias`` is set to the loop's (valve at
+    rest, process at zero deviation, integrator's start).
     """
 
     dt: float
     process: FirstOrderProcess
-    controller: PIController
+    controller: PIDController
     valve: Valve
     op_bias: float = 50.0
     pv_bias: float | None = None
@@ -729,11 +748,10 @@ class LoopModel:
         if not (math.isfinite(self.dt) and self.dt > 0):
             raise ModelSpecError(f"dt must be > 0 s, got {self.dt}")
         _check_process(self.process.kind, self.process.K, self.process.tau)
-        low, high = self.controller.op_limits
-        if not low <= self.op_bias <= high:
-            raise ModelSpecError(
-                f"op_bias={self.op_bias} lies outside the OP limits {self.controller.op_limits}"
-            )
+        _check_op_bias(self.op_bias, self.controller.op_limits)
+        _check_pi(self.controller)
+        if self.controller.op_bias != self.op_bias:  # one operating point, the loop's
+            object.__setattr__(self, "controller", replace(self.controller, op_bias=self.op_bias))
 
     @classmethod
     def from_dict(cls, spec: Any) -> LoopModel:
@@ -763,12 +781,13 @@ class LoopModel:
                 _number("measurement noise", raw.get("noise", 0.0)),
             )
         pv_bias = spec.get("pv_bias")
+        op_bias = _number("op_bias", spec.get("op_bias", 50.0))
         return cls(
             dt=_number("dt", spec["dt"]),
             process=process_from_dict(spec["process"]),
-            controller=PIController.from_dict(spec["controller"]),
+            controller=controller_from_dict(spec["controller"], op_bias),
             valve=Valve.from_dict(spec.get("valve")),
-            op_bias=_number("op_bias", spec.get("op_bias", 50.0)),
+            op_bias=op_bias,
             pv_bias=None if pv_bias is None else _number("pv_bias", pv_bias),
             load=load,
             quantiser=quantiser,
@@ -779,7 +798,7 @@ class LoopModel:
         out: dict[str, Any] = {
             "dt": self.dt,
             "process": process_to_dict(self.process),
-            "controller": self.controller.to_dict(),
+            "controller": controller_to_dict(self.controller),
             "valve": self.valve.to_dict(),
             "op_bias": self.op_bias,
         }
@@ -923,7 +942,7 @@ class LoopModel:
             load,
             noise_a,
             self.dt,
-            self.controller.Kc,
+            self.controller.kp,
             self.controller.ki,
             self.controller.op_limits[0],
             self.controller.op_limits[1],

@@ -1,40 +1,38 @@
-"""Subcommands of ``loopwatch`` that live in their own modules.
+"""The subcommands of ``loopwatch``, a module each.
 
-Each module in :data:`COMMAND_MODULES` has ``register(commands)``, which adds
-its subparser to the ``add_subparsers()`` object and sets ``handler`` (a
-function taking the parsed arguments and returning the exit status).  A user
-error is raised as :class:`CliError`: printed without a traceback, exit 2.
+Every command is a module of this package with ``register(commands)``, which
+adds its subparser to the ``add_subparsers()`` object (:data:`Subcommands`)
+and sets ``handler`` (a function taking the parsed arguments and returning
+the exit status).  :data:`service.cli.COMMANDS` lists the modules, in the
+order ``loopwatch --help`` shows them: adding a command is writing its module
+and naming it there.  A user error is raised as :class:`CliError`: printed
+without a traceback, exit 2.
+
+This package imports no command module itself, so a command such as
+``plant-sim`` loads nothing else of the service.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 from pathlib import Path
-from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 if TYPE_CHECKING:
     from service.loop_csv import LoopData
 
-__all__ = ["COMMAND_MODULES", "CliError", "command_modules", "read_json_file", "read_loop_file"]
+    Subcommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
+else:  # the class is generic only to the type checker
+    Subcommands = argparse._SubParsersAction
+"""What ``register`` of a command module is given: ``add_subparsers()`` of ``loopwatch``."""
+
+__all__ = ["CliError", "Subcommands", "read_json_file", "read_loop_file"]
 
 
 class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
-
-
-COMMAND_MODULES: tuple[str, ...] = (
-    "predict", "compensate", "plant_sim", "unit_analyze", "model_check", "report"
-)
-"""Modules (under ``service.commands``) whose ``register`` adds a subcommand."""
-
-
-def command_modules() -> list[ModuleType]:
-    """The imported command modules, in :data:`COMMAND_MODULES` order."""
-    return [importlib.import_module(f"service.commands.{name}") for name in COMMAND_MODULES]
 
 
 def read_json_file(path: Path) -> Any:

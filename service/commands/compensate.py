@@ -26,10 +26,10 @@ from analytics.compensation import (
     model_based_sensitivity,
 )
 from analytics.errors import AnalyticsError
-from service.commands import CliError
+from service.commands import CliError, Subcommands
 
 
-def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``compensate`` to the ``loopwatch`` subcommands."""
     parser = commands.add_parser(
         "compensate",

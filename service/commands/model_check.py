@@ -12,14 +12,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 import numpy as np
 
 from analytics.errors import AnalyticsError
 from analytics.model_check import MIN_SAMPLES, LoopModel, ModelCheck, check_model
 from analytics.model_check.model import PROCESS_JSON_TYPES
-from service.commands import CliError, read_json_file, read_loop_file
+from service.commands import CliError, Subcommands, read_json_file, read_loop_file
 
 __all__ = ["print_report", "register"]
 
@@ -43,7 +43,7 @@ def _num(x: float | None, spec: str = ".4g") -> str:
 def print_report(result: ModelCheck, source: str, out: TextIO) -> None:
     """The readable report of ``loopwatch model-check``."""
     base = result.base_model
-    p, c, v = base.process, base.controller, base.valve.base
+    p, c, v = base.process, base.controller.as_ideal(), base.valve.base
     valve = ", ".join(f"{k} = {x:.3g}" for k, x in v.to_dict().items() if k != "model")
     print(f"{source}: {result.overlay.t.size} samples at {base.dt:g} s", file=out)
     print(
@@ -123,7 +123,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(commands: Any) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``model-check`` to the ``loopwatch`` subcommands."""
     parser = commands.add_parser(
         "model-check",

@@ -20,17 +20,16 @@ import asyncio
 import math
 import sys
 from pathlib import Path
-from typing import Any
 
 import yaml
 
 from connectors.plant_sim import PlantSimulator
-from service.commands import CliError
+from service.commands import CliError, Subcommands
 
 __all__ = ["register", "run_plant_sim"]
 
 
-def register(commands: Any) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``plant-sim`` to the subcommands of ``loopwatch``."""
     parser = commands.add_parser(
         "plant-sim", help="serve simulated loops over OPC UA and Modbus TCP"

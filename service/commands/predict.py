@@ -30,11 +30,11 @@ from typing import TextIO
 
 from analytics.limit_cycle import LimitCycleReport
 from analytics.simulation import ClosedLoopModel
-from service.commands import CliError, read_json_file
+from service.commands import CliError, Subcommands, read_json_file
 from service.prediction import ModelError, predict_spec
 
 
-def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``predict`` to the ``loopwatch`` subcommands."""
     parser = commands.add_parser(
         "predict",

@@ -19,12 +19,12 @@ from pathlib import Path
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import SQLAlchemyError
 
-from service.commands import CliError
+from service.commands import CliError, Subcommands
 
 __all__ = ["register", "run"]
 
 
-def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def register(commands: Subcommands) -> None:
     """Add ``report`` to the ``loopwatch`` subcommands."""
     parser = commands.add_parser(
         "report", help="write the bad-actor report (PDF or CSV) from the service's store",

@@ -18,7 +18,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 import numpy as np
 
@@ -28,13 +28,13 @@ from analytics.plantwide.unit import MODEL_NOTE
 from analytics.simulation import ClosedLoopModel
 from analytics.types import FloatArray
 from connectors.base import read_csv_rows
-from service.commands import CliError, read_json_file, read_loop_file
+from service.commands import CliError, Subcommands, read_json_file, read_loop_file
 from service.loop_csv import LoopCsvError
 
 __all__ = ["print_unit_diagnosis", "register", "run"]
 
 
-def register(commands: Any) -> None:
+def register(commands: Subcommands) -> None:
     """Add the ``unit-analyze`` subcommand to ``commands`` (an ``add_subparsers()`` object)."""
     parser = commands.add_parser(
         "unit-analyze", help="find the sticky valves of a unit of interacting loops (CSV)"

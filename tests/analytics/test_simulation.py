@@ -1,5 +1,8 @@
 """Closed-loop simulator: checked against transfer-function algebra and the thesis cases."""
 
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -11,6 +14,7 @@ from analytics.scenarios import chapter4, column3x3
 from analytics.simulation import (
     ClosedLoopModel,
     Disturbance,
+    IdealGains,
     Loop,
     PIDController,
     simulate,
@@ -160,6 +164,57 @@ class TestController:
         b = simulate(FOPDT, loop, dt=1.0, duration=100.0)
         np.testing.assert_array_equal(a.pv, b.pv)
         assert np.std(a.pv[0]) > 0.1
+
+
+def ideal_gains_grid() -> list[IdealGains]:
+    """Kc, Ti, Td over decades, both signs of Kc, P-only included."""
+    rng = np.random.default_rng(25)
+    kc = 10 ** rng.uniform(-3, 2, 300) * rng.choice([-1.0, 1.0], 300)
+    ti = np.append(10 ** rng.uniform(-1, 3, 299), math.inf)
+    td = np.where(rng.random(300) < 0.5, 0.0, 10 ** rng.uniform(-1, 1, 300))
+    return [IdealGains(*map(float, row)) for row in zip(kc, ti, td, strict=True)]
+
+
+class TestIdealForm:
+    """PIDController keeps the ideal-form gains it was given (issue 25)."""
+
+    def test_ideal_gains_read_back_bit_for_bit(self):
+        grid = ideal_gains_grid()
+        inexact = 0
+        for gains in grid:
+            c = PIDController.ideal(*gains)
+            assert c.as_ideal() == gains
+            assert [x.hex() for x in c.as_ideal()] == [x.hex() for x in gains]
+            # the parallel gains are those the ideal form always gave
+            assert (c.kp, c.ki, c.kd) == (
+                gains.Kc, 0.0 if math.isinf(gains.Ti) else gains.Kc / gains.Ti,
+                gains.Kc * gains.Td,
+            )
+            inexact += math.isfinite(gains.Ti) and c.kp / c.ki != gains.Ti
+        # Ti derived from kp / ki would miss for some of them: the test can fail
+        assert inexact > 10
+
+    def test_parallel_gains_have_the_ideal_form_of_the_textbook(self):
+        # Kc = Kp, Ti = Kp / Ki, Td = Kd / Kp (Astrom & Hagglund 2006, sec. 3.2)
+        assert PIDController.parallel(2.0, 0.5, 3.0).as_ideal() == IdealGains(2.0, 4.0, 1.5)
+        assert PIDController.parallel(-0.5).as_ideal() == IdealGains(-0.5, math.inf, 0.0)
+        for gains in ((0.0, 0.1), (-0.3, 0.02), (0.3, 0.0, -1.0)):
+            with pytest.raises(ModelSpecError, match="ideal form"):
+                PIDController.parallel(*gains).as_ideal()
+
+    def test_gains_that_are_not_those_of_the_ideal_form_are_refused(self):
+        c = PIDController.ideal(0.1, 11.0)
+        with pytest.raises(ModelSpecError, match="not those of its ideal form"):
+            dataclasses.replace(c, kp=0.2)  # a new gain, the old ideal form
+        with pytest.raises(ModelSpecError, match="integral time Ti must be > 0"):
+            PIDController(kp=1.0, ki=-0.1, ideal_form=IdealGains(1.0, -10.0))
+        assert dataclasses.replace(c, kp=0.2, ki=0.02, ideal_form=None).as_ideal().Ti == 10.0
+
+    def test_from_dict_keeps_the_ideal_form_and_the_json_in_parallel_gains(self):
+        c = PIDController.from_dict({"Kc": 0.1, "Ti": 11.0, "op_bias": 40.0})
+        assert c.as_ideal() == IdealGains(0.1, 11.0, 0.0)
+        assert c.to_dict()["Ki"] == 0.1 / 11.0  # the JSON contract is unchanged
+        assert PIDController.from_dict({"Kp": 0.1, "Ki": 0.1 / 11.0}).ideal_form is None
 
 
 class TestThesisCases:

@@ -1,12 +1,26 @@
 """The ``loopwatch`` command line: simulate, demo, and analyze and model-check of plant exports."""
 
+import argparse
 import csv
 import json
+from pathlib import Path
 
 import pytest
 
-from service.cli import main
+import service.commands
+from service.cli import COMMANDS, main
 from tests.shared_data import SHARED_DATA, require_file
+
+
+def test_every_command_module_is_registered_once():
+    package = Path(service.commands.__file__).parent
+    modules = sorted(p.stem for p in package.glob("*.py") if p.stem != "__init__")
+    assert sorted(module.__name__.rpartition(".")[2] for module in COMMANDS) == modules
+    commands = argparse.ArgumentParser().add_subparsers()
+    for module in COMMANDS:  # each adds one subcommand
+        before = set(commands.choices)
+        module.register(commands)
+        assert len(set(commands.choices) - before) == 1, module.__name__
 
 
 def test_simulate_a_scenario_to_csv(tmp_path, capsys):
