@@ -1,6 +1,6 @@
 """The KPI-based bad-actor score: KPI severity x loop importance x time spent bad.
 
-Each stored analysis run carries the KPIs of its window (``result["kpis"]``,
+Each stored analysis run carries the KPIs of its window (its result's ``kpis``,
 :func:`service.analysis.analyse_window`, also in its ``kpis`` column).  Over a period
 the score of a loop is
 
@@ -27,7 +27,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+
+from service.stored import StoredKpis
 
 __all__ = [
     "BAD_SEVERITY",
@@ -65,58 +66,52 @@ SCORED_KPIS: tuple[tuple[str, ...], ...] = (
 :func:`run_components` reads: a store can extract them without the rest."""
 
 
-def scored_kpis(values: Sequence[float | None]) -> dict[str, Any]:
+def scored_kpis(values: Sequence[float | None]) -> StoredKpis:
     """The KPIs of a run rebuilt from the values at :data:`SCORED_KPIS` (None where a
     run has none): :func:`run_components` gives the same components as from the whole.
 
     >>> kpis = {"oscillation_index": 0.5, "saturation": 0.1, "harris": {"normalised": 0.75},
     ...         "error": {"within_limits": None, "std": 2.0}, "service_factor": None}
-    >>> scored_kpis([0.5, 0.75, 0.1, None, None])["harris"]
-    {'normalised': 0.75}
+    >>> scored_kpis([0.5, 0.75, 0.1, None, None]).harris_normalised
+    0.75
     >>> run_components(40.0, scored_kpis([0.5, 0.75, 0.1, None, None])) == run_components(
-    ...     40.0, kpis)
+    ...     40.0, StoredKpis.from_dict(kpis))
     True
     """
-    kpis: dict[str, Any] = {}
-    for path, value in zip(SCORED_KPIS, values, strict=True):
-        node = kpis
-        for name in path[:-1]:
-            node = node.setdefault(name, {})
-        node[path[-1]] = value
-    return kpis
+    oscillation, normalised, saturation, within, normal = values
+    return StoredKpis(oscillation_index=oscillation, harris_normalised=normalised,
+                      saturation=saturation, within_limits=within, service_factor=normal)
 
 
-def run_components(health: float | None, kpis: dict[str, Any] | None) -> dict[str, float]:
+def run_components(health: float | None, kpis: StoredKpis | None) -> dict[str, float]:
     """The severity components (0..1) of one run: those its KPIs and health measure.
 
-    >>> run_components(40.0, {"oscillation_index": 0.5, "saturation": 0.1, "harris": {
-    ...     "normalised": 0.75}, "error": {"within_limits": None}, "service_factor": None})
+    >>> run_components(40.0, StoredKpis.from_dict({"oscillation_index": 0.5, "saturation": 0.1,
+    ...     "harris": {"normalised": 0.75}, "error": {"within_limits": None},
+    ...     "service_factor": None}))
     {'oscillation': 0.5, 'variance': 0.5, 'saturation': 0.1, 'diagnosis': 0.6}
     """
     out: dict[str, float] = {}
-    k = kpis or {}
-    if k.get("oscillation_index") is not None:
-        out["oscillation"] = float(k["oscillation_index"])
-    harris = k.get("harris") or {}
-    if harris.get("normalised") is not None:
-        out["variance"] = min(1.0, max(0.0, (float(harris["normalised"]) - 0.5) / 0.5))
-    if k.get("saturation") is not None:
-        out["saturation"] = float(k["saturation"])
-    within = (k.get("error") or {}).get("within_limits")
-    if within is not None:
-        out["limits"] = 1.0 - float(within)
-    factor = k.get("service_factor") or {}
-    if factor.get("normal") is not None:
-        out["manual"] = 1.0 - float(factor["normal"])
+    k = kpis or StoredKpis()
+    if k.oscillation_index is not None:
+        out["oscillation"] = float(k.oscillation_index)
+    if k.harris_normalised is not None:
+        out["variance"] = min(1.0, max(0.0, (float(k.harris_normalised) - 0.5) / 0.5))
+    if k.saturation is not None:
+        out["saturation"] = float(k.saturation)
+    if k.within_limits is not None:
+        out["limits"] = 1.0 - float(k.within_limits)
+    if k.service_factor is not None:
+        out["manual"] = 1.0 - float(k.service_factor)
     if health is not None:
         out["diagnosis"] = 1.0 - float(health) / 100.0
     return out
 
 
-def run_severity(health: float | None, kpis: dict[str, Any] | None) -> float:
+def run_severity(health: float | None, kpis: StoredKpis | None) -> float:
     """A run's severity: its worst component (:func:`run_components`), 0 without any.
 
-    >>> run_severity(90.0, {"oscillation_index": 0.4}), run_severity(None, None)
+    >>> run_severity(90.0, StoredKpis(oscillation_index=0.4)), run_severity(None, None)
     (0.4, 0.0)
     """
     return max(run_components(health, kpis).values(), default=0.0)
@@ -151,12 +146,12 @@ class LoopScore:
     why: str
 
 
-def score_loop(runs: Iterable[tuple[float | None, dict[str, Any] | None]], importance: str,
+def score_loop(runs: Iterable[tuple[float | None, StoredKpis | None]], importance: str,
                period: str) -> LoopScore:
     """The bad-actor score of one loop from its runs ``(health, kpis)`` over ``period``.
 
-    >>> s = score_loop([(100.0, {"oscillation_index": 0.8})] * 3
-    ...                + [(100.0, {"oscillation_index": 0.0})], "high", "7d")
+    >>> s = score_loop([(100.0, StoredKpis(oscillation_index=0.8))] * 3
+    ...                + [(100.0, StoredKpis(oscillation_index=0.0))], "high", "7d")
     >>> s.score, s.bad_runs, s.worst
     (90.0, 3, 'oscillation')
     >>> s.why

@@ -16,6 +16,7 @@ from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.simulation import ClosedLoopModel, Loop, PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING
 from analytics.valves import ChoudhuryValve
+from service.stored import StoredDiagnosis
 
 __all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop"]
 
@@ -46,7 +47,7 @@ class IdentifiedLoop:
                                dt=self.ts, duration=duration)
 
 
-def identified_loop(config: dict[str, Any], diagnosis: dict[str, Any] | None) -> IdentifiedLoop:
+def identified_loop(config: dict[str, Any], diagnosis: StoredDiagnosis | None) -> IdentifiedLoop:
     """The model from a loop's configuration and its latest diagnosis.
 
     Raises
@@ -55,32 +56,32 @@ def identified_loop(config: dict[str, Any], diagnosis: dict[str, Any] | None) ->
         No stiction estimate with an identified process, no controller in the
         configuration, or a gain and action that would make positive feedback.
     """
-    estimate = (diagnosis or {}).get("quantification")
-    if not estimate or estimate.get("S") is None:
+    estimate = None if diagnosis is None else diagnosis.quantification
+    if estimate is None or estimate.S is None or estimate.process is None:
         raise ModelUnavailableError("the latest analysis has no stiction estimate (S, J) "
                                     "with an identified process model")
     controller = config.get("controller")
     if not controller:
         raise ModelUnavailableError("the loop's configuration has no controller (Kc, Ti)")
-    process = estimate["process"]
+    process = estimate.process
     action = controller.get("action", "reverse")
     # Reverse action closes negative feedback around a positive process gain.
-    gain = process["K"] if action == "reverse" else -process["K"]
+    gain = process.K if action == "reverse" else -process.K
     if not gain > 0:
         raise ModelUnavailableError(
-            f"the identified process gain {process['K']:.3g} and the controller action "
+            f"the identified process gain {process.K:.3g} and the controller action "
             f"'{action}' make positive feedback"
         )
     # A lag shorter than the identification's resolution comes out as tau = 0; the
     # sampled loop still rolls off (hold, transmitter), so it is taken as one
     # sampling interval: negligible at the cycle, and the loop stays strictly proper
     # for the Nyquist count (a PI controller on a pure gain and delay is not).
-    tau = process["tau"] if process["tau"] > 0 else float(config["ts"])
-    kind = INTEGRATING if process["integrating"] else SELF_REGULATING
+    tau = process.tau if process.tau > 0 else float(config["ts"])
+    kind = INTEGRATING if process.integrating else SELF_REGULATING
     return IdentifiedLoop(
-        process=FirstOrderProcess(kind, gain, tau, process["theta"]).transfer_function(),
+        process=FirstOrderProcess(kind, gain, tau, process.theta).transfer_function(),
         controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
                                        controller.get("Td", 0.0)),
-        valve=ChoudhuryValve(float(estimate["S"]), float(estimate["J"] or 0.0)),
+        valve=ChoudhuryValve(estimate.S, estimate.J or 0.0),
         ts=float(config["ts"]),
     )

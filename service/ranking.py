@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 from service.api.schemas.loops import BadActorPublic, LoopPublic
 from service.bad_actors import SCORED_KPIS, score_loop, scored_kpis
 from service.store.models import Alarm, AnalysisRun, Loop
+from service.stored import StoredKpis
 
 __all__ = ["PERIOD_PATTERN", "bad_actor_rows", "counted_runs", "loop_rows", "period_length"]
 
@@ -115,7 +116,7 @@ def period_length(period: str) -> float:
 
 
 def counted_runs(session: Session, since: float, until: float, bucket_s: float
-                 ) -> dict[str, list[tuple[float, float | None, dict[str, Any] | None]]]:
+                 ) -> dict[str, list[tuple[float, float | None, StoredKpis | None]]]:
     """Each loop's runs ``(started_at, health, kpis)`` started in ``(since, until]`` that
     count for its score, oldest first: one per ``bucket_s`` (the analysis window's length;
     buckets counted back from ``until``), the latest of its bucket.  Runs a minute apart on
@@ -135,7 +136,7 @@ def counted_runs(session: Session, since: float, until: float, bucket_s: float
     )
     # only the KPIs the score reads, extracted by the database from the runs' ``kpis``
     # column: parsing every run's diagnosis here cost more than the rest of the ranking
-    runs: dict[str, list[tuple[float, float | None, dict[str, Any] | None]]] = {}
+    runs: dict[str, list[tuple[float, float | None, StoredKpis | None]]] = {}
     for loop_id, started_at, health, *values in session.execute(
         select(AnalysisRun.loop_id, AnalysisRun.started_at, AnalysisRun.health,
                *(AnalysisRun.kpis[path].as_float() for path in SCORED_KPIS))
@@ -156,7 +157,7 @@ def latest_kpis(session: Session) -> dict[str, dict[str, Any]]:
 
 def bad_actor_rows(session: Session, since: float, until: float, period: str,
                    bucket_s: float, runs: dict[str, list[tuple[float, float | None,
-                                                              dict[str, Any] | None]]]
+                                                              StoredKpis | None]]]
                    | None = None, loops: list[LoopPublic] | None = None
                    ) -> list[BadActorPublic]:
     """Every loop with its latest state and its score (:mod:`service.bad_actors`) over the

@@ -28,6 +28,7 @@ from service.api.schemas.loops import BadActorPublic
 from service.bad_actors import BAD_SEVERITY, run_severity
 from service.ranking import bad_actor_rows, counted_runs
 from service.store.models import Ticket
+from service.stored import StoredKpis
 
 __all__ = ["COLUMNS", "BadActorReport", "ReportLine", "build_report", "report_csv",
            "report_pdf"]
@@ -108,17 +109,18 @@ def _number(value: Any, digits: int = 4) -> str:
     return "" if value is None else f"{float(value):.{digits}g}"
 
 
-def _figures(kpis: dict[str, Any]) -> dict[str, Any]:
+def _figures(stored: dict[str, Any]) -> dict[str, Any]:
     """The latest KPIs the report shows, by column name (None where not computed)."""
+    kpis = StoredKpis.from_dict(stored)
     return {
-        "oscillation_index": kpis.get("oscillation_index"),
-        "harris_ratio": (kpis.get("harris") or {}).get("ratio"),
-        "harris_dead_time": kpis.get("dead_time_note"),
-        "error_std": (kpis.get("error") or {}).get("std"),
-        "travel_per_day": kpis.get("travel_per_day"),
-        "reversals_per_day": kpis.get("reversals_per_day"),
-        "saturation": kpis.get("saturation"),
-        "service_factor": (kpis.get("service_factor") or {}).get("normal"),
+        "oscillation_index": kpis.oscillation_index,
+        "harris_ratio": kpis.harris_ratio,
+        "harris_dead_time": kpis.dead_time_note,
+        "error_std": kpis.error_std,
+        "travel_per_day": kpis.travel_per_day,
+        "reversals_per_day": kpis.reversals_per_day,
+        "saturation": kpis.saturation,
+        "service_factor": kpis.service_factor,
     }
 
 
@@ -215,13 +217,13 @@ def report_pdf(report: BadActorReport) -> bytes:
         if pdf.get_y() + row_h + note_h > pdf.h - pdf.b_margin:
             pdf.add_page()
             header()
-        row, f = line.loop, _figures(line.kpis)
+        row, f = line.loop, StoredKpis.from_dict(line.kpis)
         cells = [
             str(line.rank), f"{row.id} {row.name}", row.importance, f"{row.score:.1f}",
-            _number(row.health, 3), row.verdict or "", _number(f["oscillation_index"], 2),
-            _number(f["harris_ratio"], 2), _number(f["error_std"], 3),
-            _number(f["travel_per_day"], 4), _number(f["reversals_per_day"], 4),
-            _number(f["saturation"], 2), _number(f["service_factor"], 2),
+            _number(row.health, 3), row.verdict or "", _number(f.oscillation_index, 2),
+            _number(f.harris_ratio, 2), _number(f.error_std, 3),
+            _number(f.travel_per_day, 4), _number(f.reversals_per_day, 4),
+            _number(f.saturation, 2), _number(f.service_factor, 2),
         ]
         pdf.set_font("Helvetica", "", 8)
         y = pdf.get_y()
@@ -240,7 +242,7 @@ def report_pdf(report: BadActorReport) -> bytes:
                      and row.period_s is not None else
                      "oscillating" if row.oscillating else "not oscillating"
                      if row.oscillating is not None else "not analysed")
-        dead_time = f"; Harris dead time {f['harris_dead_time']}" if f["harris_dead_time"] else ""
+        dead_time = f"; Harris dead time {f.dead_time_note}" if f.dead_time_note else ""
         pdf.cell(0, note_h, _latin1(f"   {row.why}; {diagnosis}{dead_time}"), border="LRB",
                  new_x="LMARGIN", new_y="NEXT")
     return bytes(pdf.output())

@@ -64,6 +64,7 @@ from service.analysis import stiction_pattern_text
 from service.cmms import short_text, to_cmms_notification
 from service.config import CmmsConfig, Importance
 from service.store.models import AnalysisRun, Ticket, TicketEvent, UnitAnalysisRun
+from service.stored import StoredDiagnosis, StoredValve
 
 __all__ = [
     "ACTIVE_STATES",
@@ -256,10 +257,8 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
     :func:`service.analysis.analyse_window` stores it) the oscillation
     amplitudes and the stiction pattern and episodes (:func:`run_episodes`).
     """
-    result = run.result or {}
-    oscillation = result.get("oscillation") or {}
-    stiction = result.get("stiction") or {}
-    valve = result.get("valve") or {}
+    diagnosis = StoredDiagnosis.from_dict(run.result)
+    valve = diagnosis.valve or StoredValve()
     return {
         "run_id": run.id,
         "window_start": run.window_start,
@@ -268,15 +267,15 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
         "S": run.S,
         "J": run.J,
         "period_s": run.period_s,
-        "amplitude_op": oscillation.get("amplitude_op"),
-        "amplitude_pv": oscillation.get("amplitude_pv"),
-        "pattern": stiction.get("pattern"),
-        "op_travel": stiction.get("op_travel"),
-        "episode_stick_band": stiction.get("episode_stick_band"),
+        "amplitude_op": diagnosis.oscillation.amplitude_op,
+        "amplitude_pv": diagnosis.oscillation.amplitude_pv,
+        "pattern": diagnosis.stiction.pattern,
+        "op_travel": diagnosis.stiction.op_travel,
+        "episode_stick_band": diagnosis.stiction.episode_stick_band,
         "episodes": run_episodes(run),
-        "S_interval": valve.get("S_interval"),
-        "J_interval": valve.get("J_interval"),
-        "size_windows": len(valve.get("size_windows") or []) or None,
+        "S_interval": None if valve.S_interval is None else list(valve.S_interval),
+        "J_interval": None if valve.J_interval is None else list(valve.J_interval),
+        "size_windows": valve.windows_combined or None,
     }
 
 
@@ -293,12 +292,13 @@ def run_episodes(run: AnalysisRun) -> list[dict[str, float]]:
     without it counts from the window start.  A result without episodes (or
     older than them): ``[]``.
     """
-    result = run.result or {}
-    origin = result.get("first_sample_at", _window(run)[0])
+    diagnosis = StoredDiagnosis.from_dict(run.result)
+    origin = (_window(run)[0] if diagnosis.first_sample_at is None
+              else diagnosis.first_sample_at)
     return [
-        {"start": origin + e["start_s"], "jump": origin + e["jump_s"],
-         "end": origin + e["end_s"], "op_travel": e["op_travel"], "pv_jump": e["pv_jump"]}
-        for e in (result.get("stiction") or {}).get("episodes") or []
+        {"start": origin + e.start_s, "jump": origin + e.jump_s, "end": origin + e.end_s,
+         "op_travel": e.op_travel, "pv_jump": e.pv_jump}
+        for e in diagnosis.stiction.episodes
     ]
 
 

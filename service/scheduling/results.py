@@ -22,6 +22,7 @@ from service.plant import PlantRegistry
 from service.scheduling.jobs import JobOutcome
 from service.store.db import Store
 from service.store.models import AnalysisRun, UnitAnalysisRun
+from service.stored import StoredDiagnosis
 from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
 from service.verdicts import latest_unit_decision, previous_size_windows, settle_run
 
@@ -46,21 +47,21 @@ def alarm_message(diagnosis: dict[str, Any]) -> str:
     (:func:`service.verdicts.valve_verdict`); a stiction finding names its pattern (a
     stuck valve freezes PV, so it comes with unusable data), a valve the unit's
     diagnosis clears its reason ("cycles because FV-502 sticks")."""
-    stiction = diagnosis["stiction"]
-    final = diagnosis.get("valve") or stiction
-    if final.get("decided_by") == "unit" and final["verdict"] != "stiction":
-        pattern = final["reason"]
+    stored = StoredDiagnosis.from_dict(diagnosis)
+    stiction, final = stored.stiction, stored.final
+    if stored.final_by_unit and final.verdict != "stiction":
+        pattern: str | None = final.reason
     else:
-        pattern = stiction_pattern_text(stiction["pattern"], stiction["op_travel"])
-    valve = f"valve: {final['verdict']}" + ("" if pattern is None else f" ({pattern})")
-    if not diagnosis["quality"]["usable"]:
-        if final["verdict"] == "stiction":
+        pattern = stiction_pattern_text(stiction.pattern, stiction.op_travel)
+    valve = f"valve: {final.verdict}" + ("" if pattern is None else f" ({pattern})")
+    if not stored.quality.usable:
+        if final.verdict == "stiction":
             return f"data unusable, {valve}"
-        return stiction["reason"]  # "data unusable: ..." or why a loop in manual is not judged
-    osc = diagnosis["oscillation"]
-    if not osc["detected"]:
+        return stiction.reason  # "data unusable: ..." or why a loop in manual is not judged
+    osc = stored.oscillation
+    if not osc.detected:
         return "no oscillation" + ("" if pattern is None else f"; {valve}")
-    return f"oscillation, period {osc['period_s']:.0f} s; {valve}"
+    return f"oscillation, period {osc.period_s:.0f} s; {valve}"
 
 
 class ResultWriter:
@@ -139,9 +140,10 @@ class ResultWriter:
                 round_end=round_end, scheduled_by=None if round_end is None else self.instance,
             )
             if diagnosis is not None:
-                run.usable = diagnosis["quality"]["usable"]
-                run.oscillating = diagnosis["oscillation"]["detected"]
-                run.period_s = diagnosis["oscillation"]["period_s"]
+                stored = StoredDiagnosis.from_dict(diagnosis)
+                run.usable = stored.quality.usable
+                run.oscillating = stored.oscillation.detected
+                run.period_s = stored.oscillation.period_s
                 run.result = diagnosis
                 # A unit's latest decision keeps the last word until its diagnosis of this
                 # round: the pages never show a cleared valve's own finding in between.
@@ -165,7 +167,8 @@ class ResultWriter:
         changed = update_alarms_from_analysis(
             session, loop.id, oscillating=bool(run.oscillating), usable=bool(run.usable),
             importance=loop.importance, message=alarm_message(run.result), now=now,
-            out_of_service="manual" in run.result and not run.usable,
+            out_of_service=StoredDiagnosis.from_dict(run.result).manual is not None
+            and not run.usable,
         )
         if self.outbox is not None:
             for alarm in changed:

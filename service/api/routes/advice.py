@@ -15,6 +15,7 @@ from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, err
 from service.api.schemas.advice import LoopAdvice
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import Loop
+from service.stored import StoredDiagnosis
 from service.tickets import latest_loop_run
 
 router = APIRouter(prefix="/api/v1", tags=["advice"],
@@ -29,12 +30,11 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
 
     A pure function of the run and the loop's configuration (cached by
     :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
-    result = json.loads(diagnosis)
-    model = identified_loop(json.loads(config), result)
+    stored = StoredDiagnosis.from_dict(json.loads(diagnosis))
+    model = identified_loop(json.loads(config), stored)
     advice = advise(model.closed_loop(SIMULATED_S))
-    oscillation = result["oscillation"]
-    agreement = CycleAgreement.of(advice, oscillation.get("period_s"),
-                                  oscillation.get("amplitude_op"))
+    agreement = CycleAgreement.of(advice, stored.oscillation.period_s,
+                                  stored.oscillation.amplitude_op)
     return {"kind": "stiction", **advice.to_dict(), "measured_cycle": agreement.to_dict()}
 
 
@@ -72,32 +72,35 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
     if run is None or run.result is None:
         raise HTTPException(409, "Advice not available: the loop has not been analysed yet")
     result = run.result
-    valve = result.get("valve") or {}
-    verdict = valve.get("verdict", (result.get("stiction") or {}).get("verdict"))
-    oscillating = bool((result.get("oscillation") or {}).get("detected"))
+    stored = StoredDiagnosis.from_dict(result)
+    valve = stored.valve
+    verdict = stored.final.verdict
+    oscillating = stored.oscillation.detected
     if verdict != "stiction":
         if not oscillating:
             raise HTTPException(409, "Advice not available: the loop does not cycle and its "
                                      "valve is not sticky; there is nothing to retune")
-        if valve.get("decided_by") == "unit":
-            raise HTTPException(409, f"Advice not available: the loop {valve['reason']} (unit "
-                                     f"{valve['unit_id']}'s diagnosis); retuning it would not "
+        if valve is not None and valve.by_unit:
+            raise HTTPException(409, f"Advice not available: the loop {valve.reason} (unit "
+                                     f"{valve.unit_id}'s diagnosis); retuning it would not "
                                      "remove the cause: see the advice for that valve's loop")
         if verdict != "no_stiction":
             raise HTTPException(409, "Advice not available: the loop cycles but whether its "
                                      f"valve sticks is {verdict}; no model to advise from")
-        oscillation = result["oscillation"]
+        oscillation = stored.oscillation
+        assert oscillation.period_s is not None and stored.samples is not None \
+            and stored.ts is not None  # a detected oscillation of an analysed window
         origin, why = cycle_origin(
-            oscillation.get("envelope_variation"),
-            result["samples"] * result["ts"] / oscillation["period_s"],
-            (result.get("kpis") or {}).get("saturation"))
+            oscillation.envelope_variation,
+            stored.samples * stored.ts / oscillation.period_s,
+            stored.kpis.saturation)
         if origin == "forced":
             raise HTTPException(409, f"Advice not available: {why}")
-        detuning = _detuning(loop.config, float(oscillation["period_s"]))
+        detuning = _detuning(loop.config, float(oscillation.period_s))
         return {"loop_id": loop_id, "run_id": run.id,
                 **dataclasses.replace(detuning, notes=(*detuning.notes, why)).to_dict()}
     try:
-        identified_loop(loop.config, result)
+        identified_loop(loop.config, stored)
     except ModelUnavailableError as exc:
         raise HTTPException(409, f"Advice not available: {exc}") from None
     try:

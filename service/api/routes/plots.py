@@ -31,10 +31,11 @@ dashboard shows.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Response
+from numpy.typing import NDArray
 from pydantic import BaseModel
 from sqlalchemy import select
 
@@ -59,6 +60,7 @@ from service.buffer import LoopBuffers, LoopWindowData
 from service.config import LoopConfig
 from service.loop_model import ModelUnavailableError, identified_loop
 from service.store.models import AnalysisRun, Loop
+from service.stored import StoredDiagnosis
 from service.tickets import latest_loop_run
 
 router = APIRouter(prefix="/api/v1/loops", tags=["plots"], responses=ERROR_RESPONSES)
@@ -112,12 +114,12 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
         window = stored.window(loop.id, run.window_end - run.window_start, run.window_end)
     if not _holds_samples(window):
         raise HTTPException(404, "Samples of the analysed window are no longer stored")
-    manual = (run.result or {}).get("manual")
-    judged = slice(None)
+    manual = StoredDiagnosis.from_dict(run.result).manual
+    judged: slice | NDArray[np.bool_] = slice(None)
     if manual is not None:
-        if manual["judged_from"] is None:
+        if manual.judged_from is None or manual.judged_to is None:
             raise HTTPException(404, "The loop was in manual over the whole analysed window")
-        judged = (window.t >= manual["judged_from"]) & (window.t <= manual["judged_to"])
+        judged = (window.t >= manual.judged_from) & (window.t <= manual.judged_to)
     ranges = loop.config.get("ranges") or {}
     scaled = {name: to_percent_of_span(x[judged], tuple(ranges[name]) if name in ranges else None)
               for name, x in window.signals.items()}
@@ -125,17 +127,10 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
                           sp=scaled.get("sp"), mv=scaled.get("mv"), ts=window.ts)
 
 
-def _analysed_period(diagnosis: dict[str, Any]) -> float | None:
-    """The period the analysis used (also for an irregular cycle), else the detected one."""
-    oscillation = diagnosis.get("oscillation") or {}
-    period = oscillation.get("analysed_period_s") or oscillation.get("period_s")
-    return None if period is None else float(period)
-
-
-def _stored_ellipse(diagnosis: dict[str, Any]) -> EllipseFit | None:
+def _stored_ellipse(diagnosis: StoredDiagnosis) -> EllipseFit | None:
     """The OP-PV ellipse the analysis fitted (a stiction verdict on a cycle), or None
     (no such fit, or a diagnosis stored before the ellipse's geometry was kept)."""
-    stored = diagnosis.get("apparent_stiction")
+    stored = diagnosis.apparent_stiction
     if not stored or "centre" not in stored:
         return None
     return EllipseFit.from_dict(stored)
@@ -184,26 +179,28 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
     )
 
 
-def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: dict[str, Any]
+def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: StoredDiagnosis
                   ) -> plots.StictionModelPath | None:
     """The latest stiction estimate's valve and process replayed on the window's OP.
 
     None without an estimate (no stiction verdict), without a period, or with
     gaps in the window (the valve model cannot run through a missing OP).
     """
-    estimate = diagnosis.get("quantification")
-    period = _analysed_period(diagnosis)
-    if not estimate or estimate.get("S") is None or period is None:
+    estimate = diagnosis.quantification
+    period = diagnosis.oscillation.analysed_period
+    if estimate is None or estimate.S is None or period is None:
         return None
     if not (np.isfinite(op).all() and np.isfinite(pv).all()):
         return None
-    S, J, process = float(estimate["S"]), float(estimate["J"] or 0.0), estimate["process"]
-    kind = INTEGRATING if process["integrating"] else SELF_REGULATING
-    model = FirstOrderProcess(kind, process["K"], process["tau"], process["theta"])
+    S, J, process = estimate.S, estimate.J or 0.0, estimate.process
+    if process is None or estimate.valve_model is None:
+        return None
+    kind = INTEGRATING if process.integrating else SELF_REGULATING
+    model = FirstOrderProcess(kind, process.K, process.tau, process.theta)
     return plots.stiction_model_path(
-        op, pv, ts, valve=VALVE_MODELS[estimate["valve_model"]](S, J),
+        op, pv, ts, valve=VALVE_MODELS[estimate.valve_model](S, J),
         process=model.transfer_function(), period_s=period,
-        label=f"fitted {estimate['valve_model']} valve, S = {S:.2f} %, J = {J:.2f} %",
+        label=f"fitted {estimate.valve_model} valve, S = {S:.2f} %, J = {J:.2f} %",
     )
 
 
@@ -212,14 +209,15 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
     window = _analysed_window(session, state, loop, run)
     if window.op is None or window.pv is None:
         raise HTTPException(404, "The valve signature needs both OP and PV tags")
-    period = _analysed_period(run.result or {})
+    diagnosis = StoredDiagnosis.from_dict(run.result)
+    period = diagnosis.oscillation.analysed_period
     period_samples = None if period is None else period / window.ts
     return plots.signature_figure(
         window.op, window.pv, mv=window.mv,
-        pv_fit=(_stored_ellipse(run.result or {})
+        pv_fit=(_stored_ellipse(diagnosis)
                 or _ellipse(window.op, window.pv, period_samples)),
         mv_fit=_ellipse(window.op, window.mv, period_samples),
-        model=_fitted_model(window.op, window.pv, window.ts, run.result or {}),
+        model=_fitted_model(window.op, window.pv, window.ts, diagnosis),
         title=_title(loop, "valve signature", window.t[0], window.t[-1]),
     )
 
@@ -227,15 +225,16 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
 def _spectrum(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
               ) -> plots.Figure:
     window = _analysed_window(session, state, loop, run)
+    period = StoredDiagnosis.from_dict(run.result).oscillation.analysed_period
     return plots.spectrum_figure(
-        window.op, window.pv, window.ts, period_s=_analysed_period(run.result or {}),
+        window.op, window.pv, window.ts, period_s=period,
         title=_title(loop, "spectrum and ACF", window.t[0], window.t[-1]),
     )
 
 
 def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
     try:
-        model = identified_loop(loop.config, run.result)
+        model = identified_loop(loop.config, StoredDiagnosis.from_dict(run.result))
     except ModelUnavailableError as exc:
         raise HTTPException(404, str(exc)) from None
     try:

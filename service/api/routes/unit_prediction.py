@@ -32,6 +32,7 @@ from service.api.deps import (
 from service.api.schemas.prediction import UnitPrediction
 from service.prediction import ModelError, predict_spec
 from service.store.models import Loop, Unit
+from service.stored import StoredDiagnosis, StoredEstimate, StoredUnitDiagnosis, StoredValve
 from service.tickets import latest_loop_run, latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"],
@@ -80,19 +81,22 @@ def _valve(session: Session, loop_id: str
         return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None}, None,
                 f"{loop_id}: not analysed yet; its valve is taken as healthy")
     healthy = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
-    final = (run.result or {}).get("valve") or {}
-    if final.get("decided_by") == "unit" and run.verdict != "stiction":
-        return {**healthy, "cleared_by_unit_run": final["unit_run_id"]}, None, None
+    diagnosis = StoredDiagnosis.from_dict(run.result)
+    final = diagnosis.valve
+    if final is not None and final.by_unit and run.verdict != "stiction":
+        return {**healthy, "cleared_by_unit_run": final.unit_run_id}, None, None
     if run.verdict != "stiction":
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
         return healthy, None, unknown
-    estimate = (run.result or {}).get("quantification") or {}
-    size = final or estimate  # the final verdict's size, the unit's when the loop has none
-    if size.get("S") is not None:
-        valve = {"model": "choudhury", "S": size["S"], "J": size.get("J") or 0.0}
-    elif estimate.get("fs") is not None and estimate.get("fd") is not None:
-        valve = {"model": "he", "fs": estimate["fs"], "fd": estimate["fd"]}
+    estimate = diagnosis.quantification or StoredEstimate()
+    # the final verdict's size, the unit's when the loop has none
+    size: StoredValve | StoredEstimate = final or estimate
+    valve: dict[str, Any]
+    if size.S is not None:
+        valve = {"model": "choudhury", "S": size.S, "J": size.J or 0.0}
+    elif estimate.fs is not None and estimate.fd is not None:
+        valve = {"model": "he", "fs": estimate.fs, "fd": estimate.fd}
     else:
         raise HTTPException(409, f"Prediction not available: loop {loop_id!r} has a stiction "
                                  f"finding (analysis {run.id}) without a size estimate (S, J)")
@@ -109,13 +113,12 @@ def _measured_cycle(session: Session, unit_id: str, sticky: str
     if run is None or run.result is None:
         return None, None, (f"unit {unit_id!r} has no diagnosis yet: the prediction is not "
                             "checked against a measured cycle")
-    group = next((g for g in run.result.get("groups", []) if sticky in g.get("loops", [])),
-                 None)
-    if group is None:
+    diagnosis = StoredUnitDiagnosis.from_dict(run.result)
+    group = next((g for g in diagnosis.groups if sticky in g.loops), None)
+    if group is None or group.period_s is None:
         return None, None, None
-    member = next((m for m in group.get("members", []) if m.get("signal") == f"op_{sticky}"),
-                  None)
-    return float(group["period_s"]), None if member is None else member.get("amplitude"), None
+    member = next((m for m in group.members if m.signal == f"op_{sticky}"), None)
+    return group.period_s, None if member is None else member.amplitude, None
 
 
 def _against_measured(report: LimitCycleReport, loops: list[str], sticky: str,

@@ -1,0 +1,445 @@
+"""Typed views of the analysis results the store keeps as JSON.
+
+A loop's run keeps its diagnosis in ``AnalysisRun.result``: the
+:meth:`analytics.diagnosis.LoopDiagnosis.to_dict` form with what
+:func:`service.analysis.analyse_window` adds (``health``, ``first_sample_at``,
+``kpis``, ``manual``) and the final verdict on the valve
+(``valve``, :func:`service.verdicts.settle_run`).  A unit's run keeps
+:meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``.
+
+The analytics objects cannot be rebuilt from that JSON (the Hammerstein
+search, the oscillation reports and the process models are not kept), so the
+service reads it through the frozen views here: :meth:`StoredDiagnosis.from_dict`
+and :meth:`StoredUnitDiagnosis.from_dict` read exactly the fields the service
+uses, once.  Every field has a default, so runs stored by older versions (and
+partial results) read as well; the JSON itself is not changed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "ManualStretch",
+    "SizeWindow",
+    "StoredCycle",
+    "StoredDiagnosis",
+    "StoredEpisode",
+    "StoredEstimate",
+    "StoredGroup",
+    "StoredGroupEvidence",
+    "StoredGroupMember",
+    "StoredIssue",
+    "StoredKpis",
+    "StoredOscillation",
+    "StoredProcess",
+    "StoredQuality",
+    "StoredStickyValve",
+    "StoredStiction",
+    "StoredUnitDiagnosis",
+    "StoredValve",
+]
+
+
+def _section(d: Mapping[str, Any] | None, key: str) -> Mapping[str, Any]:
+    """``d[key]`` when it is a mapping, else an empty one (absent or null)."""
+    value = None if d is None else d.get(key)
+    return value if isinstance(value, Mapping) else {}
+
+
+def _float(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def _interval(value: Any) -> tuple[float, float] | None:
+    return None if not value else (float(value[0]), float(value[1]))
+
+
+@dataclass(frozen=True)
+class StoredIssue:
+    """One data-quality issue (``quality.issues[]``)."""
+
+    code: str
+    signal: str | None
+    severity: str
+    message: str = ""
+    value: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredIssue:
+        return cls(str(d.get("code", "")), d.get("signal"), str(d.get("severity", "")),
+                   str(d.get("message", "")), d.get("value"))
+
+
+@dataclass(frozen=True)
+class StoredQuality:
+    """``quality``: whether the window could be analysed, and its issues."""
+
+    usable: bool = False
+    issues: tuple[StoredIssue, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredQuality:
+        return cls(bool(d.get("usable", False)),
+                   tuple(StoredIssue.from_dict(i) for i in d.get("issues") or ()))
+
+    @property
+    def warnings(self) -> int:
+        """Issues of severity ``warning``."""
+        return sum(1 for i in self.issues if i.severity == "warning")
+
+
+@dataclass(frozen=True)
+class StoredCycle:
+    """One oscillation of OP or PV (``oscillation.oscillations[]``)."""
+
+    signal: str
+    period_s: float | None
+    amplitude: float | None = None
+    regularity: float | None = None
+    presence: float | None = None
+    present_from_s: float | None = None
+    present_to_s: float | None = None
+    method: str | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredCycle:
+        return cls(str(d.get("signal", "")), d.get("period_s"), d.get("amplitude"),
+                   d.get("regularity"), d.get("presence"), d.get("present_from_s"),
+                   d.get("present_to_s"), d.get("method"))
+
+
+@dataclass(frozen=True)
+class StoredOscillation:
+    """``oscillation``: the loop's detected oscillation and the period analysed."""
+
+    detected: bool = False
+    period_s: float | None = None
+    regularity: float | None = None
+    amplitude_op: float | None = None
+    amplitude_pv: float | None = None
+    analysed_period_s: float | None = None
+    envelope_variation: float | None = None
+    oscillations: tuple[StoredCycle, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredOscillation:
+        return cls(bool(d.get("detected", False)), d.get("period_s"), d.get("regularity"),
+                   d.get("amplitude_op"), d.get("amplitude_pv"), d.get("analysed_period_s"),
+                   d.get("envelope_variation"),
+                   tuple(StoredCycle.from_dict(o) for o in d.get("oscillations") or ()))
+
+    @property
+    def analysed_period(self) -> float | None:
+        """The period the analysis used (also for an irregular cycle), else the detected
+        one."""
+        period = self.analysed_period_s or self.period_s
+        return None if period is None else float(period)
+
+
+@dataclass(frozen=True)
+class StoredEpisode:
+    """One stick-jump episode (``stiction.episodes[]``), times in s from the window's
+    first sample."""
+
+    start_s: float
+    jump_s: float
+    end_s: float
+    op_travel: float
+    pv_jump: float
+    op_during_jump: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredEpisode:
+        return cls(d["start_s"], d["jump_s"], d["end_s"], d["op_travel"], d["pv_jump"],
+                   d.get("op_during_jump"))
+
+
+@dataclass(frozen=True)
+class StoredStiction:
+    """``stiction``: the loop's own verdict (or ``valve``'s fields of it)."""
+
+    verdict: str | None = None
+    confidence: float = 0.0
+    reason: str = ""
+    score: float | None = None
+    pattern: str | None = None
+    op_travel: float | None = None
+    episode_stick_band: float | None = None
+    episodes: tuple[StoredEpisode, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredStiction:
+        return cls(d.get("verdict"), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
+                   d.get("score"), d.get("pattern"), d.get("op_travel"),
+                   d.get("episode_stick_band"),
+                   tuple(StoredEpisode.from_dict(e) for e in d.get("episodes") or ()))
+
+
+@dataclass(frozen=True)
+class StoredProcess:
+    """The identified first-order process of an estimate (``quantification.process``)."""
+
+    K: float
+    tau: float
+    theta: float
+    integrating: bool = False
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredProcess:
+        return cls(float(d["K"]), float(d["tau"]), float(d["theta"]),
+                   bool(d.get("integrating", False)))
+
+
+@dataclass(frozen=True)
+class StoredEstimate:
+    """``quantification``: the Hammerstein estimate
+    (:meth:`analytics.quantification.StictionEstimate.to_dict`)."""
+
+    S: float | None = None
+    J: float | None = None
+    fs: float | None = None
+    fd: float | None = None
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
+    valve_model: str | None = None
+    process: StoredProcess | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredEstimate:
+        process = d.get("process")
+        return cls(_float(d.get("S")), _float(d.get("J")), _float(d.get("fs")),
+                   _float(d.get("fd")), _interval(d.get("S_interval")),
+                   _interval(d.get("J_interval")), d.get("valve_model"),
+                   None if not process else StoredProcess.from_dict(process))
+
+
+@dataclass(frozen=True)
+class SizeWindow:
+    """One window combined into the valve's size (``valve.size_windows[]``)."""
+
+    window_start: float
+    window_end: float
+    S: float
+    S_interval: tuple[float, float]
+    J: float
+    J_interval: tuple[float, float]
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> SizeWindow:
+        return cls(float(d["window_start"]), float(d["window_end"]), float(d["S"]),
+                   (float(d["S_interval"][0]), float(d["S_interval"][1])), float(d["J"]),
+                   (float(d["J_interval"][0]), float(d["J_interval"][1])))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"window_start": self.window_start, "window_end": self.window_end,
+                "S": self.S, "S_interval": list(self.S_interval),
+                "J": self.J, "J_interval": list(self.J_interval)}
+
+
+@dataclass(frozen=True)
+class StoredValve:
+    """``valve``: the final verdict on the valve (:func:`service.verdicts.valve_verdict`)."""
+
+    verdict: str | None = None
+    confidence: float = 0.0
+    reason: str = ""
+    S: float | None = None
+    J: float | None = None
+    decided_by: str = "loop"
+    own_verdict: str | None = None
+    unit_id: str | None = None
+    unit_run_id: int | None = None
+    sticky_valves: tuple[str, ...] = ()
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
+    windows_combined: int = 0
+    """How many windows the size combines (``len(size_windows)``)."""
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredValve:
+        return cls(d.get("verdict"), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
+                   _float(d.get("S")), _float(d.get("J")), str(d.get("decided_by") or "loop"),
+                   d.get("own_verdict"), d.get("unit_id"), d.get("unit_run_id"),
+                   tuple(d.get("sticky_valves") or ()), _interval(d.get("S_interval")),
+                   _interval(d.get("J_interval")), len(d.get("size_windows") or ()))
+
+    @property
+    def by_unit(self) -> bool:
+        """Whether the unit's diagnosis decided it (not the loop's own)."""
+        return self.decided_by == "unit"
+
+
+@dataclass(frozen=True)
+class ManualStretch:
+    """``manual``: the stretch in auto or cascade a window with manual samples was
+    diagnosed on (:func:`service.analysis.manual_stretch`)."""
+
+    share: float
+    judged_from: float | None
+    judged_to: float | None
+    judged_samples: int
+    note: str
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> ManualStretch:
+        return cls(float(d.get("share", 0.0)), _float(d.get("judged_from")),
+                   _float(d.get("judged_to")), int(d.get("judged_samples", 0)),
+                   str(d.get("note", "")))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"share": self.share, "judged_from": self.judged_from,
+                "judged_to": self.judged_to, "judged_samples": self.judged_samples,
+                "note": self.note}
+
+
+@dataclass(frozen=True)
+class StoredKpis:
+    """The KPIs the service scores and reports (``kpis``,
+    :meth:`analytics.kpi.LoopKpis.to_dict`); None where not computed."""
+
+    oscillation_index: float | None = None
+    harris_normalised: float | None = None
+    harris_ratio: float | None = None
+    saturation: float | None = None
+    within_limits: float | None = None
+    error_std: float | None = None
+    service_factor: float | None = None
+    travel_per_day: float | None = None
+    reversals_per_day: float | None = None
+    dead_time_note: str | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> StoredKpis:
+        k = d or {}
+        harris, error = _section(k, "harris"), _section(k, "error")
+        return cls(
+            oscillation_index=k.get("oscillation_index"),
+            harris_normalised=harris.get("normalised"), harris_ratio=harris.get("ratio"),
+            saturation=k.get("saturation"), within_limits=error.get("within_limits"),
+            error_std=error.get("std"),
+            service_factor=_section(k, "service_factor").get("normal"),
+            travel_per_day=k.get("travel_per_day"), reversals_per_day=k.get("reversals_per_day"),
+            dead_time_note=k.get("dead_time_note"),
+        )
+
+
+@dataclass(frozen=True)
+class StoredDiagnosis:
+    """A loop run's stored diagnosis (``AnalysisRun.result``) as the service reads it."""
+
+    samples: int | None = None
+    ts: float | None = None
+    process_type: str | None = None
+    quality: StoredQuality = field(default_factory=StoredQuality)
+    oscillation: StoredOscillation = field(default_factory=StoredOscillation)
+    stiction: StoredStiction = field(default_factory=StoredStiction)
+    quantification: StoredEstimate | None = None
+    apparent_stiction: Mapping[str, Any] | None = None
+    health: float | None = None
+    first_sample_at: float | None = None
+    kpis: StoredKpis = field(default_factory=StoredKpis)
+    manual: ManualStretch | None = None
+    valve: StoredValve | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> StoredDiagnosis:
+        d = d or {}
+        estimate, manual, valve = d.get("quantification"), d.get("manual"), d.get("valve")
+        return cls(
+            samples=d.get("samples"), ts=d.get("ts"), process_type=d.get("process_type"),
+            quality=StoredQuality.from_dict(_section(d, "quality")),
+            oscillation=StoredOscillation.from_dict(_section(d, "oscillation")),
+            stiction=StoredStiction.from_dict(_section(d, "stiction")),
+            quantification=None if not estimate else StoredEstimate.from_dict(estimate),
+            apparent_stiction=d.get("apparent_stiction") or None,
+            health=d.get("health"), first_sample_at=d.get("first_sample_at"),
+            kpis=StoredKpis.from_dict(d.get("kpis")),
+            manual=None if manual is None else ManualStretch.from_dict(manual),
+            valve=None if not valve else StoredValve.from_dict(valve),
+        )
+
+    @property
+    def final(self) -> StoredValve | StoredStiction:
+        """The final verdict on the valve (``valve``) when settled, else the loop's own."""
+        return self.valve if self.valve is not None else self.stiction
+
+    @property
+    def final_by_unit(self) -> bool:
+        """Whether the final verdict is the unit's diagnosis's."""
+        return self.valve is not None and self.valve.by_unit
+
+
+@dataclass(frozen=True)
+class StoredStickyValve:
+    """A valve a unit's diagnosis names sticky (``sticky_valves[]``)."""
+
+    loop: str
+    confidence: float
+    reason: str = ""
+    S: float | None = None
+    J: float | None = None
+    period_s: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredStickyValve:
+        return cls(str(d["loop"]), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
+                   _float(d.get("S")), _float(d.get("J")), _float(d.get("period_s")))
+
+
+@dataclass(frozen=True)
+class StoredGroupMember:
+    """A signal of an oscillation group (``groups[].members[]``)."""
+
+    signal: str
+    amplitude: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupMember:
+        return cls(str(d.get("signal", "")), d.get("amplitude"))
+
+
+@dataclass(frozen=True)
+class StoredGroupEvidence:
+    """The own-valve test of a loop in a group (``groups[].evidence[]``)."""
+
+    loop: str
+    own_valve_gain: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupEvidence:
+        return cls(str(d["loop"]), d.get("own_valve_gain"))
+
+
+@dataclass(frozen=True)
+class StoredGroup:
+    """An oscillation group of a unit's diagnosis (``groups[]``)."""
+
+    period_s: float | None = None
+    loops: tuple[str, ...] = ()
+    members: tuple[StoredGroupMember, ...] = ()
+    evidence: tuple[StoredGroupEvidence, ...] = ()
+    sticky_valves: tuple[str, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroup:
+        return cls(_float(d.get("period_s")), tuple(d.get("loops") or ()),
+                   tuple(StoredGroupMember.from_dict(m) for m in d.get("members") or ()),
+                   tuple(StoredGroupEvidence.from_dict(e) for e in d.get("evidence") or ()),
+                   tuple(d.get("sticky_valves") or ()))
+
+
+@dataclass(frozen=True)
+class StoredUnitDiagnosis:
+    """A unit run's stored diagnosis (``UnitAnalysisRun.result``) as the service reads it."""
+
+    sticky_valves: tuple[StoredStickyValve, ...] = ()
+    groups: tuple[StoredGroup, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> StoredUnitDiagnosis:
+        d = d or {}
+        return cls(tuple(StoredStickyValve.from_dict(f) for f in d.get("sticky_valves") or ()),
+                   tuple(StoredGroup.from_dict(g) for g in d.get("groups") or ()))
