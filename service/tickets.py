@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal, get_args
 
@@ -75,6 +76,8 @@ __all__ = [
     "PLOT_KINDS",
     "TICKET_STATES",
     "TICKET_TRANSITIONS",
+    "TicketEpisode",
+    "TicketEvidence",
     "TicketNotFoundError",
     "TicketState",
     "TicketStateError",
@@ -163,6 +166,72 @@ without burying the long text of a valve that slips every minute."""
 
 _NON_NUMERIC_KEYS = ("pattern", "episodes", "S_interval", "J_interval")
 _NO_CYCLE_PATTERNS = ("stick_jump", "stuck")
+
+
+@dataclass(frozen=True)
+class TicketEpisode:
+    """One stick-jump episode of a ticket's evidence (:data:`EPISODE_KEYS`, UNIX s and %
+    of span)."""
+
+    start: float
+    jump: float
+    end: float
+    op_travel: float
+    pv_jump: float
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TicketEpisode:
+        return cls(*(float(d[key]) for key in EPISODE_KEYS))
+
+
+@dataclass(frozen=True)
+class TicketEvidence:
+    """A ticket's stored evidence (:func:`_checked_evidence`), as the ticket rule and its
+    long text read it; keys stored before they existed read as their defaults."""
+
+    run_id: int
+    window_start: float
+    window_end: float
+    confidence: float
+    S: float | None = None
+    J: float | None = None
+    fs: float | None = None
+    fd: float | None = None
+    period_s: float | None = None
+    amplitude_op: float | None = None
+    amplitude_pv: float | None = None
+    pattern: str | None = None
+    op_travel: float | None = None
+    episode_stick_band: float | None = None
+    episodes: tuple[TicketEpisode, ...] = ()
+    episodes_found: int = 0
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
+    size_windows: int | None = None
+    loop_id: str = ""
+    valve_asset: str = ""
+    confirmations: int = 0
+    plots: tuple[tuple[str, str], ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TicketEvidence:
+        def interval(value: Any) -> tuple[float, float] | None:
+            return None if value is None else (float(value[0]), float(value[1]))
+
+        return cls(
+            run_id=d["run_id"], window_start=d["window_start"], window_end=d["window_end"],
+            confidence=d["confidence"], S=d.get("S"), J=d.get("J"), fs=d.get("fs"),
+            fd=d.get("fd"), period_s=d.get("period_s"), amplitude_op=d.get("amplitude_op"),
+            amplitude_pv=d.get("amplitude_pv"), pattern=d.get("pattern"),
+            op_travel=d.get("op_travel"), episode_stick_band=d.get("episode_stick_band"),
+            episodes=tuple(TicketEpisode.from_dict(e) for e in d.get("episodes") or ()),
+            episodes_found=int(d.get("episodes_found") or 0),
+            S_interval=interval(d.get("S_interval")), J_interval=interval(d.get("J_interval")),
+            size_windows=d.get("size_windows"), loop_id=str(d.get("loop_id", "")),
+            valve_asset=str(d.get("valve_asset", "")),
+            confirmations=int(d.get("confirmations") or 0),
+            plots=tuple((d.get("plots") or {}).items()),
+        )
 _DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
     "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
     "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
@@ -433,17 +502,17 @@ def _utc_clock(t: float) -> str:
     return _utc(t).strftime("%Y-%m-%d %H:%M:%S")
 
 
-def _describe_size(e: dict[str, Any]) -> str:
+def _describe_size(e: TicketEvidence) -> str:
     """The stiction size: Hammerstein S and J, else the stick band read off the episodes."""
-    if e["S"] is None and e["episode_stick_band"] is not None:
-        return (f"Stiction: S about {e['episode_stick_band']:.2f} % of valve span (from the "
-                f"episodes), J = {_pct(e['J'])}.")
-    size = (f"Stiction: S = {_pct(e['S'])}, J = {_pct(e['J'])} of valve span "
-            f"(fs = {_pct(e['fs'])}, fd = {_pct(e['fd'])})")
-    if e["S_interval"] is None or e["J_interval"] is None:
+    if e.S is None and e.episode_stick_band is not None:
+        return (f"Stiction: S about {e.episode_stick_band:.2f} % of valve span (from the "
+                f"episodes), J = {_pct(e.J)}.")
+    size = (f"Stiction: S = {_pct(e.S)}, J = {_pct(e.J)} of valve span "
+            f"(fs = {_pct(e.fs)}, fd = {_pct(e.fd)})")
+    if e.S_interval is None or e.J_interval is None:
         return size + "."
-    (s_lo, s_hi), (j_lo, j_hi) = e["S_interval"], e["J_interval"]
-    return (f"{size}, combined over {e['size_windows']} windows that do not overlap; "
+    (s_lo, s_hi), (j_lo, j_hi) = e.S_interval, e.J_interval
+    return (f"{size}, combined over {e.size_windows} windows that do not overlap; "
             f"intervals S {s_lo:.2f} to {s_hi:.2f} %, J {j_lo:.2f} to {j_hi:.2f} % (nominal "
             "95 %; on simulated valves they hold the true size in about 5 cases of 6).")
 
@@ -467,45 +536,44 @@ def size_moved(old: dict[str, Any], new: dict[str, Any]) -> bool:
     return False
 
 
-def _describe_episodes(e: dict[str, Any]) -> list[str]:
+def _describe_episodes(e: TicketEvidence) -> list[str]:
     """A heading and one line per episode (each fits a SAP long-text line); none without."""
-    episodes = e["episodes"]
+    episodes = e.episodes
     if not episodes:
         return []
-    shown = (f"{len(episodes)}" if len(episodes) == e["episodes_found"]
-             else f"the latest {len(episodes)} of {e['episodes_found']}")
+    shown = (f"{len(episodes)}" if len(episodes) == e.episodes_found
+             else f"the latest {len(episodes)} of {e.episodes_found}")
     return [
         f"Stick-jump episodes ({shown}; times UTC): the valve held from the start until it "
         "jumped, PV settled at the end; OP travel while it held and PV jump in % of span.",
-        *(f"Episode {k}: hold {_utc_clock(x['start'])}, jump {_utc_clock(x['jump'])}, settled "
-          f"{_utc_clock(x['end'])}; OP travel {x['op_travel']:.2f} %, PV jump "
-          f"{x['pv_jump']:.2f} %."
+        *(f"Episode {k}: hold {_utc_clock(x.start)}, jump {_utc_clock(x.jump)}, settled "
+          f"{_utc_clock(x.end)}; OP travel {x.op_travel:.2f} %, PV jump "
+          f"{x.pv_jump:.2f} %."
           for k, x in enumerate(episodes, 1)),
     ]
 
 
-def _describe(evidence: dict[str, Any]) -> str:
+def _describe(e: TicketEvidence) -> str:
     """The ticket's long text, one paragraph per line."""
-    e = evidence
-    period = "unknown" if e["period_s"] is None else f"{e['period_s']:.1f} s"
+    period = "unknown" if e.period_s is None else f"{e.period_s:.1f} s"
     window = " to ".join(
-        _utc(t).isoformat(timespec="seconds") for t in (e["window_start"], e["window_end"])
+        _utc(t).isoformat(timespec="seconds") for t in (e.window_start, e.window_end)
     )
-    pattern = stiction_pattern_text(e["pattern"], e["op_travel"])
+    pattern = stiction_pattern_text(e.pattern, e.op_travel)
     oscillation = (
-        "Oscillation: none sustained." if e["pattern"] in _NO_CYCLE_PATTERNS
-        else f"Oscillation: period {period}, amplitude OP {_pct(e['amplitude_op'])}, "
-             f"PV {_pct(e['amplitude_pv'])} of span."
+        "Oscillation: none sustained." if e.pattern in _NO_CYCLE_PATTERNS
+        else f"Oscillation: period {period}, amplitude OP {_pct(e.amplitude_op)}, "
+             f"PV {_pct(e.amplitude_pv)} of span."
     )
     return "\n".join([
-        f"Valve stiction confirmed by {e['confirmations']} analyses of separate windows of "
-        f"loop {e['loop_id']} (valve {e['valve_asset']}).",
+        f"Valve stiction confirmed by {e.confirmations} analyses of separate windows of "
+        f"loop {e.loop_id} (valve {e.valve_asset}).",
         *([] if pattern is None else [f"Pattern: {pattern}."]),
         _describe_size(e),
         oscillation,
         *_describe_episodes(e),
-        f"Confidence {e['confidence']:.2f}; analysis run {e['run_id']}, window {window}.",
-        "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e["plots"].items()),
+        f"Confidence {e.confidence:.2f}; analysis run {e.run_id}, window {window}.",
+        "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e.plots),
     ])
 
 
@@ -546,40 +614,41 @@ def update_ticket_from_analysis(
     stored = _checked_evidence(loop_id, asset, evidence, len(streak))
     if len(streak) < confirmations_needed:
         return None
-    size = stored["S"] if stored["S"] is not None else stored["episode_stick_band"]
-    priority = ticket_priority(S=size, amplitude_pv=stored["amplitude_pv"],
+    checked = TicketEvidence.from_dict(stored)
+    size = checked.S if checked.S is not None else checked.episode_stick_band
+    priority = ticket_priority(S=size, amplitude_pv=checked.amplitude_pv,
                                importance=importance)
     ticket = _active_ticket(session, asset)
     if ticket is None:
         oldest = streak[-1]
-        pattern = "" if stored["pattern"] is None else f", pattern {stored['pattern']}"
+        pattern = "" if checked.pattern is None else f", pattern {checked.pattern}"
         ticket = Ticket(
             valve_asset=asset, loop_id=loop_id, state="open", priority=priority,
             title=short_text(f"Sticky valve {asset}, loop {loop_id}"),
-            description=_describe(stored), location=location,
+            description=_describe(checked), location=location,
             malfunction_start=_window(oldest)[0],
             evidence=stored, created_at=now, updated_at=now,
         )
         ticket.events.append(TicketEvent(
             at=now, from_state=None, to_state="open", actor=ANALYSIS_ACTOR,
             note=f"opened: stiction confirmed by {len(streak)} analyses of separate windows "
-                 f"(run {stored['run_id']}{pattern}, priority {priority})",
+                 f"(run {checked.run_id}{pattern}, priority {priority})",
         ))
         session.add(ticket)
-    elif ticket.evidence.get("run_id") == stored["run_id"] or (
+    elif ticket.evidence.get("run_id") == checked.run_id or (
             priority == ticket.priority and not size_moved(ticket.evidence, stored)
             and not _last_not_confirmed(ticket)):
         return None
     else:
-        note = (f"confirmed again: run {stored['run_id']}" if _last_not_confirmed(ticket)
-                else f"evidence updated: run {stored['run_id']}")
+        note = (f"confirmed again: run {checked.run_id}" if _last_not_confirmed(ticket)
+                else f"evidence updated: run {checked.run_id}")
         if priority != ticket.priority:
             note += f", priority {ticket.priority} -> {priority}"
         ticket.events.append(TicketEvent(
             at=now, from_state=ticket.state, to_state=ticket.state, actor=ANALYSIS_ACTOR, note=note
         ))
         ticket.evidence = stored
-        ticket.description = _describe(stored)
+        ticket.description = _describe(checked)
         ticket.priority = priority
         ticket.updated_at = now
     session.flush()

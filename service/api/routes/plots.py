@@ -99,7 +99,7 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
     """The samples ``run`` diagnosed, in % of span: from the rolling buffer, else the store.
 
     With a stretch in manual that is the window's longest stretch in auto or
-    cascade (``diagnosis["manual"]``, :func:`service.analysis.manual_stretch`).
+    cascade (the diagnosis's ``manual``, :func:`service.analysis.manual_stretch`).
     """
     assert run.window_start is not None and run.window_end is not None
     try:
