@@ -40,6 +40,7 @@ __all__ = [
     "StoredStiction",
     "StoredUnitDiagnosis",
     "StoredValve",
+    "ValveSize",
 ]
 
 
@@ -271,6 +272,32 @@ class StoredValve:
         """Whether the unit's diagnosis decided it (not the loop's own)."""
         return self.decided_by == "unit"
 
+    def decision_dict(self) -> dict[str, Any]:
+        """The decision's part of the stored ``valve`` (without the combined size's
+        ``S_interval``, ``J_interval`` and ``size_windows``, :class:`ValveSize`)."""
+        return {"verdict": self.verdict, "confidence": self.confidence, "S": self.S,
+                "J": self.J, "reason": self.reason, "decided_by": self.decided_by,
+                "own_verdict": self.own_verdict, "unit_id": self.unit_id,
+                "unit_run_id": self.unit_run_id, "sticky_valves": list(self.sticky_valves)}
+
+
+@dataclass(frozen=True)
+class ValveSize:
+    """The valve's size combined over the windows of its streak of stiction verdicts
+    (:func:`service.verdicts.valve_size`): the size part of the stored ``valve``."""
+
+    S: float | None
+    J: float | None
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
+    size_windows: tuple[SizeWindow, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"S": self.S, "J": self.J,
+                "S_interval": None if self.S_interval is None else list(self.S_interval),
+                "J_interval": None if self.J_interval is None else list(self.J_interval),
+                "size_windows": [w.to_dict() for w in self.size_windows]}
+
 
 @dataclass(frozen=True)
 class ManualStretch:
@@ -443,3 +470,22 @@ class StoredUnitDiagnosis:
         d = d or {}
         return cls(tuple(StoredStickyValve.from_dict(f) for f in d.get("sticky_valves") or ()),
                    tuple(StoredGroup.from_dict(g) for g in d.get("groups") or ()))
+
+    def valve_decisions(self) -> tuple[list[str], list[str]]:
+        """The loops whose valves the diagnosis names sticky, and those it clears.
+
+        A valve is cleared when the own-valve test of its loop ran on a shared
+        oscillation (``own_valve_gain`` known) and did not name it: its loop
+        cycles because a neighbour's sticky valve drives it (thesis chapter 2,
+        section 2.3.5).  Loops in no diagnosed oscillation are neither.
+
+        >>> StoredUnitDiagnosis.from_dict({"sticky_valves": [{"loop": "b"}], "groups": [
+        ...     {"evidence": [{"loop": "a", "own_valve_gain": 0.0},
+        ...      {"loop": "b", "own_valve_gain": 0.2},
+        ...      {"loop": "c", "own_valve_gain": None}]}]}).valve_decisions()
+        (['b'], ['a'])
+        """
+        sticky = [finding.loop for finding in self.sticky_valves]
+        tested = {e.loop for group in self.groups for e in group.evidence
+                  if e.own_valve_gain is not None}
+        return sticky, sorted(tested - set(sticky))

@@ -24,20 +24,28 @@ interval (:func:`valve_size`): ``S`` and ``J`` of the final verdict, with
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from analytics.quantification import combine_windows
-from service.analysis import health_score, valve_decisions
+from service.analysis import health_score
 from service.store.models import AnalysisRun, UnitAnalysisRun
+from service.stored import (
+    SizeWindow,
+    StoredDiagnosis,
+    StoredStickyValve,
+    StoredUnitDiagnosis,
+    StoredValve,
+    ValveSize,
+)
 from service.tickets import latest_unit_run
 
 __all__ = ["MAX_SIZE_WINDOWS", "UnitDecision", "latest_unit_decision", "named_valves",
-           "previous_size_windows", "settle_run", "unit_decision", "valve_size",
-           "valve_verdict"]
+           "previous_size_windows", "settle_run", "unit_decision", "valve_decision",
+           "valve_size", "valve_verdict"]
 
 MAX_SIZE_WINDOWS = 24
 """Windows a valve's combined size keeps, the latest (a day of hour-long windows)."""
@@ -52,10 +60,12 @@ class UnitDecision:
     unit_id, run_id : str, int
         The unit and its diagnosis (:class:`~service.store.models.UnitAnalysisRun`).
     sticky : dict
-        ``loop id -> finding`` (``confidence``, ``S``, ``J``, ``reason``) of each loop whose
-        valve the diagnosis names sticky, most confident first.
+        ``loop id -> finding`` (:class:`~service.stored.StoredStickyValve`: ``confidence``,
+        ``S``, ``J``, ``reason``) of each loop whose valve the diagnosis names sticky, most
+        confident first; findings given in their stored (dict) form are read into it.
     cleared : tuple of str
-        The loops whose valves it clears (:func:`service.analysis.valve_decisions`).
+        The loops whose valves it clears
+        (:meth:`~service.stored.StoredUnitDiagnosis.valve_decisions`).
     valves : dict
         ``loop id -> valve tag`` of the unit's loops (the loop id when no valve is
         configured).
@@ -63,9 +73,14 @@ class UnitDecision:
 
     unit_id: str
     run_id: int
-    sticky: dict[str, dict[str, Any]]
+    sticky: Mapping[str, StoredStickyValve]
     cleared: tuple[str, ...]
     valves: dict[str, str]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sticky", {
+            loop: f if isinstance(f, StoredStickyValve) else StoredStickyValve.from_dict(f)
+            for loop, f in self.sticky.items()})
 
 
 def unit_decision(run: UnitAnalysisRun | None, valves: Mapping[str, str]
@@ -73,8 +88,9 @@ def unit_decision(run: UnitAnalysisRun | None, valves: Mapping[str, str]
     """The decision of a stored unit diagnosis; None when it is missing or not ``ok``."""
     if run is None or run.status != "ok" or run.result is None:
         return None
-    sticky, cleared = valve_decisions(run.result)
-    findings = {f["loop"]: f for f in run.result["sticky_valves"]}
+    diagnosis = StoredUnitDiagnosis.from_dict(run.result)
+    sticky, cleared = diagnosis.valve_decisions()
+    findings = {f.loop: f for f in diagnosis.sticky_valves}
     return UnitDecision(run.unit_id, run.id, {loop: findings[loop] for loop in sticky},
                         tuple(cleared), dict(valves))
 
@@ -84,12 +100,49 @@ def _valve_list(tags: list[str]) -> str:
     return tags[0] if len(tags) == 1 else ", ".join(tags[:-1]) + " and " + tags[-1]
 
 
-def valve_verdict(loop_id: str, diagnosis: Mapping[str, Any],
+def _stored(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> StoredDiagnosis:
+    return (diagnosis if isinstance(diagnosis, StoredDiagnosis)
+            else StoredDiagnosis.from_dict(diagnosis))
+
+
+def valve_decision(loop_id: str, diagnosis: StoredDiagnosis | Mapping[str, Any],
+                   unit: UnitDecision | None = None) -> StoredValve:
+    """The final verdict on the valve of ``loop_id`` (:func:`valve_verdict`), typed."""
+    stored = _stored(diagnosis)
+    own = stored.stiction
+    size = stored.quantification
+    verdict = StoredValve(
+        verdict=own.verdict, confidence=own.confidence,
+        S=None if size is None else size.S, J=None if size is None else size.J,
+        reason=own.reason, decided_by="loop", own_verdict=own.verdict)
+    if unit is None or (loop_id not in unit.cleared and loop_id not in unit.sticky):
+        return verdict
+    tags = [unit.valves.get(loop, loop) for loop in unit.sticky]
+    verdict = replace(verdict, decided_by="unit", unit_id=unit.unit_id, unit_run_id=unit.run_id,
+                      sticky_valves=tuple(tags))
+    if loop_id in unit.cleared:
+        reason = (f"cycles because {_valve_list(tags)} {'sticks' if len(tags) == 1 else 'stick'}"
+                  if tags else "its own valve is not needed to explain its cycle, and unit "
+                               f"{unit.unit_id}'s diagnosis names no sticky valve")
+        strongest = max((f.confidence for f in unit.sticky.values()), default=0.0)
+        return replace(verdict, verdict="no_stiction", confidence=strongest, S=None, J=None,
+                       reason=reason)
+    finding = unit.sticky[loop_id]
+    own_sticky = own.verdict == "stiction"
+    verdict = replace(verdict, verdict="stiction",
+                      confidence=max(finding.confidence, own.confidence if own_sticky else 0.0),
+                      reason=finding.reason)
+    if verdict.S is None:
+        verdict = replace(verdict, S=finding.S, J=finding.J)
+    return verdict
+
+
+def valve_verdict(loop_id: str, diagnosis: StoredDiagnosis | Mapping[str, Any],
                   unit: UnitDecision | None = None) -> dict[str, Any]:
     """The final verdict on the valve of ``loop_id``: the one every page and rule reads.
 
     Without a unit decision on the loop's valve it is the loop's own
-    (``diagnosis["stiction"]``, sizes from ``diagnosis["quantification"]``).  A
+    (the diagnosis's ``stiction``, sizes from its ``quantification``).  A
     valve the unit diagnosis clears is ``no_stiction``, with the unit's reason
     ("cycles because FV-502 sticks") and no size; its confidence is that of
     the strongest valve named instead.  A valve the unit names is ``stiction``
@@ -102,105 +155,70 @@ def valve_verdict(loop_id: str, diagnosis: Mapping[str, Any],
         ``verdict``, ``confidence``, ``S``, ``J``, ``reason``, ``decided_by``
         (``"loop"`` or ``"unit"``), ``own_verdict`` (the loop's own), ``unit_id``
         and ``unit_run_id`` (None when decided by the loop), ``sticky_valves`` (the
-        valve tags the unit names; empty when decided by the loop).
+        valve tags the unit names; empty when decided by the loop): the stored form
+        of :func:`valve_decision`.
 
     Examples
     --------
     >>> own = {"stiction": {"verdict": "stiction", "confidence": 0.8, "reason": "shape"},
     ...        "quantification": {"S": 34.0, "J": 31.0}}
-    >>> unit = UnitDecision("column", 7, {"AIC-502": {"confidence": 0.9, "S": 4.0, "J": 2.0,
-    ...     "reason": "own valve needed"}}, ("TIC-503",), {"AIC-502": "FV-502"})
-    >>> v = valve_verdict("TIC-503", own, unit)
-    >>> v["verdict"], v["reason"], v["S"], v["own_verdict"], v["decided_by"]
+    >>> unit = UnitDecision("column", 7, {"AIC-502": {"loop": "AIC-502", "confidence": 0.9,
+    ...     "S": 4.0, "J": 2.0, "reason": "own valve needed"}}, ("TIC-503",),
+    ...     {"AIC-502": "FV-502"})
+    >>> v = valve_decision("TIC-503", own, unit)
+    >>> v.verdict, v.reason, v.S, v.own_verdict, v.decided_by
     ('no_stiction', 'cycles because FV-502 sticks', None, 'stiction', 'unit')
     >>> valve_verdict("TIC-503", own)["verdict"]
     'stiction'
     """
-    own = diagnosis["stiction"]
-    size = diagnosis.get("quantification") or {}
-    verdict = {
-        "verdict": own["verdict"], "confidence": own["confidence"],
-        "S": size.get("S"), "J": size.get("J"), "reason": own["reason"],
-        "decided_by": "loop", "own_verdict": own["verdict"],
-        "unit_id": None, "unit_run_id": None, "sticky_valves": [],
-    }
-    if unit is None or (loop_id not in unit.cleared and loop_id not in unit.sticky):
-        return verdict
-    tags = [unit.valves.get(loop, loop) for loop in unit.sticky]
-    verdict.update(decided_by="unit", unit_id=unit.unit_id, unit_run_id=unit.run_id,
-                   sticky_valves=tags)
-    if loop_id in unit.cleared:
-        reason = (f"cycles because {_valve_list(tags)} {'sticks' if len(tags) == 1 else 'stick'}"
-                  if tags else "its own valve is not needed to explain its cycle, and unit "
-                               f"{unit.unit_id}'s diagnosis names no sticky valve")
-        strongest = max((float(f["confidence"]) for f in unit.sticky.values()), default=0.0)
-        verdict.update(verdict="no_stiction", confidence=strongest, S=None, J=None,
-                       reason=reason)
-        return verdict
-    finding = unit.sticky[loop_id]
-    own_sticky = own["verdict"] == "stiction"
-    verdict.update(
-        verdict="stiction",
-        confidence=max(float(finding["confidence"]),
-                       float(own["confidence"]) if own_sticky else 0.0),
-        reason=finding["reason"],
-    )
-    if verdict["S"] is None:
-        verdict.update(S=finding.get("S"), J=finding.get("J"))
-    return verdict
+    return valve_decision(loop_id, diagnosis, unit).decision_dict()
 
 
-def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
-               window: tuple[float, float], previous: Sequence[Mapping[str, Any]]
-               ) -> dict[str, Any]:
-    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``
-    and ``size_windows``.
+def valve_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
+               window: tuple[float, float], previous: Sequence[SizeWindow]) -> ValveSize:
+    """The valve's combined size after a run (``S``, ``J``, ``S_interval``, ``J_interval``
+    and ``size_windows``).
 
     ``previous`` are the windows combined after the loop's run before (its
     ``size_windows``; empty when that run did not find the valve sticky: the streak
     starts over).  A sticky valve adds its own estimate of this ``window``
     (``(start, end)``) when the estimate is the loop's own, with intervals
-    (``diagnosis["quantification"]``), and the window starts no earlier than the
+    (the diagnosis's ``quantification``), and the window starts no earlier than the
     last one combined ends: the windows do not share data.  The latest
     :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
     sizes stand, without intervals.
 
     >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
-    >>> first = valve_size({"verdict": "stiction", "S": 4.2, "J": 1.9},
-    ...                    {"quantification": own}, (0.0, 3600.0), [])
-    >>> first["S"], first["S_interval"], len(first["size_windows"])
-    (4.2, [4.0, 4.4], 1)
-    >>> later = valve_size({"verdict": "stiction", "S": 3.0, "J": 0.2},
-    ...                    {"quantification": {**own, "S": 3.0, "J": 0.2,
-    ...                     "S_interval": [2.9, 3.1], "J_interval": [0.1, 0.3]}},
-    ...                    (60.0, 3660.0), first["size_windows"])  # overlaps: not combined
-    >>> later["S"], later["J"]
+    >>> first = valve_size(StoredValve("stiction", S=4.2, J=1.9),
+    ...                    StoredDiagnosis.from_dict({"quantification": own}), (0.0, 3600.0), [])
+    >>> first.S, first.S_interval, len(first.size_windows)
+    (4.2, (4.0, 4.4), 1)
+    >>> later = valve_size(StoredValve("stiction", S=3.0, J=0.2),
+    ...                    StoredDiagnosis.from_dict({"quantification": {**own, "S": 3.0,
+    ...                     "J": 0.2, "S_interval": [2.9, 3.1], "J_interval": [0.1, 0.3]}}),
+    ...                    (60.0, 3660.0), first.size_windows)  # overlaps: not combined
+    >>> later.S, later.J
     (4.2, 1.9)
     """
-    size: dict[str, Any] = {"S": verdict["S"], "J": verdict["J"], "S_interval": None,
-                            "J_interval": None, "size_windows": []}
-    if verdict["verdict"] != "stiction":
+    size = ValveSize(verdict.S, verdict.J)
+    if verdict.verdict != "stiction":
         return size
     windows = list(previous)
-    own = diagnosis.get("quantification") or {}
-    own_is_size = own.get("S") is not None and own.get("S") == verdict["S"]
-    if own_is_size and own.get("S_interval") and own.get("J_interval") and (
-            not windows or window[0] >= windows[-1]["window_end"]):
-        windows.append({"window_start": window[0], "window_end": window[1],
-                        "S": own["S"], "S_interval": list(own["S_interval"]),
-                        "J": own["J"], "J_interval": list(own["J_interval"])})
+    own = diagnosis.quantification
+    if (own is not None and own.S is not None and own.S == verdict.S and own.J is not None
+            and own.S_interval and own.J_interval
+            and (not windows or window[0] >= windows[-1].window_end)):
+        windows.append(SizeWindow(window[0], window[1], own.S, own.S_interval, own.J,
+                                  own.J_interval))
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:
         return size
-    for key in ("S", "J"):
-        combined = combine_windows([w[key] for w in windows],
-                                   [tuple(w[f"{key}_interval"]) for w in windows])
-        size[key], size[f"{key}_interval"] = combined.value, list(combined.interval)
-    size["size_windows"] = windows
-    return size
+    S = combine_windows([w.S for w in windows], [w.S_interval for w in windows])
+    J = combine_windows([w.J for w in windows], [w.J_interval for w in windows])
+    return ValveSize(S.value, J.value, S.interval, J.interval, tuple(windows))
 
 
-def previous_size_windows(session: Session, run: AnalysisRun) -> list[dict[str, Any]]:
+def previous_size_windows(session: Session, run: AnalysisRun) -> list[SizeWindow]:
     """The windows combined into the valve's size by the loop's run before ``run`` (by
     start time); empty when that run is not an ``ok`` stiction finding."""
     row = session.execute(
@@ -211,28 +229,29 @@ def previous_size_windows(session: Session, run: AnalysisRun) -> list[dict[str, 
     ).first()
     if row is None or row[0] != "ok" or row[1] != "stiction":
         return []
-    return list(row[2] or [])
+    return [SizeWindow.from_dict(w) for w in row[2] or []]
 
 
 def settle_run(run: AnalysisRun, unit: UnitDecision | None,
-               previous: Sequence[Mapping[str, Any]] = ()) -> None:
-    """Store the final verdict (:func:`valve_verdict`) in an ``ok`` run: its columns and
-    ``result["valve"]``, and the health that follows from it; its ``S`` and ``J`` are the
-    valve's combined size (:func:`valve_size`) after the windows ``previous``
+               previous: Sequence[SizeWindow] = ()) -> None:
+    """Store the final verdict (:func:`valve_decision`) in an ``ok`` run: its columns and
+    the result's ``valve``, and the health that follows from it; its ``S`` and ``J`` are
+    the valve's combined size (:func:`valve_size`) after the windows ``previous``
     (:func:`previous_size_windows`).  Settling again with the same decision changes
     nothing."""
     if run.result is None:
         return
-    verdict = valve_verdict(run.loop_id, run.result, unit)
+    diagnosis = StoredDiagnosis.from_dict(run.result)
+    verdict = valve_decision(run.loop_id, diagnosis, unit)
     window = (run.started_at if run.window_start is None else run.window_start,
               run.started_at if run.window_end is None else run.window_end)
-    verdict.update(valve_size(verdict, run.result, window, previous))
-    result = {**run.result, "valve": verdict}
-    result["health"] = health_score(result)
-    run.result = result
-    run.verdict, run.confidence = verdict["verdict"], verdict["confidence"]
-    run.S, run.J = verdict["S"], verdict["J"]
-    run.health = result["health"]
+    size = valve_size(verdict, diagnosis, window, previous)
+    result = {**run.result, "valve": {**verdict.decision_dict(), **size.to_dict()}}
+    health = health_score(result)
+    run.result = {**result, "health": health}
+    run.verdict, run.confidence = verdict.verdict, verdict.confidence
+    run.S, run.J = size.S, size.J
+    run.health = health
 
 
 def named_valves(result: Mapping[str, Any], valves: Mapping[str, str]) -> dict[str, Any]:

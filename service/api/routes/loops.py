@@ -114,7 +114,7 @@ class HealthPublic(BaseModel):
 
     ``stiction_pattern`` names how the latest diagnosis's sticky valve shows
     (:func:`service.analysis.stiction_pattern_text`; None unless its final verdict,
-    the ``valve`` of the diagnosis, :func:`service.verdicts.valve_verdict`, is stiction);
+    ``diagnosis["valve"]`` of :func:`service.verdicts.valve_verdict`, is stiction);
     ``episodes`` are its stick-jump episodes at UNIX times
     (:func:`service.tickets.run_episodes`).
     """
