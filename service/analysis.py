@@ -9,7 +9,7 @@ buffers, for the scheduler and for the unit diagnosis route alike.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +22,7 @@ from analytics.lti import TransferFunction
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
 from analytics.types import FloatArray
+from service.stored import StoredDiagnosis, StoredUnitDiagnosis
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
@@ -76,7 +77,7 @@ def stiction_pattern_text(pattern: str | None, op_travel: float | None = None) -
     return STICTION_PATTERN_WORDS[pattern]
 
 
-def health_score(diagnosis: dict[str, Any]) -> float | None:
+def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None:
     """Loop health from 0 (bad actor) to 100 (healthy); None when data are unusable.
 
     A loop that does not oscillate scores 100 less 5 per data-quality warning
@@ -89,21 +90,22 @@ def health_score(diagnosis: dict[str, Any]) -> float | None:
     ``stick_jump``, or ``stuck``) is a bad actor too, if a milder one.  A
     stuck valve freezes PV, which makes the data unusable for everything
     else; its stiction verdict is scored all the same.  The verdict is the final one
-    on the valve (``diagnosis["valve"]``, :func:`service.verdicts.valve_verdict`) when
-    the diagnosis has one, else the loop's own.
+    on the valve (the diagnosis's ``valve``, :func:`service.verdicts.valve_verdict`) when
+    it has one, else the loop's own.
     """
-    stiction = diagnosis.get("valve") or diagnosis["stiction"]
-    sticky = stiction["verdict"] == "stiction"
-    if not diagnosis["quality"]["usable"] and not sticky:
+    stored = (diagnosis if isinstance(diagnosis, StoredDiagnosis)
+              else StoredDiagnosis.from_dict(diagnosis))
+    final = stored.final
+    sticky = final.verdict == "stiction"
+    if not stored.quality.usable and not sticky:
         return None
-    warnings = sum(1 for i in diagnosis["quality"]["issues"] if i["severity"] == "warning")
-    osc = diagnosis["oscillation"]
-    if osc["detected"]:
-        score = 70.0 - min(float(osc["regularity"] or 0.0), 10.0) / 10.0 * 30.0
+    osc = stored.oscillation
+    if osc.detected:
+        score = 70.0 - min(float(osc.regularity or 0.0), 10.0) / 10.0 * 30.0
     else:
-        score = 100.0 - min(20, 5 * warnings)
+        score = 100.0 - min(20, 5 * stored.quality.warnings)
     if sticky:
-        score -= 40.0 * float(stiction["confidence"])
+        score -= 40.0 * float(final.confidence)
     return max(0.0, score)
 
 
@@ -345,7 +347,4 @@ def valve_decisions(diagnosis: dict[str, Any]) -> tuple[list[str], list[str]]:
     ...     {"loop": "c", "own_valve_gain": None}]}]})
     (['b'], ['a'])
     """
-    sticky = [finding["loop"] for finding in diagnosis["sticky_valves"]]
-    tested = {e["loop"] for group in diagnosis["groups"] for e in group["evidence"]
-              if e["own_valve_gain"] is not None}
-    return sticky, sorted(tested - set(sticky))
+    return StoredUnitDiagnosis.from_dict(diagnosis).valve_decisions()
