@@ -43,9 +43,19 @@ from service.stored import (
 )
 from service.tickets import latest_unit_run
 
-__all__ = ["MAX_SIZE_WINDOWS", "UnitDecision", "latest_unit_decision", "named_valves",
-           "previous_size_windows", "settle_run", "unit_decision", "valve_decision",
-           "valve_size", "valve_verdict"]
+__all__ = [
+    "MAX_SIZE_WINDOWS",
+    "UnitDecision",
+    "combined_size",
+    "latest_unit_decision",
+    "named_valves",
+    "previous_size_windows",
+    "settle_run",
+    "unit_decision",
+    "valve_decision",
+    "valve_size",
+    "valve_verdict",
+]
 
 MAX_SIZE_WINDOWS = 24
 """Windows a valve's combined size keeps, the latest (a day of hour-long windows)."""
@@ -174,31 +184,16 @@ def valve_verdict(loop_id: str, diagnosis: StoredDiagnosis | Mapping[str, Any],
     return valve_decision(loop_id, diagnosis, unit).decision_dict()
 
 
-def valve_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
-               window: tuple[float, float], previous: Sequence[SizeWindow]) -> ValveSize:
-    """The valve's combined size after a run (``S``, ``J``, ``S_interval``, ``J_interval``
-    and ``size_windows``).
-
-    ``previous`` are the windows combined after the loop's run before (its
-    ``size_windows``; empty when that run did not find the valve sticky: the streak
-    starts over).  A sticky valve adds its own estimate of this ``window``
-    (``(start, end)``) when the estimate is the loop's own, with intervals
-    (the diagnosis's ``quantification``), and the window starts no earlier than the
-    last one combined ends: the windows do not share data.  The latest
-    :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
-    sizes stand, without intervals.
+def combined_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
+                  window: tuple[float, float], previous: Sequence[SizeWindow]) -> ValveSize:
+    """The valve's combined size after a run, typed (:func:`valve_size`).
 
     >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
-    >>> first = valve_size(StoredValve("stiction", S=4.2, J=1.9),
-    ...                    StoredDiagnosis.from_dict({"quantification": own}), (0.0, 3600.0), [])
+    >>> first = combined_size(StoredValve("stiction", S=4.2, J=1.9),
+    ...                       StoredDiagnosis.from_dict({"quantification": own}), (0.0, 3600.0),
+    ...                       [])
     >>> first.S, first.S_interval, len(first.size_windows)
     (4.2, (4.0, 4.4), 1)
-    >>> later = valve_size(StoredValve("stiction", S=3.0, J=0.2),
-    ...                    StoredDiagnosis.from_dict({"quantification": {**own, "S": 3.0,
-    ...                     "J": 0.2, "S_interval": [2.9, 3.1], "J_interval": [0.1, 0.3]}}),
-    ...                    (60.0, 3660.0), first.size_windows)  # overlaps: not combined
-    >>> later.S, later.J
-    (4.2, 1.9)
     """
     size = ValveSize(verdict.S, verdict.J)
     if verdict.verdict != "stiction":
@@ -216,6 +211,39 @@ def valve_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
     S = combine_windows([w.S for w in windows], [w.S_interval for w in windows])
     J = combine_windows([w.J for w in windows], [w.J_interval for w in windows])
     return ValveSize(S.value, J.value, S.interval, J.interval, tuple(windows))
+
+
+def valve_size(verdict: Mapping[str, Any], diagnosis: StoredDiagnosis | Mapping[str, Any],
+               window: tuple[float, float], previous: Sequence[SizeWindow | Mapping[str, Any]]
+               ) -> dict[str, Any]:
+    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``
+    and ``size_windows`` (the stored form of :func:`combined_size`).
+
+    ``previous`` are the windows combined after the loop's run before (its
+    ``size_windows``; empty when that run did not find the valve sticky: the streak
+    starts over).  A sticky valve adds its own estimate of this ``window``
+    (``(start, end)``) when the estimate is the loop's own, with intervals
+    (the diagnosis's ``quantification``), and the window starts no earlier than the
+    last one combined ends: the windows do not share data.  The latest
+    :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
+    sizes stand, without intervals.
+
+    >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
+    >>> first = valve_size({"verdict": "stiction", "S": 4.2, "J": 1.9},
+    ...                    {"quantification": own}, (0.0, 3600.0), [])
+    >>> first["S"], first["S_interval"], len(first["size_windows"])
+    (4.2, [4.0, 4.4], 1)
+    >>> later = valve_size({"verdict": "stiction", "S": 3.0, "J": 0.2},
+    ...                    {"quantification": {**own, "S": 3.0, "J": 0.2,
+    ...                     "S_interval": [2.9, 3.1], "J_interval": [0.1, 0.3]}},
+    ...                    (60.0, 3660.0), first["size_windows"])  # overlaps: not combined
+    >>> later["S"], later["J"]
+    (4.2, 1.9)
+    """
+    return combined_size(
+        StoredValve.from_dict(verdict), _stored(diagnosis), window,
+        [w if isinstance(w, SizeWindow) else SizeWindow.from_dict(w) for w in previous],
+    ).to_dict()
 
 
 def previous_size_windows(session: Session, run: AnalysisRun) -> list[SizeWindow]:
@@ -236,7 +264,7 @@ def settle_run(run: AnalysisRun, unit: UnitDecision | None,
                previous: Sequence[SizeWindow] = ()) -> None:
     """Store the final verdict (:func:`valve_decision`) in an ``ok`` run: its columns and
     the result's ``valve``, and the health that follows from it; its ``S`` and ``J`` are
-    the valve's combined size (:func:`valve_size`) after the windows ``previous``
+    the valve's combined size (:func:`combined_size`) after the windows ``previous``
     (:func:`previous_size_windows`).  Settling again with the same decision changes
     nothing."""
     if run.result is None:
@@ -245,7 +273,7 @@ def settle_run(run: AnalysisRun, unit: UnitDecision | None,
     verdict = valve_decision(run.loop_id, diagnosis, unit)
     window = (run.started_at if run.window_start is None else run.window_start,
               run.started_at if run.window_end is None else run.window_end)
-    size = valve_size(verdict, diagnosis, window, previous)
+    size = combined_size(verdict, diagnosis, window, previous)
     result = {**run.result, "valve": {**verdict.decision_dict(), **size.to_dict()}}
     health = health_score(result)
     run.result = {**result, "health": health}
