@@ -1562,7 +1562,7 @@ def quantify_with_gain(
     scale = K / process_gain
     J = min(fitted.J * scale, fitted.S)
     J_interval = None if fitted.J_interval is None else (
-        fitted.J_interval[0] * scale, max(fitted.J_interval[1] * scale, J))
+        min(fitted.J_interval[0] * scale, J), max(fitted.J_interval[1] * scale, J))
     fs, fd = sj_to_fsfd(fitted.S, J)
     why = ("no estimate" if given.fit_r2 is None
            else f"R^2 {given.fit_r2:.2f} against {fitted.fit_r2:.2f} with the gain fitted")

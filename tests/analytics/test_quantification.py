@@ -411,3 +411,12 @@ def test_a_gain_that_does_not_fit_keeps_the_fitted_valve_and_rescales_j() -> Non
     opposite = quantify_with_gain(fitted, op, pv, ts, process_type=kind, process_gain=-1.2)
     assert (opposite.S, opposite.J, opposite.gain_given) == (fitted.S, fitted.J, False)
     assert any("sign opposite" in i for i in opposite.issues)
+
+
+def test_a_rescaled_j_capped_at_s_stays_within_its_interval() -> None:
+    op, pv, ts, kind = case_signals("flow-kano-S4-J2-ts1")
+    fitted = quantify_stiction(op, pv, ts, process_type=kind)
+    capped = quantify_with_gain(fitted, op, pv, ts, process_type=kind, process_gain=0.05)
+    stick, slip = sj(capped)
+    assert slip == stick and any("at most S" in i for i in capped.issues)
+    assert capped.J_interval is not None and capped.J_interval[0] <= slip <= capped.J_interval[1]
