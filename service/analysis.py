@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from service.config import LoopConfig, PlantConfig, UnitConfig
 
 __all__ = [
+    "MIN_FINITE_INPUT",
     "UnitWindows",
     "UnitWindowsError",
     "analyse_unit",
@@ -207,12 +208,19 @@ def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any
     return {"K": gain, "process_type": kind, "source": source, "couplings": couplings}
 
 
+MIN_FINITE_INPUT = 0.99
+"""Share of an input's samples that must be finite for :func:`sizing_pv` (a window cut
+from the buffers may lack its last samples)."""
+
+
 def sizing_pv(pv: FloatArray, ts: float, couplings: Mapping[str, Mapping[str, Any]],
               inputs: Mapping[str, FloatArray]) -> FloatArray | None:
     """PV less what the other inputs of ``couplings`` (``loop id -> transfer function``
     from that loop's valve to this PV, in % of span per % of OP span) do, driven by their
     OPs ``inputs`` (% of span, the window's samples, as long as ``pv``); None when an
-    input is missing, of another length or not finite everywhere.
+    input is missing, of another length, or finite in less than
+    :data:`MIN_FINITE_INPUT` of its samples (the others are interpolated, as the
+    diagnosis fills its own signals' few gaps).
 
     Each input is taken as the valve position it commands (a healthy valve)
     and simulated from rest at its first sample; the offset that leaves is
@@ -226,8 +234,14 @@ def sizing_pv(pv: FloatArray, ts: float, couplings: Mapping[str, Mapping[str, An
     result = np.array(pv, dtype=np.float64)
     for other, entry in couplings.items():
         u = inputs.get(other)
-        if u is None or u.shape != result.shape or not np.isfinite(u).all():
+        if u is None or u.shape != result.shape:
             return None
+        finite = np.isfinite(u)
+        if finite.mean() < MIN_FINITE_INPUT:
+            return None
+        if not finite.all():
+            k = np.arange(u.size)
+            u = np.interp(k, k[finite], u[finite])
         result -= simulate_open_loop(TransferFunction.from_dict(entry), u - u[0], ts)
     return result
 

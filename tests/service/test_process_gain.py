@@ -15,7 +15,7 @@ import pytest
 from analytics.lti import TransferFunction
 from analytics.scenarios import COLUMN_PROCESS
 from connectors.plant_sim import COLUMN_LOOPS, PlantSimulator
-from service.analysis import analyse_window, independent_gains, to_percent_of_span
+from service.analysis import analyse_window, independent_gains, sizing_pv, to_percent_of_span
 from service.config import PlantConfig
 from service.demo import demo_plant_config
 
@@ -119,3 +119,20 @@ def test_the_matrix_entries_are_those_the_plant_simulates():
     g22 = TransferFunction.from_dict(entry.matrix[1][1])
     assert g22.dc_gain == pytest.approx(COLUMN_PROCESS[1][1].dc_gain)
     assert g22.delay == COLUMN_PROCESS[1][1].delay
+
+
+def test_an_input_window_lacking_its_last_samples_still_serves_but_a_gappy_one_not():
+    """A window cut from the buffers may lack its last samples (the demo's column: FV-502's
+    first history window was sized with the gain fitted for it); a gappy one is not used."""
+    coupling = {"B": {"type": "fopdt", "K": 2.0, "tau": 5.0}}
+    u = np.linspace(0.0, 1.0, 1000)
+    late = u.copy()
+    late[-2:] = np.nan
+    gappy = u.copy()
+    gappy[::50] = np.nan
+    exact = sizing_pv(np.zeros(1000), 1.0, coupling, {"B": u})
+    filled = sizing_pv(np.zeros(1000), 1.0, coupling, {"B": late})
+    assert exact is not None and filled is not None
+    np.testing.assert_allclose(filled, exact, atol=1e-3)
+    assert sizing_pv(np.zeros(1000), 1.0, coupling, {"B": gappy}) is None
+    assert sizing_pv(np.zeros(1000), 1.0, coupling, {}) is None
