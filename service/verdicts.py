@@ -18,7 +18,10 @@ The size every page shows is the valve's combined estimate
 (:func:`analytics.quantification.combine_windows`) over the windows of its
 current streak of stiction verdicts that do not overlap, each with its
 interval (:func:`valve_size`): ``S`` and ``J`` of the final verdict, with
-``S_interval``, ``J_interval`` and the windows combined in ``size_windows``.
+``S_interval``, ``J_interval``, the windows combined in ``size_windows`` and
+``J_note``, which says whether J was sized with a configured process gain or is
+known only through the product ``K J`` in some windows (a stiction limit cycle
+pins the PV step of a slip better than the slip).
 """
 
 from __future__ import annotations
@@ -35,9 +38,9 @@ from service.analysis import health_score, valve_decisions
 from service.store.models import AnalysisRun, UnitAnalysisRun
 from service.tickets import latest_unit_run
 
-__all__ = ["MAX_SIZE_WINDOWS", "UnitDecision", "latest_unit_decision", "named_valves",
-           "previous_size_windows", "settle_run", "unit_decision", "valve_size",
-           "valve_verdict"]
+__all__ = ["MAX_SIZE_WINDOWS", "UnitDecision", "j_note", "latest_unit_decision",
+           "named_valves", "previous_size_windows", "settle_run", "unit_decision",
+           "valve_size", "valve_verdict"]
 
 MAX_SIZE_WINDOWS = 24
 """Windows a valve's combined size keeps, the latest (a day of hour-long windows)."""
@@ -153,8 +156,8 @@ def valve_verdict(loop_id: str, diagnosis: Mapping[str, Any],
 def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
                window: tuple[float, float], previous: Sequence[Mapping[str, Any]]
                ) -> dict[str, Any]:
-    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``
-    and ``size_windows``.
+    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``,
+    ``size_windows`` and ``J_note`` (:func:`j_note`).
 
     ``previous`` are the windows combined after the loop's run before (its
     ``size_windows``; empty when that run did not find the valve sticky: the streak
@@ -163,7 +166,9 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
     (``diagnosis["quantification"]``), and the window starts no earlier than the
     last one combined ends: the windows do not share data.  The latest
     :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
-    sizes stand, without intervals.
+    sizes stand, without intervals.  Each window keeps whether its J was sized with a
+    given process gain (``gain_given``, its ``gain_source``) or is known only through
+    ``K J`` (``J_product_only``).
 
     >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
     >>> first = valve_size({"verdict": "stiction", "S": 4.2, "J": 1.9},
@@ -178,7 +183,7 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
     (4.2, 1.9)
     """
     size: dict[str, Any] = {"S": verdict["S"], "J": verdict["J"], "S_interval": None,
-                            "J_interval": None, "size_windows": []}
+                            "J_interval": None, "size_windows": [], "J_note": None}
     if verdict["verdict"] != "stiction":
         return size
     windows = list(previous)
@@ -188,7 +193,10 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
             not windows or window[0] >= windows[-1]["window_end"]):
         windows.append({"window_start": window[0], "window_end": window[1],
                         "S": own["S"], "S_interval": list(own["S_interval"]),
-                        "J": own["J"], "J_interval": list(own["J_interval"])})
+                        "J": own["J"], "J_interval": list(own["J_interval"]),
+                        "gain_given": bool(own.get("gain_given")),
+                        "gain_source": own.get("gain_source"),
+                        "J_product_only": bool(own.get("J_product_only"))})
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:
         return size
@@ -197,7 +205,29 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: Mapping[str, Any],
                                    [tuple(w[f"{key}_interval"]) for w in windows])
         size[key], size[f"{key}_interval"] = combined.value, list(combined.interval)
     size["size_windows"] = windows
+    size["J_note"] = j_note(windows)
     return size
+
+
+def j_note(windows: Sequence[Mapping[str, Any]]) -> str | None:
+    """What the combined J rests on, for the pages; None when every window fitted the
+    process gain and told J from it (or the windows predate these flags).
+
+    >>> j_note([{"J_product_only": True}, {"J_product_only": False}])[:45]
+    'J is known only through K J in 1 of 2 windows'
+    >>> j_note([{"gain_given": True, "gain_source": "the loop's process_model"}])
+    "J sized with the process gain from the loop's process_model"
+    """
+    vague = sum(1 for w in windows if w.get("J_product_only"))
+    if vague:
+        return (f"J is known only through K J in {vague} of {len(windows)} windows (the "
+                "PV step of a slip): a process gain in the plant file (the loop's "
+                "process_model) fixes it")
+    given = [w for w in windows if w.get("gain_given")]
+    if given and len(given) == len(windows):
+        return ("J sized with the process gain from "
+                f"{given[-1].get('gain_source') or 'the plant file'}")
+    return None
 
 
 def previous_size_windows(session: Session, run: AnalysisRun) -> list[dict[str, Any]]:

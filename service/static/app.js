@@ -670,6 +670,7 @@ function estimateFacts(diagnosis) {
     pairs.push([`Valve size, ${size.size_windows.length} windows combined`,
       `S ${num(size.S)} % (${num(size.S_interval[0])} to ${num(size.S_interval[1])}), `
       + `J ${num(size.J)} % (${num(size.J_interval[0])} to ${num(size.J_interval[1])})`]);
+    if (size.J_note) pairs.push(["J of the valve size", size.J_note]);
   }
   if (q) {
     pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
@@ -679,6 +680,8 @@ function estimateFacts(diagnosis) {
       ["Valve model", q.valve_model],
       ["Process model", `K ${num(q.process.K, 3)}, τ ${num(q.process.tau, 1)} s, θ `
         + `${num(q.process.theta, 1)} s${q.process.integrating ? ", integrating" : ""}`],
+      ["Process gain", q.gain_given ? `given (${q.gain_source || "plant file"})`
+        : `fitted${q.J_product_only ? ": J known only through K·J " + num(q.KJ, 3) : ""}`],
       ["Trustworthy", q.trustworthy ? "yes" : `no: ${q.issues.join("; ")}`]);
   }
   if (apparent) {
