@@ -32,7 +32,9 @@ Steps, each feeding the next:
    names the pattern: ``limit_cycle``, ``irregular_cycle``, ``stick_jump``
    or ``stuck`` (:data:`PATTERNS`), with the episodes as evidence.
 4. For a stiction verdict: the size (S, J, fs, fd) from the Hammerstein
-   fit and the apparent stiction of the valve signature
+   fit (with a process gain known from elsewhere, fitted again with it:
+   :func:`analytics.quantification.quantify_with_gain`) and the apparent
+   stiction of the valve signature
    (:func:`analytics.stiction.signature.fit_signature_ellipse`) on a
    cycle, and the stick band read off the episodes
    (:func:`episode_stick_band`) beside them.
@@ -56,6 +58,7 @@ from analytics.quantification import (
     MIN_R2_GAIN,
     StictionEstimate,
     quantify_stiction,
+    quantify_with_gain,
 )
 from analytics.stiction.battery import (
     DEFAULT_DETECTORS,
@@ -428,6 +431,8 @@ def diagnose_loop(
     mv: ArrayLike | None = None,
     t: ArrayLike | None = None,
     process_type: ProcessType | None = None,
+    process_gain: float | None = None,
+    sizing_pv: ArrayLike | None = None,
     ranges: Mapping[str, tuple[float, float]] | None = None,
     battery: BatteryConfig | None = None,
     quantify: bool = True,
@@ -446,6 +451,19 @@ def diagnose_loop(
     process_type : {"self-regulating", "integrating"} or None
         None when unknown: then inferred from the Hammerstein identification
         or assumed self-regulating (``LoopDiagnosis.process_type_source``).
+    process_gain : float, optional
+        The process gain from MV to PV known from elsewhere (a step test, the
+        plant's process model), as :func:`analytics.quantification.quantify_stiction`
+        takes it; needs ``process_type``.  The verdict is reached with the gain
+        fitted; a sticky valve is then sized with this gain
+        (:func:`analytics.quantification.quantify_with_gain`): a limit cycle
+        pins the PV step ``K J`` of a slip better than J.
+    sizing_pv : array_like, optional
+        PV less the known effect of the process's other inputs (the other
+        valves of a unit, through its process matrix), as long as PV: with
+        ``process_gain``, a sticky valve is sized on it (fitted anew with the
+        gain fitted, then with the given one), so that the gain is that of
+        the valve alone.
     ranges : mapping, optional
         Engineering ranges per signal for the saturation check.
     battery : BatteryConfig, optional
@@ -462,6 +480,12 @@ def diagnose_loop(
              if x is not None}
     if "op" not in given and "pv" not in given:
         raise DataError("diagnose_loop needs at least one of op and pv")
+    if process_gain is not None and process_type is None:
+        raise DataError("a process_gain needs the process_type it is the gain of")
+    sizing = None if sizing_pv is None else _fill_missing(np.asarray(sizing_pv, dtype=np.float64))
+    if sizing is not None and (pv is None or sizing.shape != np.shape(pv)
+                               or not np.isfinite(sizing).any()):
+        raise DataError("sizing_pv must be as long as pv and hold finite samples")
     signals = {name: np.asarray(x, dtype=np.float64) for name, x in given.items()}
     source = "given" if process_type is not None else "unknown"
     quality = assess_quality(t, signals, ts, ranges=ranges)
@@ -591,6 +615,16 @@ def diagnose_loop(
     if verdict.verdict != STICTION:
         estimate = None  # sizes are reported for sticky valves only
         pattern = None
+    elif estimate is not None and process_gain is not None and process_type is not None \
+            and op_clean is not None and pv_clean is not None:
+        sized_on, fitted = pv_clean, estimate
+        if sizing is not None:  # without an estimate on it, the valve is sized as found
+            sized_on = sizing
+            fitted = quantify_stiction(op_clean, sizing, ts, process_type=process_type,
+                                       period_s=estimate.period_s)
+        if fitted.S is not None:
+            estimate = quantify_with_gain(fitted, op_clean, sized_on, ts,
+                                          process_type=process_type, process_gain=process_gain)
     return LoopDiagnosis(
         samples, ts, quality, oscillation, process_type, source, period_s, verdict, estimate,
         ellipse, pattern, episodes, travel,

@@ -643,3 +643,34 @@ def simulate_open_loop(tf: TransferFunction, u: ArrayLike, dt: float) -> FloatAr
         y[k] = model.C @ x + model.D * padded[k]
         x = model.Ad @ x + model.B0 * padded[k + 1] + model.B1 * padded[k]
     return y
+
+
+def process_gain(tf: TransferFunction) -> tuple[ProcessType, float]:
+    """The gain of ``tf`` as stiction quantification takes it, with the process type.
+
+    ``G(0)`` of a self-regulating model; ``lim s->0 s G(s)`` of a model with one
+    integrator (PV units per % per second, the ``K`` of ``K / s``).
+
+    Raises
+    ------
+    ModelSpecError
+        Two or more integrators, a zero at ``s = 0``, or no gain.
+
+    Examples
+    --------
+    >>> process_gain(TransferFunction.fopdt(1.2, 8.0, 2.0))
+    ('self-regulating', 1.2)
+    >>> process_gain(TransferFunction.integrating(0.02, 4.0))
+    ('integrating', 0.02)
+    """
+    integrators = tf.integrators
+    if integrators == 0:
+        kind, gain = SELF_REGULATING, tf.dc_gain
+    elif integrators == 1:
+        kind, gain = INTEGRATING, TransferFunction((*tf.num, 0.0), tf.den).dc_gain
+    else:
+        raise ModelSpecError(f"a model with {integrators} integrators at s = 0 has no gain "
+                             "that quantification can take")
+    if not (math.isfinite(gain) and gain != 0.0):
+        raise ModelSpecError(f"the model's gain is {gain}: a zero at s = 0, or no gain")
+    return kind, gain

@@ -17,8 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from analytics.diagnosis import diagnose_loop
+from analytics.errors import ModelSpecError
 from analytics.kpi import longest_normal_stretch, loop_kpis, manual_samples
-from analytics.lti import TransferFunction
+from analytics.lti import TransferFunction, process_gain, simulate_open_loop
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
 from analytics.types import FloatArray
@@ -26,16 +27,20 @@ from service.stored import StoredDiagnosis, StoredUnitDiagnosis
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
-    from service.config import LoopConfig, UnitConfig
+    from service.config import LoopConfig, PlantConfig, UnitConfig
 
 __all__ = [
+    "MIN_FINITE_INPUT",
     "UnitWindows",
     "UnitWindowsError",
     "analyse_unit",
     "analyse_window",
     "dead_time_samples",
     "health_score",
+    "independent_gain",
+    "independent_gains",
     "manual_stretch",
+    "sizing_pv",
     "stiction_pattern_text",
     "to_percent_of_span",
     "unit_model_spec",
@@ -127,6 +132,122 @@ def dead_time_samples(loop: dict[str, Any]) -> int | None:
     return int(np.floor(float(theta) / float(loop["ts"]) + 1e-9)) + 1
 
 
+def independent_gains(plant: PlantConfig) -> dict[str, dict[str, Any]]:
+    """``loop id -> gain`` of the plant's loops whose configuration gives a process gain
+    (:func:`independent_gain`)."""
+    units = {unit.id: unit for unit in plant.units}
+    gains = {}
+    for loop in plant.loops:
+        gain = independent_gain(loop, units.get(loop.unit) if loop.unit else None)
+        if gain is not None:
+            gains[loop.id] = gain
+    return gains
+
+
+def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any] | None:
+    """The loop's process gain as its configuration gives it, for sizing a sticky valve
+    (:func:`analytics.quantification.quantify_with_gain`; issue 19); ``unit`` is the
+    loop's unit.
+
+    A limit cycle pins the PV step of a slip, ``K J``, better than the slip
+    ``J``; a gain known from elsewhere fixes J.  It is
+
+    * the gain of the loop's ``process_model`` (``G(0)``, or the ``K`` of an
+      integrating model; :func:`analytics.lti.process_gain`): the process as
+      the loop sees it in operation, as a step test of the loop gives it;
+    * else, for a loop of a unit with a ``process`` matrix, the gain of the
+      matrix's diagonal entry, from the loop's valve to its PV alone, with the
+      row's other entries as ``couplings``: the unit's other valves move the
+      loop's PV too (its neighbours answer each slip), and
+      :func:`analyse_window` subtracts what their OPs do through these entries
+      before it sizes the valve (``inputs``, their OP windows, which the
+      scheduler adds; :func:`sizing_pv`).
+
+    The signals are in % of span (as :func:`analyse_window` scales them), as
+    the matrix and, by convention, the process model are.
+
+    Returns
+    -------
+    dict or None
+        ``K``, ``process_type`` (of the model), ``source`` (in words) and
+        ``couplings`` (``loop id -> matrix entry``; empty for a process model);
+        None when the configuration gives no gain, its model is not one with a
+        gain, or its type contradicts the loop's ``process_type``.
+
+    Examples
+    --------
+    >>> from service.config import PlantConfig
+    >>> plant = PlantConfig.model_validate({"loops": [{
+    ...     "id": "FIC-1", "tags": {"op": "O"}, "ts": 1.0,
+    ...     "process_model": {"type": "fopdt", "K": 1.2, "tau": 8.0, "theta": 2.0}}]})
+    >>> gain = independent_gains(plant)["FIC-1"]
+    >>> gain["K"], gain["process_type"], gain["source"], gain["couplings"]
+    (1.2, 'self-regulating', "the loop's process_model", {})
+    """
+    couplings: dict[str, dict[str, Any]] = {}
+    try:
+        if loop.process_model is not None:
+            kind, gain = process_gain(TransferFunction.from_dict(loop.process_model))
+            source = "the loop's process_model"
+        elif unit is not None and unit.process is not None and loop.id in unit.process.loops:
+            i = unit.process.loops.index(loop.id)
+            row = unit.process.matrix[i]
+            entry = row[i]
+            if entry is None:
+                return None
+            kind, gain = process_gain(TransferFunction.from_dict(entry))
+            source = (f"unit {unit.id}'s process matrix (its valve's own entry; what the "
+                      "unit's other valves do subtracted)")
+            couplings = {other: coupling for other, coupling in zip(unit.process.loops, row,
+                                                                  strict=True)
+                         if other != loop.id and coupling is not None}
+        else:
+            return None
+    except (ModelSpecError, TypeError, ValueError):
+        return None  # e.g. a process model that gives the dead time only
+    if loop.process_type not in (None, kind):
+        return None
+    return {"K": gain, "process_type": kind, "source": source, "couplings": couplings}
+
+
+MIN_FINITE_INPUT = 0.99
+"""Share of an input's samples that must be finite for :func:`sizing_pv` (a window cut
+from the buffers may lack its last samples)."""
+
+
+def sizing_pv(pv: FloatArray, ts: float, couplings: Mapping[str, Mapping[str, Any]],
+              inputs: Mapping[str, FloatArray]) -> FloatArray | None:
+    """PV less what the other inputs of ``couplings`` (``loop id -> transfer function``
+    from that loop's valve to this PV, in % of span per % of OP span) do, driven by their
+    OPs ``inputs`` (% of span, the window's samples, as long as ``pv``); None when an
+    input is missing, of another length, or finite in less than
+    :data:`MIN_FINITE_INPUT` of its samples (the others are interpolated, as the
+    diagnosis fills its own signals' few gaps).
+
+    Each input is taken as the valve position it commands (a healthy valve)
+    and simulated from rest at its first sample; the offset that leaves is
+    fitted away with the operating point.
+
+    >>> pv = np.zeros(5)
+    >>> sizing_pv(pv, 1.0, {"B": {"type": "fopdt", "K": 2.0, "tau": 1e-9}},
+    ...           {"B": np.array([0.0, 1.0, 1.0, 1.0, 1.0])}).round(3).tolist()
+    [0.0, 0.0, -2.0, -2.0, -2.0]
+    """
+    result = np.array(pv, dtype=np.float64)
+    for other, entry in couplings.items():
+        u = inputs.get(other)
+        if u is None or u.shape != result.shape:
+            return None
+        finite = np.isfinite(u)
+        if finite.mean() < MIN_FINITE_INPUT:
+            return None
+        if not finite.all():
+            k = np.arange(u.size)
+            u = np.interp(k, k[finite], u[finite])
+        result -= simulate_open_loop(TransferFunction.from_dict(entry), u - u[0], ts)
+    return result
+
+
 def manual_stretch(diagnosis: dict[str, Any], manual: NDArray[np.bool_], t: FloatArray,
                    judged: slice, ts: float) -> dict[str, Any]:
     """What a window with samples in manual was diagnosed on, for the pages and the alarms.
@@ -162,6 +283,7 @@ def analyse_window(
     ts: float,
     t: FloatArray,
     signals: dict[str, FloatArray | None],
+    gain: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Diagnose one window of one loop; signals are converted to % of span first.
 
@@ -179,6 +301,15 @@ def analyse_window(
         diagnosis is made on the window's longest stretch in auto or cascade
         (:func:`analytics.kpi.longest_normal_stretch`; in manual OP is the
         operator's, not the controller's).
+    gain : dict, optional
+        The loop's process gain from its configuration (:func:`independent_gain`):
+        a sticky valve is sized with it
+        (:func:`analytics.quantification.quantify_with_gain`), and its
+        ``process_type`` stands in for a loop that configures none.  The
+        quantification then says where the gain came from (``gain_source``).
+        With ``couplings``, ``inputs`` holds the coupled loops' OP windows (% of
+        span) and the valve is sized on PV less what they do (:func:`sizing_pv`);
+        without all of them it is sized with the gain fitted.
 
     Returns
     -------
@@ -210,11 +341,22 @@ def analyse_window(
     def cut(x: FloatArray | None) -> FloatArray | None:
         return None if x is None else x[judged]
 
+    sizing = None
+    pv_scaled = scaled.get("pv")
+    if gain is not None and gain.get("couplings"):
+        sizing = None if pv_scaled is None else sizing_pv(
+            pv_scaled, ts, gain["couplings"], gain.get("inputs") or {})
+        if sizing is None:
+            gain = None  # the PV steps are not those of this valve alone
+    process_type = loop.get("process_type") or (gain or {}).get("process_type")
     diagnosis = diagnose_loop(
-        ts=ts, t=t[judged], op=cut(scaled.get("op")), pv=cut(scaled.get("pv")),
-        sp=cut(scaled.get("sp")), mv=cut(scaled.get("mv")), process_type=loop.get("process_type"),
+        ts=ts, t=t[judged], op=cut(scaled.get("op")), pv=cut(pv_scaled),
+        sp=cut(scaled.get("sp")), mv=cut(scaled.get("mv")), process_type=process_type,
+        process_gain=None if gain is None else float(gain["K"]), sizing_pv=cut(sizing),
         ranges={name: (0.0, 100.0) for name in ranges},
     ).to_dict()
+    if gain is not None and (diagnosis.get("quantification") or {}).get("gain_given"):
+        diagnosis["quantification"]["gain_source"] = gain["source"]
     if manual is not None and manual.any():
         diagnosis["manual"] = manual_stretch(diagnosis, manual, t, judged, ts)
     diagnosis["health"] = health_score(diagnosis)

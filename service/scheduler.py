@@ -54,6 +54,8 @@ from service.analysis import (
     UnitWindowsError,
     analyse_unit,
     analyse_window,
+    independent_gains,
+    to_percent_of_span,
     unit_model_spec,
     unit_windows,
 )
@@ -187,17 +189,40 @@ class AnalysisScheduler:
         """True once stopping, or, for a scheduled round, deposed."""
         return self._stop.is_set() or (scheduled and not self.leading)
 
-    def _window_args(self, loop: LoopConfig, now: float) -> tuple[Any, ...] | None:
+    def _window_args(self, loop: LoopConfig, now: float, gains: dict[str, dict[str, Any]]
+                     ) -> tuple[Any, ...] | None:
         """The arguments of :func:`analyse_window` for the loop's window ending at ``now``,
-        less the samples not yet arrived (:meth:`LoopBuffers.arrived_end`); None when the
-        window holds no sample."""
+        less the samples not yet arrived (:meth:`LoopBuffers.arrived_end`), with the loop's
+        process gain in ``gains`` (:func:`independent_gains`); None when the window holds no
+        sample."""
         end = self.buffers.arrived_end([loop.id], now, self.settings.analysis_interval_s)
         window = self.buffers.window(loop.id, self.settings.window_s, end)
         signals = {"op": window.op, "pv": window.pv, "sp": window.sp, "mv": window.mv}
         if window.t.size == 0 or all(x is None or not np.isfinite(x).any()
                                      for x in signals.values()):
             return None
-        return loop.model_dump(mode="json"), window.ts, window.t, {**signals, "mode": window.mode}
+        gain = gains.get(loop.id)
+        if gain is not None and gain["couplings"]:
+            gain = {**gain, "inputs": self._coupled_inputs(gain["couplings"], window.t, end)}
+        return (loop.model_dump(mode="json"), window.ts, window.t,
+                {**signals, "mode": window.mode}, gain)
+
+    def _coupled_inputs(self, couplings: dict[str, Any], t: np.ndarray, end: float
+                        ) -> dict[str, np.ndarray]:
+        """The OP windows (% of span) of the coupled loops on the grid ``t`` ending at
+        ``end``, for :func:`service.analysis.sizing_pv`; a loop without one on that grid
+        is left out."""
+        inputs = {}
+        for other_id in couplings:
+            try:
+                other = self.registry.plant.loop(other_id)
+                window = self.buffers.window(other_id, self.settings.window_s, end)
+            except KeyError:
+                continue
+            op = to_percent_of_span(window.op, other.ranges.get("op"))
+            if op is not None and window.t.shape == t.shape and np.allclose(window.t, t):
+                inputs[other_id] = op
+        return inputs
 
     def _analyse(self, loops: Iterable[LoopConfig], now: float,
                  round_end: float | None) -> list[RunSummary]:
@@ -216,8 +241,9 @@ class AnalysisScheduler:
                 summaries.append(summary)
 
         def jobs() -> Iterator[AnalysisJob]:
+            gains = independent_gains(self.registry.plant)
             for loop in loops:
-                args = self._window_args(loop, now)
+                args = self._window_args(loop, now, gains)
                 if args is None:
                     finish(loop, JobOutcome("no_data", error="no samples in the analysis window"))
                     continue

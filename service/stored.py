@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = [
+    "GainFlags",
     "ManualStretch",
     "SizeWindow",
     "StoredCycle",
@@ -207,6 +208,9 @@ class StoredEstimate:
     J_interval: tuple[float, float] | None = None
     valve_model: str | None = None
     process: StoredProcess | None = None
+    gain_given: bool = False
+    gain_source: str | None = None
+    J_product_only: bool = False
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StoredEstimate:
@@ -214,7 +218,25 @@ class StoredEstimate:
         return cls(_float(d.get("S")), _float(d.get("J")), _float(d.get("fs")),
                    _float(d.get("fd")), _interval(d.get("S_interval")),
                    _interval(d.get("J_interval")), d.get("valve_model"),
-                   None if not process else StoredProcess.from_dict(process))
+                   None if not process else StoredProcess.from_dict(process),
+                   bool(d.get("gain_given")), d.get("gain_source"),
+                   bool(d.get("J_product_only")))
+
+
+@dataclass(frozen=True)
+class GainFlags:
+    """What a size window's J rests on: a process gain the configuration gives
+    (``gain_given``, from ``gain_source``), or only the product ``K J``
+    (``J_product_only``); windows stored before the flags read False / None."""
+
+    gain_given: bool = False
+    gain_source: str | None = None
+    J_product_only: bool = False
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> GainFlags:
+        return cls(bool(d.get("gain_given")), d.get("gain_source"),
+                   bool(d.get("J_product_only")))
 
 
 @dataclass(frozen=True)
@@ -227,17 +249,32 @@ class SizeWindow:
     S_interval: tuple[float, float]
     J: float
     J_interval: tuple[float, float]
+    gain_given: bool = False
+    """J sized with a process gain the configuration gives (``gain_source`` says which)."""
+    gain_source: str | None = None
+    J_product_only: bool = False
+    """J known only through the product ``K J``."""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SizeWindow:
+        """A stored window; one stored before the gain flags reads them as False / None."""
         return cls(float(d["window_start"]), float(d["window_end"]), float(d["S"]),
                    (float(d["S_interval"][0]), float(d["S_interval"][1])), float(d["J"]),
-                   (float(d["J_interval"][0]), float(d["J_interval"][1])))
+                   (float(d["J_interval"][0]), float(d["J_interval"][1])),
+                   bool(d.get("gain_given")), d.get("gain_source"),
+                   bool(d.get("J_product_only")))
+
+    @property
+    def flags(self) -> GainFlags:
+        """What the window's J rests on."""
+        return GainFlags(self.gain_given, self.gain_source, self.J_product_only)
 
     def to_dict(self) -> dict[str, Any]:
         return {"window_start": self.window_start, "window_end": self.window_end,
                 "S": self.S, "S_interval": list(self.S_interval),
-                "J": self.J, "J_interval": list(self.J_interval)}
+                "J": self.J, "J_interval": list(self.J_interval),
+                "gain_given": self.gain_given, "gain_source": self.gain_source,
+                "J_product_only": self.J_product_only}
 
 
 @dataclass(frozen=True)
@@ -291,12 +328,15 @@ class ValveSize:
     S_interval: tuple[float, float] | None = None
     J_interval: tuple[float, float] | None = None
     size_windows: tuple[SizeWindow, ...] = ()
+    J_note: str | None = None
+    """What the combined J rests on (:func:`service.verdicts.j_note`)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"S": self.S, "J": self.J,
                 "S_interval": None if self.S_interval is None else list(self.S_interval),
                 "J_interval": None if self.J_interval is None else list(self.J_interval),
-                "size_windows": [w.to_dict() for w in self.size_windows]}
+                "size_windows": [w.to_dict() for w in self.size_windows],
+                "J_note": self.J_note}
 
 
 @dataclass(frozen=True)

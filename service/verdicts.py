@@ -18,7 +18,10 @@ The size every page shows is the valve's combined estimate
 (:func:`analytics.quantification.combine_windows`) over the windows of its
 current streak of stiction verdicts that do not overlap, each with its
 interval (:func:`valve_size`): ``S`` and ``J`` of the final verdict, with
-``S_interval``, ``J_interval`` and the windows combined in ``size_windows``.
+``S_interval``, ``J_interval``, the windows combined in ``size_windows`` and
+``J_note``, which says whether J was sized with a configured process gain or is
+known only through the product ``K J`` in some windows (a stiction limit cycle
+pins the PV step of a slip better than the slip).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from analytics.quantification import combine_windows
 from service.analysis import health_score
 from service.store.models import AnalysisRun, UnitAnalysisRun
 from service.stored import (
+    GainFlags,
     SizeWindow,
     StoredDiagnosis,
     StoredStickyValve,
@@ -47,6 +51,7 @@ __all__ = [
     "MAX_SIZE_WINDOWS",
     "UnitDecision",
     "combined_size",
+    "j_note",
     "latest_unit_decision",
     "named_valves",
     "previous_size_windows",
@@ -204,20 +209,24 @@ def combined_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
             and own.S_interval and own.J_interval
             and (not windows or window[0] >= windows[-1].window_end)):
         windows.append(SizeWindow(window[0], window[1], own.S, own.S_interval, own.J,
-                                  own.J_interval))
+                                  own.J_interval, gain_given=own.gain_given,
+                                  gain_source=own.gain_source,
+                                  J_product_only=own.J_product_only))
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:
         return size
     S = combine_windows([w.S for w in windows], [w.S_interval for w in windows])
     J = combine_windows([w.J for w in windows], [w.J_interval for w in windows])
-    return ValveSize(S.value, J.value, S.interval, J.interval, tuple(windows))
+    return ValveSize(S.value, J.value, S.interval, J.interval, tuple(windows),
+                     j_note(windows))
 
 
 def valve_size(verdict: Mapping[str, Any], diagnosis: StoredDiagnosis | Mapping[str, Any],
                window: tuple[float, float], previous: Sequence[SizeWindow | Mapping[str, Any]]
                ) -> dict[str, Any]:
-    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``
-    and ``size_windows`` (the stored form of :func:`combined_size`).
+    """The valve's combined size after a run: ``S``, ``J``, ``S_interval``, ``J_interval``,
+    ``size_windows`` and ``J_note`` (:func:`j_note`): the stored form of
+    :func:`combined_size`.
 
     ``previous`` are the windows combined after the loop's run before (its
     ``size_windows``; empty when that run did not find the valve sticky: the streak
@@ -226,7 +235,9 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: StoredDiagnosis | Mapping[
     (the diagnosis's ``quantification``), and the window starts no earlier than the
     last one combined ends: the windows do not share data.  The latest
     :data:`MAX_SIZE_WINDOWS` are combined.  Without windows the verdict's own
-    sizes stand, without intervals.
+    sizes stand, without intervals.  Each window keeps whether its J was sized with a
+    given process gain (``gain_given``, its ``gain_source``) or is known only through
+    ``K J`` (``J_product_only``).
 
     >>> own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
     >>> first = valve_size({"verdict": "stiction", "S": 4.2, "J": 1.9},
@@ -244,6 +255,28 @@ def valve_size(verdict: Mapping[str, Any], diagnosis: StoredDiagnosis | Mapping[
         StoredValve.from_dict(verdict), _stored(diagnosis), window,
         [w if isinstance(w, SizeWindow) else SizeWindow.from_dict(w) for w in previous],
     ).to_dict()
+
+
+def j_note(windows: Sequence[SizeWindow | Mapping[str, Any]]) -> str | None:
+    """What the combined J rests on, for the pages; None when every window fitted the
+    process gain and told J from it (or the windows predate these flags).
+
+    >>> j_note([{"J_product_only": True}, {"J_product_only": False}])[:45]
+    'J is known only through K J in 1 of 2 windows'
+    >>> j_note([{"gain_given": True, "gain_source": "the loop's process_model"}])
+    "J sized with the process gain from the loop's process_model"
+    """
+    flags = [w.flags if isinstance(w, SizeWindow) else GainFlags.from_dict(w) for w in windows]
+    vague = sum(1 for w in flags if w.J_product_only)
+    if vague:
+        return (f"J is known only through K J in {vague} of {len(flags)} windows (the "
+                "PV step of a slip): a process gain in the plant file (the loop's "
+                "process_model) fixes it")
+    given = [w for w in flags if w.gain_given]
+    if given and len(given) == len(flags):
+        return ("J sized with the process gain from "
+                f"{given[-1].gain_source or 'the plant file'}")
+    return None
 
 
 def previous_size_windows(session: Session, run: AnalysisRun) -> list[SizeWindow]:

@@ -131,16 +131,23 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
 
     assert ticketed == {"FV-101", "FV-105", "FV-502"}  # no healthy valve has a ticket
     # each sticky valve's size is combined over the two windows of the history rounds that
-    # do not overlap, with its interval (issue 19).  FV-101 (Kano S 4, J 2) is within
-    # 15 % (measured 4.01/1.99); the He valves are not yet: FV-105 (S 8, J 4) 6.79/1.87,
-    # where a Kano valve with a smaller J absorbs the error of the grid of lags, and
-    # FV-502 (S 4, J 2) 2.22/1.86, whose PV also carries the column's other loops
+    # do not overlap, with its interval (issue 19).  FV-101 (Kano S 4, J 2) measured
+    # 4.00/1.99.  FV-105 (He S 8, J 4, no process model configured) 7.94-7.96/3.33-3.65
+    # over three runs (the windows start a few seconds apart): J is not always within
+    # 15 %.  FV-502 (He S 4, J 2) is sized with the column's process matrix, J 2.03; its S
+    # is 4.18 when the second window's interval is the narrower (so far always, by
+    # under 1 %), and the start-up window's 1.5-3.0 otherwise.
     for size in sizes.values():
         assert len(size["size_windows"]) == 2
         assert size["S_interval"][0] <= size["S"] <= size["S_interval"][1]
         assert size["J_interval"][0] <= size["J"] <= size["J_interval"][1]
     assert sizes["FIC-101"]["S"] == pytest.approx(4.0, rel=0.15)
     assert sizes["FIC-101"]["J"] == pytest.approx(2.0, rel=0.15)
+    assert sizes["FIC-105"]["S"] == pytest.approx(8.0, rel=0.15)
+    assert sizes["FIC-105"]["J"] == pytest.approx(4.0, rel=0.25)  # a guard, not the target
+    assert sizes["AIC-502"]["J"] == pytest.approx(2.0, rel=0.15)
+    assert all(w["gain_given"] for w in sizes["AIC-502"]["size_windows"])
+    assert sizes["AIC-502"]["J_note"].startswith("J sized with the process gain from unit column")
     # the unit's prediction takes the sticky valve's estimate, and the cleared valves as healthy
     assert prediction.status_code == 200, prediction.text
     valves = {v["loop"]: v for v in prediction.json()["valves"]}

@@ -505,12 +505,14 @@ async function renderOverview(params) {
           h("td", {}, l.unit ? h("a", { href: `#/unit/${encodeURIComponent(l.unit)}` }, l.unit)
             : "—"),
           healthCell(l.health),
-          scoreCell(scores.get(l.id)),
-          KPI_COLUMNS.map(([key, , value, text]) => kpiCell(key, kpis, value, text)),
+          // the diagnosis first, then the week's score and the KPIs (they scroll on a
+          // narrow screen)
           h("td", {}, oscillationText(l)),
           h("td", {}, verdictPill(l.verdict, l.confidence)),
-          h("td", {}, l.S === null ? "—" : `${num(l.S)} / ${num(l.J)}`),
-          h("td", {}, l.active_alarms));
+          h("td", {}, l.S === null ? "—" : `${num(l.S)}\u00a0/\u00a0${num(l.J)}`),
+          h("td", {}, l.active_alarms),
+          scoreCell(scores.get(l.id)),
+          KPI_COLUMNS.map(([key, , value, text]) => kpiCell(key, kpis, value, text)));
       });
       const sortable = (key, label, title) => h("th", { scope: "col", title,
         "aria-sort": sort.key !== key ? "none" : (sort.dir === 1) === OVERVIEW_SORTS[key][1]
@@ -528,10 +530,9 @@ async function renderOverview(params) {
             "Loops with their latest KPIs; the column headers sort (worst first, again: "
             + "best first)"),
           h("thead", {}, h("tr", {}, plain("Rank"), plain("Loop"), plain("Unit"),
-            sortable("health", "Health"), sortable("score", "Bad-actor score (7 d)"),
-            KPI_COLUMNS.map(([key, label, , , title]) => sortable(key, label, title)),
-            plain("Oscillation"), plain("Valve verdict"), plain("S / J (%)"),
-            plain("Alarms"))),
+            sortable("health", "Health"), plain("Oscillation"), plain("Valve verdict"),
+            plain("S / J (%)"), plain("Alarms"), sortable("score", "Bad-actor score (7 d)"),
+            KPI_COLUMNS.map(([key, label, , , title]) => sortable(key, label, title)))),
           h("tbody", {}, rows))));
     };
     drawLoops();
@@ -669,6 +670,7 @@ function estimateFacts(diagnosis) {
     pairs.push([`Valve size, ${size.size_windows.length} windows combined`,
       `S ${num(size.S)} % (${num(size.S_interval[0])} to ${num(size.S_interval[1])}), `
       + `J ${num(size.J)} % (${num(size.J_interval[0])} to ${num(size.J_interval[1])})`]);
+    if (size.J_note) pairs.push(["J of the valve size", size.J_note]);
   }
   if (q) {
     pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
@@ -678,6 +680,8 @@ function estimateFacts(diagnosis) {
       ["Valve model", q.valve_model],
       ["Process model", `K ${num(q.process.K, 3)}, τ ${num(q.process.tau, 1)} s, θ `
         + `${num(q.process.theta, 1)} s${q.process.integrating ? ", integrating" : ""}`],
+      ["Process gain", q.gain_given ? `given (${q.gain_source || "plant file"})`
+        : `fitted${q.J_product_only ? ": J known only through K·J " + num(q.KJ, 3) : ""}`],
       ["Trustworthy", q.trustworthy ? "yes" : `no: ${q.issues.join("; ")}`]);
   }
   if (apparent) {

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from analytics.diagnosis import diagnose_loop
+from analytics.errors import DataError
 from analytics.stiction.stick_jump import MIN_TRAVEL
 from analytics.synthetic_cases import synthetic_library, transient_library, transient_sweep
 from tests.shared_data import SHARED_DATA, isdb_labels, load_isdb_loop, require_file
@@ -272,3 +273,24 @@ def test_parts_of_healthy_plant_windows_are_not_called_sticky():
     false_alarms = [d.stiction.reason for label, d in plant_dev_windows(parts)
                     if label == "no_stiction" and d.stiction.verdict == "stiction"]
     assert not false_alarms
+
+
+def test_a_given_process_gain_sizes_the_sticky_valve_and_leaves_the_verdict() -> None:
+    """Issue 19: the verdict is reached with the gain fitted; the size uses the gain given
+    (and a PV less the other inputs' effect, when given)."""
+    case = CASES["flow-he-S8-J4-ts1"]  # K = 1.2
+    res = case.simulate()
+    signals = {"ts": case.ts, "op": res.op[0], "pv": res.pv[0], "sp": res.sp[0],
+               "process_type": case.process_type}
+    fitted = diagnose_loop(**signals)
+    given = diagnose_loop(**signals, process_gain=1.2)
+    assert given.stiction.verdict == fitted.stiction.verdict == "stiction"
+    assert given.stiction.confidence == fitted.stiction.confidence
+    q = given.quantification
+    assert q is not None and q.gain_given and q.model is not None and q.model.K == 1.2
+    shifted = diagnose_loop(**signals, process_gain=1.2, sizing_pv=res.pv[0] + 3.0)
+    assert shifted.quantification is not None and shifted.quantification.S == q.S
+    with pytest.raises(DataError, match="process_type"):
+        diagnose_loop(ts=case.ts, op=res.op[0], pv=res.pv[0], process_gain=1.2)
+    with pytest.raises(DataError, match="sizing_pv"):
+        diagnose_loop(**signals, process_gain=1.2, sizing_pv=res.pv[0][:-1])

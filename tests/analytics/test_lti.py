@@ -11,7 +11,7 @@ import pytest
 import scipy.signal
 
 from analytics.errors import ModelSpecError
-from analytics.lti import TransferFunction, discretise, simulate_open_loop
+from analytics.lti import TransferFunction, discretise, process_gain, simulate_open_loop
 
 G33 = TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, theta=1.0)
 
@@ -191,3 +191,22 @@ def test_dict_round_trip() -> None:
 def test_validation_errors(build: Callable[[], Any], name: str) -> None:
     with pytest.raises(ModelSpecError, match=name):
         build()
+
+
+@pytest.mark.parametrize(("model", "expected"), [
+    (TransferFunction.fopdt(-2.36, 5.0, 3.0), ("self-regulating", -2.36)),
+    (TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, 1.0), ("self-regulating", 0.87)),
+    (TransferFunction.integrating(0.02, 4.0), ("integrating", 0.02)),
+    (TransferFunction((0.5,), (10.0, 1.0, 0.0), 1.0), ("integrating", 0.5)),
+])
+def test_process_gain_is_the_steady_state_or_the_integrating_gain(
+        model: TransferFunction, expected: tuple[str, float]) -> None:
+    kind, gain = process_gain(model)
+    assert (kind, gain) == (expected[0], pytest.approx(expected[1]))
+
+
+@pytest.mark.parametrize("model", [TransferFunction((1.0,), (1.0, 0.0, 0.0)),
+                                   TransferFunction((1.0, 0.0), (5.0, 1.0))])
+def test_process_gain_refuses_models_without_one(model: TransferFunction) -> None:
+    with pytest.raises(ModelSpecError):
+        process_gain(model)

@@ -325,3 +325,25 @@ def test_the_demo_column_names_only_its_sticky_valve():
     diagnosis = analyse_unit(signals, ts, {"loops": ids, "matrix": unit["process"]["matrix"],
                                            "controllers": controllers})
     assert [v["loop"] for v in diagnosis["sticky_valves"]] == ["AIC-502"]
+
+
+def test_the_sticky_valve_is_sized_with_the_units_matrix(make_service, batch):
+    """Issue 19: with the column's process matrix the scheduler gives AIC-502's analysis the
+    gain of FV-502's own entry and the other valves' OP windows; its combined size is then
+    within 15 % of the simulated S 4, J 2 (a cycle alone pins only K J)."""
+    svc = make_service(column_plant(unit="column", model=True))
+    svc.state.ingest(batch)
+    svc.scheduler.run_round(FIRST_ROUND)
+    svc.scheduler.run_round(T0)
+    with svc.state.store.session() as session:
+        runs = session.scalars(select(AnalysisRun).where(AnalysisRun.loop_id == "AIC-502")
+                               .order_by(AnalysisRun.started_at)).all()
+        assert [run.verdict for run in runs] == ["stiction", "stiction"]
+        for run in runs:
+            own = run.result["quantification"]
+            assert own["gain_given"] and own["gain_source"].startswith("unit column's")
+            assert own["process"]["K"] == pytest.approx(-2.36)
+        valve = runs[-1].result["valve"]
+        assert len(valve["size_windows"]) == 2
+        assert (valve["S"], valve["J"]) == pytest.approx((4.0, 2.0), rel=0.15)
+        assert (valve["S"], valve["J"]) == (runs[-1].S, runs[-1].J)

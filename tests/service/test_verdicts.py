@@ -2,7 +2,13 @@
 the last word on the valves of its loops, and the ticket rule reads that verdict."""
 
 from service.store.models import Unit, UnitAnalysisRun
-from service.verdicts import UnitDecision, latest_unit_decision, settle_run, valve_verdict
+from service.verdicts import (
+    UnitDecision,
+    latest_unit_decision,
+    settle_run,
+    valve_size,
+    valve_verdict,
+)
 from tests.service.test_tickets import T0, WINDOW_S, add_loop, add_run, analyse
 
 VALVES = {"AIC-501": "FV-501", "AIC-502": "FV-502", "TIC-503": "PV-503"}
@@ -78,3 +84,27 @@ def test_a_valve_the_unit_names_is_sticky_with_the_units_size_when_the_loop_has_
                         ("TIC-503",), VALVES)
     assert valve_verdict("TIC-503", own_diagnosis(), both)["reason"] == (
         "cycles because FV-501 and FV-502 stick")
+
+
+def test_the_combined_size_says_what_its_j_rests_on():
+    """Issue 19: a window whose J is known only through K J (the PV step of a slip) marks
+    the combined size; one sized with the plant file's gain says where the gain came from;
+    windows stored before these flags say nothing."""
+    own = {"S": 4.2, "J": 1.9, "S_interval": [4.0, 4.4], "J_interval": [1.5, 2.3]}
+    sticky = {"verdict": "stiction", "S": 4.2, "J": 1.9}
+    vague = valve_size(sticky, {"quantification": {**own, "J_product_only": True}},
+                       (0.0, 3600.0), [])
+    assert vague["size_windows"][0]["J_product_only"] and not vague["size_windows"][0][
+        "gain_given"]
+    assert vague["J_note"].startswith("J is known only through K J in 1 of 1 windows")
+    given = {**own, "gain_given": True, "gain_source": "the loop's process_model"}
+    both = valve_size(sticky, {"quantification": given}, (3600.0, 7200.0),
+                      vague["size_windows"])
+    assert both["J_note"].startswith("J is known only through K J in 1 of 2 windows")
+    assert valve_size(sticky, {"quantification": given}, (0.0, 3600.0), [])["J_note"] == (
+        "J sized with the process gain from the loop's process_model")
+    old = [{k: v for k, v in vague["size_windows"][0].items()
+            if k not in ("gain_given", "gain_source", "J_product_only")}]
+    assert valve_size(sticky, {"quantification": own}, (3600.0, 7200.0), old)["J_note"] is None
+    assert valve_size({"verdict": "no_stiction", "S": None, "J": None}, {}, (0.0, 1.0),
+                      [])["J_note"] is None

@@ -127,6 +127,9 @@ class ValveVerdictPublic(OpenSchema):
     about 84 % of cases)."""
     J_interval: list[float] | None = None
     """Interval of J, as for S."""
+    J_note: str | None = None
+    """What J rests on: sized with a configured process gain, or known only through the
+    product of the process gain and J in some windows; null otherwise."""
     size_windows: list[dict[str, Any]] | None = None
     """The windows combined: each one's ``window_start``, ``window_end`` and sizes."""
     reason: str | None = None
