@@ -873,16 +873,26 @@ function signalName(signal) {
   return [role.toUpperCase(), " of ", loopLink(loop.join("_"))];
 }
 
-function stickyValvesList(diagnosis, valves) {
+function stickyValvesList(diagnosis, valves, loopsById) {
+  // The size shown first is the valve's combined estimate over its confirming windows,
+  // the one /loops, the overview and the ticket show; this window's own estimate of the
+  // unit diagnosis follows it as evidence (one window alone moves more).
   if (diagnosis.sticky_valves.length === 0) {
     return h("p", { class: "empty" }, "No valve of this unit is named sticky.");
   }
-  return h("ol", { id: "sticky-valves" }, diagnosis.sticky_valves.map((v) =>
-    h("li", { "data-loop-id": v.loop },
+  return h("ol", { id: "sticky-valves" }, diagnosis.sticky_valves.map((v) => {
+    const loop = loopsById.get(v.loop);
+    const combined = loop && loop.S !== null && loop.S !== undefined;
+    const windowSize = v.S === null ? "" : `S ${num(v.S)} %, J ${num(v.J)} %`;
+    return h("li", { "data-loop-id": v.loop },
       h("strong", {}, valves.get(v.loop) || v.loop), " (", loopLink(v.loop), "): ",
       `confidence ${num(v.confidence)}, cycle ${num(v.period_s, 0)} s`,
-      v.S === null ? "" : `, S ${num(v.S)} %, J ${num(v.J)} %`,
-      h("div", { class: "sub" }, v.reason))));
+      combined ? h("span", { class: "combined-size" },
+        `, S ${num(loop.S)} %, J ${num(loop.J)} % (combined over its windows, as on its ticket)`)
+        : (windowSize ? `, ${windowSize}` : ""),
+      h("div", { class: "sub" },
+        combined && windowSize ? `This window: ${windowSize}; ${v.reason}` : v.reason));
+  }));
 }
 
 function oscillationGroup(group, index, valves) {
@@ -910,7 +920,7 @@ function oscillationGroup(group, index, valves) {
     group.note ? h("p", { class: "help" }, group.note) : null);
 }
 
-async function unitDiagnosis(unitId, valves) {
+async function unitDiagnosis(unitId, valves, loopsById) {
   // Runs the unit diagnosis on the latest windows: it takes a moment, so the page shows
   // the loops first and this fills in when it arrives.
   try {
@@ -918,7 +928,7 @@ async function unitDiagnosis(unitId, valves) {
     const skipped = diagnosis.loops_without_complete_window;
     return [
       section("Sticky valves, most certain first", "sticky-title",
-        stickyValvesList(diagnosis, valves),
+        stickyValvesList(diagnosis, valves, loopsById),
         h("p", { class: "help" }, `Diagnosed together on the window ending `
           + `${utc(diagnosis.window_end)}: ${diagnosis.loops.length} loops, `
           + `${diagnosis.samples} samples each.`
@@ -957,7 +967,8 @@ async function renderUnit(unitId) {
     diagnosisBox,
     h("section", { class: "side-by-side", "aria-label": "Loops of the unit side by side" },
       cards));
-  diagnosisBox.replaceChildren(...await unitDiagnosis(unitId, valves));
+  diagnosisBox.replaceChildren(...await unitDiagnosis(unitId, valves,
+    new Map(loops.data.map((l) => [l.id, l]))));
   diagnosisBox.removeAttribute("aria-busy");
 }
 

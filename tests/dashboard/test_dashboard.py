@@ -304,6 +304,18 @@ def test_unit_page_and_printable_ticket(
         v["loop"] for v in diagnosis["sticky_valves"]] == ["FIC-1"]
     assert named.first.inner_text().startswith("FV-1 (FIC-1): confidence "
                                                f"{diagnosis['sticky_valves'][0]['confidence']:.2f}")
+    # The size is the valve's combined one, as /loops and the ticket give it (issue 19: one
+    # story per valve); the unit's estimate of this window follows as evidence.
+    (loop,) = [x for x in running.call("GET", "/api/v1/loops", "viewer")["data"]
+               if x["id"] == "FIC-1"]
+    assert loop["S"] is not None
+    assert named.first.locator(".combined-size").inner_text() == (
+        f", S {loop['S']:.2f} %, J {loop['J']:.2f} % (combined over its windows, as on its "
+        "ticket)")
+    unit_size = diagnosis["sticky_valves"][0]
+    if unit_size["S"] is not None:
+        assert (f"This window: S {unit_size['S']:.2f} %, J {unit_size['J']:.2f} %;"
+                in named.first.inner_text())
     (group,) = diagnosis["groups"]
     ranking = page.locator(".oscillation-group tr[data-signal]")
     assert ranking.evaluate_all("rows => rows.map(r => r.dataset.signal)") == [
