@@ -68,6 +68,7 @@ from analytics.stiction.battery import (
     TransientDetector,
     combine,
 )
+from analytics.stiction.episode_size import EpisodeSize, SizeComparison, compare_sizes, episode_size
 from analytics.stiction.evidence import (
     INTEGRATING,
     NO_STICTION,
@@ -160,6 +161,13 @@ class LoopDiagnosis:
         measured (no OP, or unusable data).
     episode_stick_band : float or None
         Stick band read off the episodes (:func:`episode_stick_band`).
+    episode_size : EpisodeSize or None
+        ``S`` from OP's travel between its turns and the slips
+        (:func:`analytics.stiction.episode_size.episode_size`); None unless the
+        verdict is stiction with episodes.
+    size_comparison : SizeComparison or None
+        Whether that ``S`` agrees with the Hammerstein estimate's; None unless both
+        exist.
     envelope_variation : float or None
         How steady the detected oscillation's amplitude is
         (:func:`analytics.oscillation.envelope_variation` of OP, else PV):
@@ -183,6 +191,8 @@ class LoopDiagnosis:
     op_travel: float | None = None
     episode_stick_band: float | None = None
     envelope_variation: float | None = None
+    episode_size: EpisodeSize | None = None
+    size_comparison: SizeComparison | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -227,6 +237,12 @@ class LoopDiagnosis:
                 "pattern": self.pattern,
                 "op_travel": self.op_travel,
                 "episode_stick_band": self.episode_stick_band,
+                "episode_size": None if self.episode_size is None else {
+                    **self.episode_size.to_dict(),
+                    "agrees_with_hammerstein": None if self.size_comparison is None
+                    else self.size_comparison.agree,
+                    "note": None if self.size_comparison is None else self.size_comparison.note,
+                },
                 "episodes": [
                     {"start_s": e.start * self.ts, "jump_s": e.jump_at * self.ts,
                      "end_s": e.end * self.ts, "op_travel": e.op_travel,
@@ -625,9 +641,16 @@ def diagnose_loop(
         if fitted.S is not None:
             estimate = quantify_with_gain(fitted, op_clean, sized_on, ts,
                                           process_type=process_type, process_gain=process_gain)
+    sized = None
+    compared = None
+    if verdict.verdict == STICTION and op_clean is not None:
+        sized = episode_size(op_clean, episodes)
+        if sized is not None and estimate is not None and estimate.S is not None:
+            compared = compare_sizes(sized, estimate.S, estimate.S_interval)
     return LoopDiagnosis(
         samples, ts, quality, oscillation, process_type, source, period_s, verdict, estimate,
         ellipse, pattern, episodes, travel,
         episode_stick_band(episodes) if verdict.verdict == STICTION else None,
         _envelope_variation(oscillation, op_clean if op_clean is not None else pv_clean, ts),
+        sized, compared,
     )

@@ -171,13 +171,19 @@ class StoredStiction:
     op_travel: float | None = None
     episode_stick_band: float | None = None
     episodes: tuple[StoredEpisode, ...] = ()
+    episode_S: float | None = None
+    """``episode_size.S``: S from OP's travel between its turns and the slips."""
+    size_check: str | None = None
+    """``episode_size.note``: whether that S agrees with the Hammerstein estimate."""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StoredStiction:
+        sized = d.get("episode_size") or {}
         return cls(d.get("verdict"), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
                    d.get("score"), d.get("pattern"), d.get("op_travel"),
                    d.get("episode_stick_band"),
-                   tuple(StoredEpisode.from_dict(e) for e in d.get("episodes") or ()))
+                   tuple(StoredEpisode.from_dict(e) for e in d.get("episodes") or ()),
+                   sized.get("S"), sized.get("note"))
 
 
 @dataclass(frozen=True)

@@ -128,6 +128,8 @@ EVIDENCE_KEYS: dict[str, bool] = {
     "pattern": False,
     "op_travel": False,
     "episode_stick_band": False,
+    "episode_S": False,
+    "size_check": False,
     "episodes": False,
     "S_interval": False,
     "J_interval": False,
@@ -142,7 +144,9 @@ stiction in % of valve span; ``period_s``: oscillation period;
 in % of span; ``pattern``: how the sticky valve shows, one of
 :data:`analytics.diagnosis.PATTERNS`; ``op_travel``: OP travel over the window
 (% of span); ``episode_stick_band``: the stick band read off the episodes (%
-of span), the size estimate of a valve that sticks without a cycle;
+of span); ``episode_S``: S from OP's travel between its turns and the slips
+(:mod:`analytics.stiction.episode_size`), the size estimate of a valve that sticks
+without a cycle; ``size_check``: whether it agrees with the window's Hammerstein S;
 ``episodes``: the stick-jump episodes, a list of dicts with the keys
 :data:`EPISODE_KEYS` (None or missing: none); ``S_interval``,
 ``J_interval``: ``[low, high]``, the 95 % intervals of S and J, which are the
@@ -164,7 +168,7 @@ MAX_TICKET_EPISODES = 20
 """Episodes a ticket keeps and lists (the latest ones): enough to show the pattern
 without burying the long text of a valve that slips every minute."""
 
-_NON_NUMERIC_KEYS = ("pattern", "episodes", "S_interval", "J_interval")
+_NON_NUMERIC_KEYS = ("pattern", "episodes", "S_interval", "J_interval", "size_check")
 _NO_CYCLE_PATTERNS = ("stick_jump", "stuck")
 
 
@@ -203,6 +207,8 @@ class TicketEvidence:
     pattern: str | None = None
     op_travel: float | None = None
     episode_stick_band: float | None = None
+    episode_S: float | None = None
+    size_check: str | None = None
     episodes: tuple[TicketEpisode, ...] = ()
     episodes_found: int = 0
     S_interval: tuple[float, float] | None = None
@@ -224,6 +230,7 @@ class TicketEvidence:
             fd=d.get("fd"), period_s=d.get("period_s"), amplitude_op=d.get("amplitude_op"),
             amplitude_pv=d.get("amplitude_pv"), pattern=d.get("pattern"),
             op_travel=d.get("op_travel"), episode_stick_band=d.get("episode_stick_band"),
+            episode_S=d.get("episode_S"), size_check=d.get("size_check"),
             episodes=tuple(TicketEpisode.from_dict(e) for e in d.get("episodes") or ()),
             episodes_found=int(d.get("episodes_found") or 0),
             S_interval=interval(d.get("S_interval")), J_interval=interval(d.get("J_interval")),
@@ -233,7 +240,8 @@ class TicketEvidence:
             plots=tuple((d.get("plots") or {}).items()),
         )
 _DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
-    "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
+    "pattern": None, "op_travel": None, "episode_stick_band": None, "episode_S": None,
+    "size_check": None, "episodes": [],
     "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
 }
 """What stored evidence older than these keys reads as."""
@@ -341,6 +349,8 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
         "pattern": diagnosis.stiction.pattern,
         "op_travel": diagnosis.stiction.op_travel,
         "episode_stick_band": diagnosis.stiction.episode_stick_band,
+        "episode_S": diagnosis.stiction.episode_S,
+        "size_check": diagnosis.stiction.size_check,
         "episodes": run_episodes(run),
         "S_interval": None if valve.S_interval is None else list(valve.S_interval),
         "J_interval": None if valve.J_interval is None else list(valve.J_interval),
@@ -411,6 +421,9 @@ def _checked_evidence(
     if pattern is not None and pattern not in PATTERNS:
         raise ValueError(f"{where}: 'pattern' must be one of {', '.join(PATTERNS)} or None, "
                          f"got {pattern!r}")
+    size_check = evidence.get("size_check")
+    if size_check is not None and not isinstance(size_check, str):
+        raise ValueError(f"{where}: 'size_check' must be a sentence or None, got {size_check!r}")
     episodes = _checked_episodes(where, evidence.get("episodes"))
     for key in ("S_interval", "J_interval"):
         interval = evidence.get(key)
@@ -503,18 +516,24 @@ def _utc_clock(t: float) -> str:
 
 
 def _describe_size(e: TicketEvidence) -> str:
-    """The stiction size: Hammerstein S and J, else the stick band read off the episodes."""
+    """The stiction size: Hammerstein S and J (with whether the episodes agree), else S
+    from the episodes: OP's travel from its turns to the slips, else the holds' travel."""
+    if e.S is None and e.episode_S is not None:
+        return (f"Stiction: S about {e.episode_S:.2f} % of valve span (OP's travel from its "
+                f"turns to the slips in the episodes), J = {_pct(e.J)}.")
     if e.S is None and e.episode_stick_band is not None:
         return (f"Stiction: S about {e.episode_stick_band:.2f} % of valve span (from the "
                 f"episodes), J = {_pct(e.J)}.")
+    check = "" if e.size_check is None else f" Latest window: {e.size_check}."
     size = (f"Stiction: S = {_pct(e.S)}, J = {_pct(e.J)} of valve span "
             f"(fs = {_pct(e.fs)}, fd = {_pct(e.fd)})")
     if e.S_interval is None or e.J_interval is None:
-        return size + "."
+        return size + "." + check
     (s_lo, s_hi), (j_lo, j_hi) = e.S_interval, e.J_interval
     return (f"{size}, combined over {e.size_windows} windows that do not overlap; "
             f"intervals S {s_lo:.2f} to {s_hi:.2f} %, J {j_lo:.2f} to {j_hi:.2f} % (nominal "
-            "95 %; on simulated valves they hold the true size in about 5 cases of 6).")
+            "95 %; on simulated valves they hold the true size in about 5 cases of 6)."
+            + check)
 
 
 def size_moved(old: dict[str, Any], new: dict[str, Any]) -> bool:
@@ -615,7 +634,8 @@ def update_ticket_from_analysis(
     if len(streak) < confirmations_needed:
         return None
     checked = TicketEvidence.from_dict(stored)
-    size = checked.S if checked.S is not None else checked.episode_stick_band
+    size = next((s for s in (checked.S, checked.episode_S, checked.episode_stick_band)
+                 if s is not None), None)
     priority = ticket_priority(S=size, amplitude_pv=checked.amplitude_pv,
                                importance=importance)
     ticket = _active_ticket(session, asset)

@@ -82,6 +82,12 @@ def print_diagnosis(diagnosis: LoopDiagnosis, source: str, out: TextIO) -> None:
     if d.episode_stick_band is not None:
         print(f"stick band from the episodes: {d.episode_stick_band:.2f} (OP units; between J "
               "and S: S after a reversal, J in the same direction)", file=out)
+    sized = d.episode_size
+    if sized is not None and sized.S is not None:
+        print(f"S from the episodes: {sized.S:.2f} (OP units; OP's travel from its turn to the "
+              f"slip, median of {sized.reversals} after a reversal)", file=out)
+    if d.size_comparison is not None:
+        print(f"  {d.size_comparison.note}", file=out)
     if d.ellipse is not None:
         print(
             f"apparent stiction (ellipse fit): {d.ellipse.apparent_stiction:.2f} (OP units)",

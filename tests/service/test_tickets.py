@@ -49,7 +49,7 @@ def add_run(session, *, at, loop_id="FIC-101", status="ok", verdict="stiction", 
 
 
 def add_sticky_run_without_cycle(session, *, at, pattern="stick_jump", episodes=(),
-                                 band=None, op_travel=12.0):
+                                 band=None, op_travel=12.0, episode_size=None):
     """A run of FIC-101 whose valve sticks without a sustained cycle: no S, J or period.
 
     ``episodes`` are ``(start_s, jump_s, end_s, op_travel, pv_jump)`` in seconds from the
@@ -65,7 +65,7 @@ def add_sticky_run_without_cycle(session, *, at, pattern="stick_jump", episodes=
                             "amplitude_pv": None},
             "stiction": {
                 "verdict": "stiction", "pattern": pattern, "op_travel": op_travel,
-                "episode_stick_band": band,
+                "episode_stick_band": band, "episode_size": episode_size,
                 "episodes": [{"start_s": a, "jump_s": b, "end_s": c, "op_travel": op,
                               "pv_jump": pv, "op_during_jump": 0.2}
                              for a, b, c, op, pv in episodes],
@@ -122,7 +122,8 @@ def test_ticket_opens_on_the_third_confirmation_on_separate_windows(store):
             "window_start": T0 + 2 * WINDOW_S, "window_end": T0 + 3 * WINDOW_S,
             "confidence": 0.9, "S": 4.0, "J": 1.0, "fs": 2.5, "fd": 1.5, "period_s": 48.0,
             "amplitude_op": 3.0, "amplitude_pv": 1.5, "confirmations": 3,
-            "pattern": None, "op_travel": None, "episode_stick_band": None, "episodes": [],
+            "pattern": None, "op_travel": None, "episode_stick_band": None,
+            "episode_S": None, "size_check": None, "episodes": [],
             "episodes_found": 0, "S_interval": None, "J_interval": None, "size_windows": None,
             "plots": {
                 "trend": "/api/v1/loops/FIC-101/plots/trend",
@@ -476,6 +477,37 @@ def test_a_stick_jump_valve_gets_a_ticket_naming_the_pattern_and_its_episodes(st
         assert "Pattern: stick-jump" in maximo["description_longdescription"]
 
 
+def test_a_stick_jump_ticket_takes_s_from_ops_turns_and_a_cycle_says_if_the_sizes_agree(
+        store):
+    # S from OP's travel between its turns and the slips (analytics.stiction.episode_size)
+    # sizes a valve without a Hammerstein estimate, before the holds' own travel.
+    sized = {"S": 7.1, "S_range": [6.8, 7.4], "reversals": 2, "same_direction_band": 3.0,
+             "same_direction": 1, "agrees_with_hammerstein": None, "note": None}
+    with store.session() as s:
+        add_loop(s)
+        for k in range(3):
+            run = add_sticky_run_without_cycle(s, at=T0 + WINDOW_S * (k + 1),
+                                               episodes=STICK_JUMP_EPISODES, band=2.0,
+                                               episode_size=sized)
+            ticket = analyse(s, run)
+        assert ticket.evidence["episode_S"] == 7.1
+        assert ticket.priority == 2  # 7.1 % is severe (the holds' 2.0 % would not be)
+        assert ("Stiction: S about 7.10 % of valve span (OP's travel from its turns to the "
+                "slips in the episodes), J = not quantified.") in ticket.description.split("\n")
+    # On a cycle the Hammerstein S stands; the ticket says whether the episodes agree.
+    note = ("the episodes disagree: OP travelled 6.00 from its turn to the slip (3 episodes "
+            "after an OP reversal) against the Hammerstein S = 4.00")
+    with store.session() as s:
+        add_loop(s, loop_id="FIC-102")
+        for k in range(3):
+            run = add_run(s, at=T0 + WINDOW_S * (k + 1), loop_id="FIC-102")
+            run.result = {**run.result, "stiction": {"verdict": "stiction", "episode_size": {
+                **sized, "S": 6.0, "agrees_with_hammerstein": False, "note": note}}}
+            ticket = analyse(s, run, loop_id="FIC-102", valve_asset="FV-102")
+        assert ticket.evidence["size_check"] == note
+        assert f"Latest window: {note}." in ticket.description
+
+
 def test_a_ticket_keeps_only_the_latest_episodes(store):
     episodes = [(10.0 * k, 10.0 * k + 4, 10.0 * k + 6, 3.0, float(k)) for k in range(25)]
     with store.session() as s:
@@ -528,7 +560,8 @@ def test_a_ticket_stored_before_patterns_still_reads_exports_and_updates(store):
         ticket = get_ticket(s, ticket_id)
         evidence = ticket_to_dict(ticket)["evidence"]
         assert evidence == old_evidence | {"pattern": None, "op_travel": None,
-                                           "episode_stick_band": None, "episodes": [],
+                                           "episode_stick_band": None, "episode_S": None,
+                                           "size_check": None, "episodes": [],
                                            "episodes_found": 0, "S_interval": None,
                                            "J_interval": None, "size_windows": None}
         assert to_cmms_notification(ticket)["sap_pm"]["LONG_TEXT"] == [

@@ -86,6 +86,28 @@ class OscillationPublic(OpenSchema):
     ``method``."""
 
 
+class EpisodeSizePublic(OpenSchema):
+    """The valve's bands read off its stick-jump episodes
+    (:class:`analytics.stiction.episode_size.EpisodeSize`)."""
+
+    S: float | None = None
+    """Median OP travel from OP's turn to the slip over the episodes after a reversal,
+    % of span; null without a reversal."""
+    S_range: list[float] | None = None
+    """The smallest and largest of those travels."""
+    reversals: int = 0
+    """Episodes after an OP reversal."""
+    same_direction_band: float | None = None
+    """Median OP travel between slips without a reversal (between J and S)."""
+    same_direction: int = 0
+    """Episodes without a reversal."""
+    agrees_with_hammerstein: bool | None = None
+    """Whether S lies within the Hammerstein interval widened by the episodes' error;
+    null without a Hammerstein estimate."""
+    note: str | None = None
+    """The comparison in one sentence."""
+
+
 class StictionPublic(OpenSchema):
     """The loop's own stiction verdict and the evidence of every method."""
 
@@ -104,6 +126,10 @@ class StictionPublic(OpenSchema):
     """OP travel beyond noise over the window, % of span."""
     episode_stick_band: float | None = None
     """Stick band read off the stick-jump episodes, % of span."""
+    episode_size: EpisodeSizePublic | None = None
+    """S read off the episodes (OP's travel from its turns to the slips) and whether it
+    agrees with the Hammerstein estimate; null unless the verdict is stiction with
+    episodes."""
     episodes: list[dict[str, Any]] | None = None
     """The stick-jump episodes, s from the window's first sample: ``start_s``,
     ``jump_s``, ``end_s``, ``op_travel``, ``pv_jump``, ``op_during_jump``."""
