@@ -688,8 +688,16 @@ function estimateFacts(diagnosis) {
     pairs.push(["Apparent stiction (ellipse)", `${num(apparent.apparent_stiction)} % of span `
       + `(width ratio ${num(apparent.width_ratio)})`]);
   }
+  const sized = ((diagnosis || {}).stiction || {}).episode_size;
+  if (sized && sized.S !== null && sized.S !== undefined) {
+    // OP's travel from its turn to the slip measures S (analytics.stiction.episode_size)
+    pairs.push(["S from the episodes", `${num(sized.S)} % of span (OP's travel from its turn `
+      + `to the slip, median of ${sized.reversals} after a reversal)`]);
+    if (sized.note) pairs.push(["Episodes and Hammerstein", sized.note]);
+  }
   if (band !== null && band !== undefined) {
-    pairs.push(["Stick band (episodes)", `S about ${num(band)} % of span`]);
+    pairs.push(["OP travel while PV held", `${num(band)} % of span (a lower bound of S: the `
+      + "hold shows only once PV has settled)"]);
   }
   return definitionList(pairs);
 }

@@ -228,6 +228,13 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     assert (model_mv.get_attribute("d") or "").count("L") == 3 * period - 1  # 3 cycles drawn
     estimate = diagnosis["quantification"]
     assert f"S = {estimate['S']:.2f} %, J = {estimate['J']:.2f} %" in signature.inner_html()
+    # S read off the episodes beside the Hammerstein S, and whether they agree (issue 17).
+    sized = diagnosis["stiction"]["episode_size"]
+    assert sized is not None and sized["S"] is not None and sized["note"]
+    facts = page.locator("dl", has_text="S from the episodes")
+    assert (f"{sized['S']:.2f} % of span (OP's travel from its turn to the slip, median of "
+            f"{sized['reversals']} after a reversal)") in facts.inner_text()
+    assert sized["note"] in facts.inner_text()
     nyquist = page.locator('figure[data-plot="nyquist"] svg[data-kind="nyquist"]')
     nyquist.wait_for()
     for series in ("loop", "df"):
@@ -401,7 +408,10 @@ def test_sign_in_page_has_no_sign_out_and_key_links_open_the_page_they_name(
         page.get_by_role("heading", level=1, name=heading).wait_for()
         assert page.url.endswith(f"/#{target}") and viewer not in page.url
         assert page.locator("#sign-out").is_visible()
-        page.evaluate("sessionStorage.clear()")
+        # Signed out as a user does (the button stops the page's refresh): clearing the
+        # storage under a running page let its next refresh go out without a key (401).
+        page.get_by_role("button", name="Sign out").click()
+        page.get_by_label("API key").wait_for()
 
 
 def test_loop_page_shows_alarm_buttons_whole_and_plot_notes_once(
