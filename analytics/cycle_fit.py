@@ -26,8 +26,11 @@ What can be wrong, in the order it is tried:
    the same motion scaled by ``c``), so the period of the cycle depends on
    ``J / S`` only and the amplitude is proportional to ``S`` at a given
    ``J / S``: the ratio is fitted to the period, then ``S`` to the amplitude;
-4. the process: no valve within the intervals reproduces the cycle; the
-   closest is kept and the remaining error is stated.
+4. the process: no valve within the intervals reproduces the cycle.  The
+   process's dead time, which sets the phase lag at the cycle and with it the
+   period, is fitted with the closest valve (a single loop's model; the
+   valve's size is fitted again at the new dead time); the model keeps the
+   closest of all and the error that remains is stated.
 
 Simulations start from a setpoint step of the stick band and drop noise
 (:func:`analytics.tuning.excited_model`), as the advice's own do, so the
@@ -47,6 +50,7 @@ import numpy as np
 
 from analytics.errors import ModelSpecError
 from analytics.limit_cycle import simulate_limit_cycle
+from analytics.lti import TransferFunction
 from analytics.simulation import ClosedLoopModel
 from analytics.tuning import AMPLITUDE_TOLERANCE, PERIOD_TOLERANCE, excited_model
 from analytics.valves import ChoudhuryValve, HeValve, KanoValve, ValveModel, sj_to_fsfd
@@ -61,6 +65,9 @@ REFINE_STEPS = 6
 """Bisection steps of ``J / S`` once the simulated period brackets the measured one."""
 CYCLES = 30
 """Each simulation runs this many measured periods (at least the model's duration)."""
+DELAY_POINTS = 13
+"""Dead times tried when the process is fitted, from 0 to a quarter of the measured period
+(90 degrees of phase at the cycle) or twice the identified one."""
 
 Cause = Literal["none", "valve_model", "valve_size", "process"]
 
@@ -188,6 +195,9 @@ class CycleFit:
         The chosen valve's S or J lies on a bound of the intervals the fit was held to
         (and differs from the estimate's): the data would allow no larger change, a sign
         that the process, not the valve, is off.
+    delay_s : (float, float) or None
+        With cause ``"process"`` and a single loop's model: the identified dead time and
+        the one the model keeps (equal when fitting it did not help), s.
     """
 
     measured_period_s: float | None
@@ -197,6 +207,7 @@ class CycleFit:
     cause: Cause
     tried: tuple[FittedValve, ...]
     at_edge: bool = False
+    delay_s: tuple[float, float] | None = None
 
     @property
     def reproduces(self) -> bool:
@@ -208,8 +219,11 @@ class CycleFit:
         """The model's valve differs from the estimate's."""
         return self.chosen != self.estimated
 
-    def with_valve(self, model: ClosedLoopModel, loop: int = 0) -> ClosedLoopModel:
-        """``model`` with loop ``loop``'s valve replaced by the chosen one."""
+    def fitted(self, model: ClosedLoopModel, loop: int = 0) -> ClosedLoopModel:
+        """``model`` with loop ``loop``'s valve replaced by the chosen one (and the process's
+        dead time by the fitted one, if it was fitted)."""
+        if self.delay_s is not None:
+            model = _with_delay(model, self.delay_s[1])
         return _with_valve(model, loop, self.chosen.valve)
 
     def explanation(self) -> str:
@@ -231,10 +245,17 @@ class CycleFit:
             return (f"{estimated}: the valve's {what} off; fitted to the measured cycle "
                     f"within the estimate's intervals, a {chosen}{edge}, and is simulated "
                     "instead")
-        return (f"{estimated}; no He, Kano or Choudhury valve within the estimate's "
-                f"intervals reproduces the measured cycle, the closest is a {chosen}: "
-                "the identified process (or a neighbour's interaction) does not describe "
-                "this cycle, and the model keeps that error")
+        text = (f"{estimated}; no He, Kano or Choudhury valve within the estimate's "
+                "intervals reproduces the measured cycle: the identified process (or a "
+                "neighbour's interaction) does not describe this cycle")
+        if self.delay_s is not None and self.delay_s[0] != self.delay_s[1]:
+            text += (f"; with the process's dead time fitted ({self.delay_s[0]:.3g} s "
+                     f"identified, {self.delay_s[1]:.3g} s kept) a {chosen}")
+        else:
+            text += f"; the closest is a {chosen}"
+        if self.reproduces:
+            return text + ", and is simulated instead"
+        return text + ", and the model keeps that error"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form."""
@@ -243,6 +264,7 @@ class CycleFit:
                 "cause": self.cause, "estimated": self.estimated.to_dict(),
                 "chosen": self.chosen.to_dict(), "reproduces": self.reproduces,
                 "tried": len(self.tried), "at_edge": self.at_edge,
+                "delay_s": None if self.delay_s is None else list(self.delay_s),
                 "explanation": self.explanation()}
 
 
@@ -250,6 +272,11 @@ def _with_valve(model: ClosedLoopModel, loop: int, valve: ValveModel) -> ClosedL
     loops = list(model.loops)
     loops[loop] = dataclasses.replace(loops[loop], valve=valve)
     return dataclasses.replace(model, loops=tuple(loops))
+
+
+def _with_delay(model: ClosedLoopModel, delay: float) -> ClosedLoopModel:
+    assert isinstance(model.process, TransferFunction)  # a single loop's model
+    return dataclasses.replace(model, process=dataclasses.replace(model.process, delay=delay))
 
 
 class _Simulator:
@@ -385,13 +412,14 @@ def fit_valve_to_cycle(
     s_range = (min(s_range[0], S0), max(s_range[1], S0))
     j_range = (min(j_range[0], J0), max(j_range[1], J0))
 
-    def result(chosen: FittedValve, cause: Cause) -> CycleFit:
+    def result(chosen: FittedValve, cause: Cause,
+               delay: tuple[float, float] | None = None) -> CycleFit:
         moved = (chosen.S, chosen.J) != (S0, J0)
         edge = moved and any(math.isclose(x, bound, rel_tol=1e-9)
                              for x, bounds in ((chosen.S, s_range), (chosen.J, j_range))
                              for bound in bounds)
         return CycleFit(period_s, amplitude, estimated, chosen, cause,
-                        tuple(simulate.tried.values()), edge)
+                        tuple(simulate.tried.values()), edge, delay)
 
     if period_s is None or estimated.reproduces:
         return result(estimated, "none")
@@ -404,4 +432,19 @@ def fit_valve_to_cycle(
     if good:
         return result(min(good, key=lambda v: v.misfit), "valve_size")
     closest = min((estimated, *swapped, *fitted), key=lambda v: v.misfit)
-    return result(closest, "process")
+    if not isinstance(model.process, TransferFunction):
+        return result(closest, "process")
+    theta0 = model.process.delay
+    delays = np.unique(np.append(np.linspace(0.0, max(2.0 * theta0, 0.25 * period_s),
+                                             DELAY_POINTS), theta0))
+    runs = {float(d): _Simulator(_with_delay(model, float(d)), loop, period_s, amplitude)
+            for d in delays}
+    best = min(runs, key=lambda d: runs[d](closest.kind, closest.S, closest.J).misfit)
+    refitted = _fit_size(runs[best], closest.kind, closest.S, closest.J, s_range, j_range)
+    at_best = min((runs[best](closest.kind, closest.S, closest.J), refitted),
+                  key=lambda v: v.misfit)
+    if at_best.misfit < closest.misfit:
+        simulate.tried.update({k: v for d in delays for k, v in runs[float(d)].tried.items()
+                               if d != theta0})
+        return result(at_best, "process", (theta0, best))
+    return result(closest, "process", (theta0, theta0))

@@ -39,7 +39,7 @@ def test_a_he_valve_taken_for_a_kano_valve_is_found_by_its_cycle():
     assert (fit.chosen.S, fit.chosen.J) == (8.0, 4.0)
     assert fit.chosen.period_error == 0.0 and fit.chosen.amplitude_error == 0.0
     assert "does not cycle in simulation" in fit.explanation()
-    assert isinstance(fit.with_valve(loop_model(KanoValve(8.0, 4.0))).loops[0].valve, HeValve)
+    assert isinstance(fit.fitted(loop_model(KanoValve(8.0, 4.0))).loops[0].valve, HeValve)
 
 
 def test_an_estimate_that_reproduces_the_cycle_is_kept():
@@ -73,12 +73,20 @@ def test_a_size_off_is_fitted_back_within_the_intervals(scale, ratio):
 
 def test_the_cycle_of_another_process_is_not_forced_onto_the_valve():
     """The plant's dead time is 20 s, the model's 2 s: no valve within the estimate's
-    (narrow) intervals gives the plant's amplitude; the closest is kept and the error is
-    stated as the process's."""
-    period, amplitude = measured(HeValve(6.0, 2.0), TransferFunction.fopdt(1.2, 8.0, 20.0))
-    fit = fit_valve_to_cycle(loop_model(HeValve(6.0, 2.0)), period, amplitude,
+    (narrow) intervals gives the plant's amplitude, so the check names the process and
+    fits its dead time, which comes out near the plant's (within a step of its grid)."""
+    plant = TransferFunction.fopdt(1.2, 8.0, 20.0)
+    period, amplitude = measured(HeValve(6.0, 2.0), plant)
+    model = loop_model(HeValve(6.0, 2.0))
+    fit = fit_valve_to_cycle(model, period, amplitude,
                              S_interval=(7.5, 8.5), J_interval=(3.5, 4.5))
-    assert fit.cause == "process" and not fit.reproduces
-    assert fit.chosen.amplitude_error is not None and fit.chosen.amplitude_error < -0.5
+    assert fit.cause == "process" and not fit.estimated.reproduces
+    assert fit.estimated.amplitude_error is not None and fit.estimated.amplitude_error < -0.5
+    assert fit.delay_s is not None and fit.delay_s[0] == 2.0
+    assert abs(fit.delay_s[1] - 20.0) <= 0.25 * period / 12
+    assert fit.reproduces
     assert 7.5 <= fit.chosen.S <= 8.5 and 3.5 - 1e-9 <= fit.chosen.J <= 4.5 + 1e-9
-    assert "identified process" in fit.explanation()
+    assert "dead time fitted (2 s identified" in fit.explanation()
+    fitted = fit.fitted(model)
+    assert isinstance(fitted.process, TransferFunction)
+    assert fitted.process.delay == fit.delay_s[1] and fitted.process.den == plant.den

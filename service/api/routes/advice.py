@@ -46,7 +46,7 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
     loop_model = model.closed_loop(SIMULATED_S)
     fit = fit_valve_to_cycle(loop_model, period, amplitude, S_interval=model.S_interval,
                              J_interval=model.J_interval)
-    advice = advise(fit.with_valve(loop_model), describing="equivalent")
+    advice = advise(fit.fitted(loop_model), describing="equivalent")
     agreement = CycleAgreement.of(advice, period, amplitude)
     if fit.changed:
         advice = dataclasses.replace(advice, notes=(fit.explanation(), *advice.notes))

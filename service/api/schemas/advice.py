@@ -207,7 +207,8 @@ class ValveFitPublic(Schema):
     measured: MeasuredCyclePublic
     cause: Literal["none", "valve_model", "valve_size", "process"]
     """What the check found wrong: nothing, the valve model (He, Kano, Choudhury), its
-    size, or (no valve within the estimate's intervals reproduces the cycle) the process."""
+    size, or (no valve within the estimate's intervals reproduces the cycle) the process,
+    whose dead time is then fitted."""
     estimated: FittedValvePublic
     """The estimate's valve."""
     chosen: FittedValvePublic
@@ -219,6 +220,8 @@ class ValveFitPublic(Schema):
     at_edge: bool
     """The chosen S or J lies on a bound of the estimate's intervals (the data allow no
     larger change: the process may be what is off)."""
+    delay_s: list[float] | None
+    """With cause "process": the identified dead time and the one the model keeps, s."""
     explanation: str
     """What was found, what was changed and the error that remains, in words."""
 
