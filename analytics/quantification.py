@@ -378,8 +378,14 @@ def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
     return float(v[k])
 
 
+LACK_OF_FIT_FLOOR = 1e-3
+"""Smallest unexplained share ``1 - R^2`` :func:`combine_windows` counts: fits closer than
+R^2 0.999 are all as good as the model gets (measurement noise, historian rounding)."""
+
+
 def combine_windows(
-    values: Sequence[float], intervals: Sequence[tuple[float, float]]
+    values: Sequence[float], intervals: Sequence[tuple[float, float]],
+    fit_r2: Sequence[float | None] | None = None,
 ) -> CombinedValue:
     """Combine estimates of one parameter (S or J) from windows that do not overlap.
 
@@ -389,13 +395,29 @@ def combine_windows(
     and 1 % of the estimate: a window whose interval is wider than usual
     counts less, and none counts more than a typical one (a window fitted
     in a wrong basin of the rough search surface can have a narrow interval
-    around its wrong value).  The combined value is the weighted median,
-    which a minority of such windows cannot drag.  Its standard error is that of the
-    weighted mean, ``1 / sqrt(sum w)``, scaled up when the windows scatter
-    more than their intervals say: the Particle Data Group's scale factor
-    [8]_ in a robust form, ``sigma = max(1 / sqrt(sum w), 1.4826 MAD_w /
-    sqrt(N))`` with ``MAD_w`` the weighted median absolute deviation from the
-    combined value.  The interval is the value plus or minus ``z sigma``.
+    around its wrong value).
+
+    With ``fit_r2``, each window's output-error R^2, a window the model does
+    not describe counts less.  The intervals carry the search's model error as
+    calibrated on windows its model describes (:data:`MODEL_ERROR`), which a
+    window the model does not describe (a start-up transient, a load change)
+    exceeds.  The variance of a least-squares estimate is proportional to the
+    residual variance of its fit (``s^2 (J^T J)^-1``, Bates & Watts 1988
+    [6]_), so ``sigma`` is scaled by ``sqrt(u / u_best)``, ``u = 1 - R^2`` (at
+    least :data:`LACK_OF_FIT_FLOOR`) and ``u_best`` the best fit among the
+    windows: windows of one loop see about the same PV variance, so the ratio
+    is that of their residual variances.  Two windows that disagree then leave
+    the decision to the one whose model fits (with equal weights the weighted
+    median of two is the estimate whose interval happens to be the narrower).
+    A window without an R^2 keeps its ``sigma``.
+
+    The combined value is the weighted median, which a minority of such windows
+    cannot drag.  Its standard error is that of the weighted mean, ``1 /
+    sqrt(sum w)``, scaled up when the windows scatter more than their intervals
+    say: the PDG's scale factor [8]_ in a robust form, ``sigma = max(1 /
+    sqrt(sum w), 1.4826 MAD_w / sqrt(N))`` with ``MAD_w`` the weighted median
+    absolute deviation from the combined value.  The interval is the value plus
+    or minus ``z sigma``.
 
     Raises
     ------
@@ -413,17 +435,36 @@ def combine_windows(
     (3.95, 4)
     >>> c.interval[0] < 3.95 < c.interval[1]
     True
+
+    The demo's FV-502: its first hour is the column's start-up (R^2 0.91), the
+    second a steady cycle (R^2 0.99); their S intervals are as wide and exclude
+    each other, and the steady hour decides:
+
+    >>> c = combine_windows([2.22, 4.18], [(1.58, 2.85), (3.54, 4.82)], [0.910, 0.991])
+    >>> round(c.value, 2), c.interval[0] > 2.85
+    (4.18, True)
     """
     x = np.asarray(values, dtype=np.float64)
     bounds = np.asarray(intervals, dtype=np.float64).reshape(-1, 2)
     if x.size == 0 or bounds.shape[0] != x.size:
         raise ValueError(f"need one interval per estimate, got {x.size} estimates and "
                          f"{bounds.shape[0]} intervals")
+    if fit_r2 is not None and len(fit_r2) != x.size:
+        raise ValueError(f"need one R^2 per estimate (or None), got {len(fit_r2)} for "
+                         f"{x.size} estimates")
     if np.any(bounds[:, 0] > x) or np.any(x > bounds[:, 1]):
         raise ValueError("every interval must hold its estimate")
     z = float(norm.ppf(0.5 + 0.5 * INTERVAL_LEVEL))
     sigma = (bounds[:, 1] - bounds[:, 0]) / (2.0 * z)
     sigma = np.maximum(sigma, np.maximum(float(np.median(sigma)), 0.01 * np.abs(x)))
+    if fit_r2 is not None:
+        unexplained = np.array([math.nan if r is None or not math.isfinite(r)
+                                else max(1.0 - r, LACK_OF_FIT_FLOOR) for r in fit_r2])
+        known = np.isfinite(unexplained)
+        if known.any():
+            best = float(unexplained[known].min())
+            sigma = sigma * np.where(known, np.sqrt(np.where(known, unexplained, best) / best),
+                                     1.0)
     weights = 1.0 / np.maximum(sigma, 1e-9) ** 2
     value = _weighted_median(x, weights)
     scatter = 1.4826 * _weighted_median(np.abs(x - value), weights) / math.sqrt(x.size)

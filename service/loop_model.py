@@ -2,8 +2,11 @@
 
 The Nyquist plot, the limit-cycle prediction and the tuning advice all need
 the same model: the process identified by the Hammerstein fit, the
-controller of the loop's configuration, and a Choudhury valve with the
-estimated S and J (the describing function of thesis Eq. 3.4).
+controller of the loop's configuration, and the valve of the estimate (the
+He or Kano valve the fit chose, with its S and J; a Choudhury valve for an
+estimate stored without its model).  Its describing function is thesis
+Eq. 3.4 at S and J (``describing="equivalent"``, as the thesis predicts the
+He valves of its column, ERRATA item 6).
 """
 
 from __future__ import annotations
@@ -12,13 +15,19 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from analytics.cycle_fit import ValveKind, valve_of
+from analytics.describing import equivalent_sj
 from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.simulation import ClosedLoopModel, Loop, PIDController
 from analytics.types import INTEGRATING, SELF_REGULATING
-from analytics.valves import ChoudhuryValve
+from analytics.valves import ValveModel
 from service.stored import StoredDiagnosis
 
 __all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop"]
+
+
+_VALVE_KINDS: dict[str, ValveKind] = {"he": "he", "kano": "kano"}
+"""The valve models of the Hammerstein search (:data:`analytics.quantification.VALVE_MODELS`)."""
 
 
 class ModelUnavailableError(LookupError):
@@ -31,8 +40,17 @@ class IdentifiedLoop:
 
     process: TransferFunction
     controller: PIDController
-    valve: ChoudhuryValve
+    valve: ValveModel
     ts: float
+    S_interval: tuple[float, float] | None = None
+    J_interval: tuple[float, float] | None = None
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """The valve's ``(S, J)``, % of travel (He's valve: thesis Eq. 1.2)."""
+        sj = equivalent_sj(self.valve)
+        assert sj is not None  # a He, Kano or Choudhury valve
+        return sj
 
     @property
     def hold_delay(self) -> float:
@@ -78,10 +96,13 @@ def identified_loop(config: dict[str, Any], diagnosis: StoredDiagnosis | None) -
     # for the Nyquist count (a PI controller on a pure gain and delay is not).
     tau = process.tau if process.tau > 0 else float(config["ts"])
     kind = INTEGRATING if process.integrating else SELF_REGULATING
+    kind_of_valve = _VALVE_KINDS.get(estimate.valve_model or "", "choudhury")
     return IdentifiedLoop(
         process=FirstOrderProcess(kind, gain, tau, process.theta).transfer_function(),
         controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
                                        controller.get("Td", 0.0)),
-        valve=ChoudhuryValve(estimate.S, estimate.J or 0.0),
+        valve=valve_of(kind_of_valve, estimate.S, estimate.J or 0.0),
         ts=float(config["ts"]),
+        S_interval=estimate.S_interval,
+        J_interval=estimate.J_interval,
     )

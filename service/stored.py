@@ -217,6 +217,8 @@ class StoredEstimate:
     gain_given: bool = False
     gain_source: str | None = None
     J_product_only: bool = False
+    fit_r2: float | None = None
+    """Output-error R^2 of the fit."""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StoredEstimate:
@@ -226,7 +228,7 @@ class StoredEstimate:
                    _interval(d.get("J_interval")), d.get("valve_model"),
                    None if not process else StoredProcess.from_dict(process),
                    bool(d.get("gain_given")), d.get("gain_source"),
-                   bool(d.get("J_product_only")))
+                   bool(d.get("J_product_only")), _float(d.get("fit_r2")))
 
 
 @dataclass(frozen=True)
@@ -260,15 +262,18 @@ class SizeWindow:
     gain_source: str | None = None
     J_product_only: bool = False
     """J known only through the product ``K J``."""
+    fit_r2: float | None = None
+    """Output-error R^2 of the window's fit (its weight in the combination)."""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SizeWindow:
-        """A stored window; one stored before the gain flags reads them as False / None."""
+        """A stored window; one stored before the gain flags reads them as False / None,
+        and one stored before its R^2 as None."""
         return cls(float(d["window_start"]), float(d["window_end"]), float(d["S"]),
                    (float(d["S_interval"][0]), float(d["S_interval"][1])), float(d["J"]),
                    (float(d["J_interval"][0]), float(d["J_interval"][1])),
                    bool(d.get("gain_given")), d.get("gain_source"),
-                   bool(d.get("J_product_only")))
+                   bool(d.get("J_product_only")), _float(d.get("fit_r2")))
 
     @property
     def flags(self) -> GainFlags:
@@ -280,7 +285,7 @@ class SizeWindow:
                 "S": self.S, "S_interval": list(self.S_interval),
                 "J": self.J, "J_interval": list(self.J_interval),
                 "gain_given": self.gain_given, "gain_source": self.gain_source,
-                "J_product_only": self.J_product_only}
+                "J_product_only": self.J_product_only, "fit_r2": self.fit_r2}
 
 
 @dataclass(frozen=True)

@@ -211,12 +211,13 @@ def combined_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
         windows.append(SizeWindow(window[0], window[1], own.S, own.S_interval, own.J,
                                   own.J_interval, gain_given=own.gain_given,
                                   gain_source=own.gain_source,
-                                  J_product_only=own.J_product_only))
+                                  J_product_only=own.J_product_only, fit_r2=own.fit_r2))
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:
         return size
-    S = combine_windows([w.S for w in windows], [w.S_interval for w in windows])
-    J = combine_windows([w.J for w in windows], [w.J_interval for w in windows])
+    fits = [w.fit_r2 for w in windows]
+    S = combine_windows([w.S for w in windows], [w.S_interval for w in windows], fits)
+    J = combine_windows([w.J for w in windows], [w.J_interval for w in windows], fits)
     return ValveSize(S.value, J.value, S.interval, J.interval, tuple(windows),
                      j_note(windows))
 

@@ -134,9 +134,10 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     # do not overlap, with its interval (issue 19).  FV-101 (Kano S 4, J 2) measured
     # 4.00/1.99.  FV-105 (He S 8, J 4, no process model configured) 7.94-7.96/3.33-3.65
     # over three runs (the windows start a few seconds apart): J is not always within
-    # 15 %.  FV-502 (He S 4, J 2) is sized with the column's process matrix, J 2.03; its S
-    # is 4.18 when the second window's interval is the narrower (so far always, by
-    # under 1 %), and the start-up window's 1.5-3.0 otherwise.
+    # 15 % (benchmarks/demo_sizes.py --offsets: -8 % to -17 %; both windows read J low).
+    # FV-502 (He S 4, J 2) is sized with the column's process matrix, J 2.03; its S is
+    # the second window's (3.7-4.2): the start-up window (1.5-3.2, R^2 0.74-0.97 against
+    # 0.99) counts less for its worse fit, whichever interval is the narrower.
     for size in sizes.values():
         assert len(size["size_windows"]) == 2
         assert size["S_interval"][0] <= size["S"] <= size["S_interval"][1]
@@ -145,6 +146,7 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert sizes["FIC-101"]["J"] == pytest.approx(2.0, rel=0.15)
     assert sizes["FIC-105"]["S"] == pytest.approx(8.0, rel=0.15)
     assert sizes["FIC-105"]["J"] == pytest.approx(4.0, rel=0.25)  # a guard, not the target
+    assert sizes["AIC-502"]["S"] == pytest.approx(4.0, rel=0.15)
     assert sizes["AIC-502"]["J"] == pytest.approx(2.0, rel=0.15)
     assert all(w["gain_given"] for w in sizes["AIC-502"]["size_windows"])
     assert sizes["AIC-502"]["J_note"].startswith("J sized with the process gain from unit column")

@@ -9,6 +9,7 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException
 
+from analytics.cycle_fit import fit_valve_to_cycle
 from analytics.errors import AnalyticsError
 from analytics.tuning import CycleAgreement, Detuning, Tuning, advise, cycle_origin, detune
 from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, error_responses
@@ -26,16 +27,31 @@ SIMULATED_S = 4000.0
 
 
 def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
-    """Advice for a sticky valve, with the model's cycle checked against the measured one.
+    """Advice for a sticky valve, from a model checked against the measured cycle.
+
+    The estimate's valve is simulated in the identified loop first; where the
+    model does not cycle as the loop does, the valve is fitted to the measured
+    cycle (:func:`analytics.cycle_fit.fit_valve_to_cycle`: its model, then its
+    size within the estimate's intervals), and the advice is computed on the
+    valve that reproduces it, or on the closest one with the error stated.
+    A He valve's describing function is Eq. 3.4 at its equivalent S and J (its
+    own sinusoidal DF is zero at the OP amplitudes below S / 2 of its stick-slip
+    cycles, so it would predict no cycle anywhere on the map).
 
     A pure function of the run and the loop's configuration (cached by
     :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
     stored = StoredDiagnosis.from_dict(json.loads(diagnosis))
     model = identified_loop(json.loads(config), stored)
-    advice = advise(model.closed_loop(SIMULATED_S))
-    agreement = CycleAgreement.of(advice, stored.oscillation.period_s,
-                                  stored.oscillation.amplitude_op)
-    return {"kind": "stiction", **advice.to_dict(), "measured_cycle": agreement.to_dict()}
+    period, amplitude = stored.oscillation.period_s, stored.oscillation.amplitude_op
+    loop_model = model.closed_loop(SIMULATED_S)
+    fit = fit_valve_to_cycle(loop_model, period, amplitude, S_interval=model.S_interval,
+                             J_interval=model.J_interval)
+    advice = advise(fit.fitted(loop_model), describing="equivalent")
+    agreement = CycleAgreement.of(advice, period, amplitude)
+    if fit.changed:
+        advice = dataclasses.replace(advice, notes=(fit.explanation(), *advice.notes))
+    return {"kind": "stiction", **advice.to_dict(), "valve_fit": fit.to_dict(),
+            "measured_cycle": agreement.to_dict()}
 
 
 def _detuning(config: dict[str, Any], period_s: float) -> Detuning:

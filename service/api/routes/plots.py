@@ -239,17 +239,17 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
         raise HTTPException(404, str(exc)) from None
     try:
         prediction = predict_limit_cycles(model.process, model.controller, model.valve,
-                                          hold_delay=model.hold_delay)
+                                          hold_delay=model.hold_delay, describing="equivalent")
         stable = prediction.stable_cycles
         curves = nyquist_curves(model.process, model.controller, model.valve,
-                                hold_delay=model.hold_delay,
+                                hold_delay=model.hold_delay, describing="equivalent",
                                 limit_cycle=stable[0] if stable else None)
     except (ModelSpecError, ValueError) as exc:
         raise HTTPException(404, str(exc)) from None
     return plots.nyquist_figure(
         curves, prediction=prediction,
         title=f"{_name(loop)}: Nyquist plot, identified model, "
-              f"S = {model.valve.S:.2f} %, J = {model.valve.J:.2f} %",
+              f"S = {model.size[0]:.2f} %, J = {model.size[1]:.2f} %",
     )
 
 

@@ -179,6 +179,53 @@ class CycleAgreementPublic(Schema):
     """What agrees and what does not, in words."""
 
 
+class FittedValvePublic(Schema):
+    """One valve simulated in the loop model (:class:`analytics.cycle_fit.FittedValve`)."""
+
+    valve_model: Literal["he", "kano", "choudhury"]
+    """He's (fs = (S + J) / 2, fd = (S - J) / 2), Kano's or Choudhury's valve."""
+    S: float
+    """Stick band plus deadband, % of travel."""
+    J: float
+    """Slip jump, % of travel."""
+    period_s: float | None
+    """Period of its simulated cycle, s; null when the simulated loop comes to rest."""
+    amplitude: float | None
+    """OP amplitude of that cycle (first harmonic), % of span."""
+    period_error: float | None
+    """``(model - measured) / measured``; null without a cycle."""
+    amplitude_error: float | None
+    reproduces: bool
+    """Period and OP amplitude within the tolerances."""
+
+
+class ValveFitPublic(Schema):
+    """The estimate's valve checked in the loop model against the measured cycle, and the
+    valve fitted to that cycle (:class:`analytics.cycle_fit.CycleFit`); the advice is
+    computed on the chosen one."""
+
+    measured: MeasuredCyclePublic
+    cause: Literal["none", "valve_model", "valve_size", "process"]
+    """What the check found wrong: nothing, the valve model (He, Kano, Choudhury), its
+    size, or (no valve within the estimate's intervals reproduces the cycle) the process,
+    whose dead time is then fitted."""
+    estimated: FittedValvePublic
+    """The estimate's valve."""
+    chosen: FittedValvePublic
+    """The valve the advice simulates."""
+    reproduces: bool
+    """The chosen valve reproduces the measured cycle."""
+    tried: int
+    """Valves simulated."""
+    at_edge: bool
+    """The chosen S or J lies on a bound of the estimate's intervals (the data allow no
+    larger change: the process may be what is off)."""
+    delay_s: list[float] | None
+    """With cause "process": the identified dead time and the one the model keeps, s."""
+    explanation: str
+    """What was found, what was changed and the error that remains, in words."""
+
+
 class StictionAdvice(Schema):
     """Retunes for a sticky valve (thesis chapter 5), checked in simulation and against the
     measured cycle."""
@@ -205,8 +252,11 @@ class StictionAdvice(Schema):
     """Candidates the simulation did not confirm."""
     notes: list[str]
     """Why an action was not offered, what the simulation adds."""
+    valve_fit: ValveFitPublic
+    """The estimate's valve checked against the measured cycle and fitted to it."""
     measured_cycle: CycleAgreementPublic
-    """Whether the model reproduces the measured cycle."""
+    """Whether the model the advice is computed on (with the chosen valve) reproduces the
+    measured cycle."""
 
 
 class DetunedPrediction(Schema):
