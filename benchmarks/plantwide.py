@@ -24,7 +24,9 @@ Prints, in one run:
 
 Run with ``make bench`` or ``.venv/bin/python benchmarks/plantwide.py``
 (``... plantwide.py model`` for part 3 alone, ``... plantwide.py why`` for the
-study of why the fingerprint confuses sets, on the calibration seeds).
+study of why the fingerprint confuses sets, on the calibration seeds,
+``... plantwide.py score`` for the fingerprint's confusion per sticky set on the
+calibration seeds and ``... plantwide.py score held-out`` on the scored ones).
 """
 
 from __future__ import annotations
@@ -336,6 +338,35 @@ def model_localisation() -> None:
           f"{median_time(locate, 5):.2f} s\n")
 
 
+def score_sets(seeds: tuple[int, ...]) -> None:
+    """The fingerprint's confusion per sticky set: every non-empty set of the column with S
+    and J drawn within 30 % of Table 2.3 on ``seeds``, with the exact matrix and with every
+    gain 20 % off (``plantwide.py score`` runs the calibration seeds 100-103, on which
+    constants are chosen; ``plantwide.py score held-out`` the seeds 200-203, scored once)."""
+    print(f"== fingerprint confusion per sticky set, seeds {seeds[0]}-{seeds[-1]} ==")
+    times = []
+    for label, error in (("exact gains", 0.0), ("gains 20 % off", 0.2)):
+        right = 0
+        for sticky in STICKY_SETS:
+            named = []
+            for seed in seeds:
+                model, _ = randomised_column(sticky, seed)
+                um = unit_model(model, gain_error=error, seed=seed)
+                unit = column_unit(model)
+                start = time.perf_counter()
+                found = locate_sticky_valves(unit, 0.5, um.process, um.controllers)
+                times.append(time.perf_counter() - start)
+                named.append("".join(v.removeprefix("loop") for v in found.sticky_valves) or "-")
+            ok = sum(n == "".join(map(str, sticky)) for n in named)
+            right += ok
+            counts = {n: named.count(n) for n in sorted(set(named))}
+            print(f"  {label:14s} true {{{','.join(map(str, sticky))}}}: right {ok}/{len(named)};"
+                  " named " + ", ".join(f"{{{','.join(n)}}} x{c}" if n != "-" else f"none x{c}"
+                                        for n, c in counts.items()))
+        print(f"  {label}: right set in {right} of {len(STICKY_SETS) * len(seeds)}")
+    print(f"localisation time: median {statistics.median(times):.2f} s, max {max(times):.2f} s\n")
+
+
 def tep_unit(name: str) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
     data = np.loadtxt(TEP / name)
     if data.shape[0] == 52:
@@ -401,6 +432,9 @@ def speed() -> None:
 if __name__ == "__main__":
     if sys.argv[1:] == ["model"]:
         model_localisation()
+        sys.exit()
+    if sys.argv[1:2] == ["score"]:
+        score_sets(SCORED_SEEDS if sys.argv[2:] == ["held-out"] else CALIBRATION_SEEDS)
         sys.exit()
     if sys.argv[1:] == ["why"]:
         confusion()
