@@ -26,7 +26,9 @@ Run with ``make bench`` or ``.venv/bin/python benchmarks/plantwide.py``
 (``... plantwide.py model`` for part 3 alone, ``... plantwide.py why`` for the
 study of why the fingerprint confuses sets, on the calibration seeds,
 ``... plantwide.py score`` for the fingerprint's confusion per sticky set on the
-calibration seeds and ``... plantwide.py score held-out`` on the scored ones).
+calibration seeds and ``... plantwide.py score held-out`` on the scored ones,
+``... plantwide.py sync`` for whether a sticky valve replayed from its OP meets the
+simulated MV).
 """
 
 from __future__ import annotations
@@ -367,6 +369,56 @@ def score_sets(seeds: tuple[int, ...]) -> None:
     print(f"localisation time: median {statistics.median(times):.2f} s, max {max(times):.2f} s\n")
 
 
+def he_replay(op: np.ndarray, fs: float, fd: float, start: float) -> np.ndarray:
+    """He's valve (thesis Eq. 1.2) driven by a measured OP from the position ``start``."""
+    out = np.empty_like(op)
+    y = start
+    for k, x in enumerate(op):
+        if x - y > fs:
+            y = x - fd
+        elif y - x > fs:
+            y = x + fd
+        out[k] = y
+    return out
+
+
+def replay_sync() -> None:
+    """Whether a valve replayed from its measured OP reproduces the simulated MV.
+
+    A replay of the sticky valves (the time-domain check of a candidate set, or a
+    harmonic balance of the replayed MV's harmonics) needs the valve's MV.  With the
+    true fs and fd, on the calibration seeds: the share of starting positions
+    ``x0 + d`` (``d`` on a grid of 81 over ``[-fs, fs]``) from which the replay meets
+    the simulated MV within the window, and the median sample where it does."""
+    print("== replaying a sticky valve from its OP, true fs and fd (calibration seeds) ==")
+    rows: dict[int, list[tuple[float, float, float]]] = {1: [], 2: [], 3: []}
+    for seed in CALIBRATION_SEEDS:
+        for sticky in STICKY_SETS:
+            model, _ = randomised_column(sticky, seed)
+            run = model.run()
+            late = run.t >= 2000.0
+            for i in sticky:
+                valve = model.loops[i - 1].valve
+                assert isinstance(valve, HeValve)
+                op, mv = run.op[i - 1][late], run.mv[i - 1][late]
+                half_range = (np.percentile(op, 99) - np.percentile(op, 1)) / 2
+                met = []
+                for d in np.linspace(-valve.fs, valve.fs, 81):
+                    same = np.abs(he_replay(op, valve.fs, valve.fd, op[0] + d) - mv) < 1e-9
+                    if same.any() and same[int(np.argmax(same)):].all():
+                        met.append(int(np.argmax(same)))
+                rows[i].append((half_range / valve.S, len(met) / 81,
+                                float(np.median(met)) if met else float("nan")))
+    for i, values in rows.items():
+        ratio, share, when = (np.array(v) for v in zip(*values, strict=True))
+        print(f"  valve {i}: OP half-range / S {np.median(ratio):.2f} (median of {len(values)}); "
+              f"replay meets the MV from {np.mean(share):.0%} of starting positions "
+              f"(none in {np.mean(share == 0):.0%} of cases), after "
+              f"{np.nanmedian(when) if np.isfinite(when).any() else float('nan'):.0f} samples "
+              f"(median) of {int(np.sum(run.t >= 2000.0))}")
+    print()
+
+
 def tep_unit(name: str) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
     data = np.loadtxt(TEP / name)
     if data.shape[0] == 52:
@@ -435,6 +487,9 @@ if __name__ == "__main__":
         sys.exit()
     if sys.argv[1:2] == ["score"]:
         score_sets(SCORED_SEEDS if sys.argv[2:] == ["held-out"] else CALIBRATION_SEEDS)
+        sys.exit()
+    if sys.argv[1:] == ["sync"]:
+        replay_sync()
         sys.exit()
     if sys.argv[1:] == ["why"]:
         confusion()
