@@ -23,8 +23,14 @@ Prints, in one run:
    the whole unit diagnosis of the column.
 
 Run with ``make bench`` or ``.venv/bin/python benchmarks/plantwide.py``
-(``... plantwide.py model`` for part 3 alone, ``... plantwide.py why`` for the
-study of why the fingerprint confuses sets, on the calibration seeds).
+(``... plantwide.py model`` for part 3 alone, ``... plantwide.py oracle`` for
+whether a replay of the sticky valves with their true S, J and a fitted stick state
+would see valve 3 beside another, ``... plantwide.py why`` for the
+study of why the fingerprint confuses sets, on the calibration seeds,
+``... plantwide.py score`` for the fingerprint's confusion per sticky set on the
+calibration seeds and ``... plantwide.py score held-out`` on the scored ones,
+``... plantwide.py sync`` for whether a sticky valve replayed from its OP meets the
+simulated MV).
 """
 
 from __future__ import annotations
@@ -44,13 +50,13 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from scipy.signal import lfilter  # noqa: E402
+from scipy.signal import fftconvolve, lfilter  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from analytics.limit_cycle import ProcessMatrix  # noqa: E402
-from analytics.lti import TransferFunction  # noqa: E402
+from analytics.lti import DiscreteEntry, TransferFunction, discretise  # noqa: E402
 from analytics.plantwide import (  # noqa: E402
     GroupDiagnosis,
     UnitDiagnosis,
@@ -336,6 +342,193 @@ def model_localisation() -> None:
           f"{median_time(locate, 5):.2f} s\n")
 
 
+def score_sets(seeds: tuple[int, ...]) -> None:
+    """The fingerprint's confusion per sticky set: every non-empty set of the column with S
+    and J drawn within 30 % of Table 2.3 on ``seeds``, with the exact matrix and with every
+    gain 20 % off (``plantwide.py score`` runs the calibration seeds 100-103, on which
+    constants are chosen; ``plantwide.py score held-out`` the seeds 200-203, scored once)."""
+    print(f"== fingerprint confusion per sticky set, seeds {seeds[0]}-{seeds[-1]} ==")
+    times = []
+    for label, error in (("exact gains", 0.0), ("gains 20 % off", 0.2)):
+        right = 0
+        for sticky in STICKY_SETS:
+            named = []
+            for seed in seeds:
+                model, _ = randomised_column(sticky, seed)
+                um = unit_model(model, gain_error=error, seed=seed)
+                unit = column_unit(model)
+                start = time.perf_counter()
+                found = locate_sticky_valves(unit, 0.5, um.process, um.controllers)
+                times.append(time.perf_counter() - start)
+                named.append("".join(v.removeprefix("loop") for v in found.sticky_valves) or "-")
+            ok = sum(n == "".join(map(str, sticky)) for n in named)
+            right += ok
+            counts = {n: named.count(n) for n in sorted(set(named))}
+            print(f"  {label:14s} true {{{','.join(map(str, sticky))}}}: right {ok}/{len(named)};"
+                  " named " + ", ".join(f"{{{','.join(n)}}} x{c}" if n != "-" else f"none x{c}"
+                                        for n, c in counts.items()))
+        print(f"  {label}: right set in {right} of {len(STICKY_SETS) * len(seeds)}")
+    print(f"localisation time: median {statistics.median(times):.2f} s, max {max(times):.2f} s\n")
+
+
+def he_replays(op: np.ndarray, fs: float, fd: float, starts: np.ndarray) -> np.ndarray:
+    """He's valve (thesis Eq. 1.2) driven by a measured OP, one replay per starting
+    position in ``starts`` (rows)."""
+    y = np.array(starts, dtype=float)
+    out = np.empty((y.size, op.size))
+    for k, x in enumerate(op):
+        y = np.where(x - y > fs, x - fd, np.where(y - x > fs, x + fd, y))
+        out[:, k] = y
+    return out
+
+
+def replay_sync() -> None:
+    """Whether a valve replayed from its measured OP reproduces the simulated MV.
+
+    A replay of the sticky valves (the time-domain check of a candidate set, or a
+    harmonic balance of the replayed MV's harmonics) needs the valve's MV.  With the
+    true fs and fd, on the calibration seeds: the share of starting positions
+    ``x0 + d`` (``d`` on a grid of 81 over ``[-fs, fs]``) from which the replay meets
+    the simulated MV within the window, and the median sample where it does."""
+    print("== replaying a sticky valve from its OP, true fs and fd (calibration seeds) ==")
+    rows: dict[int, list[tuple[float, float, float]]] = {1: [], 2: [], 3: []}
+    for seed in CALIBRATION_SEEDS:
+        for sticky in STICKY_SETS:
+            model, _ = randomised_column(sticky, seed)
+            run = model.run()
+            late = run.t >= 2000.0
+            for i in sticky:
+                valve = model.loops[i - 1].valve
+                assert isinstance(valve, HeValve)
+                op, mv = run.op[i - 1][late], run.mv[i - 1][late]
+                half_range = (np.percentile(op, 99) - np.percentile(op, 1)) / 2
+                met = []
+                starts = op[0] + np.linspace(-valve.fs, valve.fs, 81)
+                for replay in he_replays(op, valve.fs, valve.fd, starts):
+                    same = np.abs(replay - mv) < 1e-9
+                    if same.any() and same[int(np.argmax(same)):].all():
+                        met.append(int(np.argmax(same)))
+                rows[i].append((half_range / valve.S, len(met) / 81,
+                                float(np.median(met)) if met else float("nan")))
+    for i, values in rows.items():
+        ratio, share, when = (np.array(v) for v in zip(*values, strict=True))
+        print(f"  valve {i}: OP half-range / S {np.median(ratio):.2f} (median of {len(values)}); "
+              f"replay meets the MV from {np.mean(share):.0%} of starting positions "
+              f"(none in {np.mean(share == 0):.0%} of cases), after "
+              f"{np.nanmedian(when) if np.isfinite(when).any() else float('nan'):.0f} samples "
+              f"(median) of {int(np.sum(run.t >= 2000.0))}")
+    print()
+
+
+REPLAY_HARMONICS = (1, 3, 5, 7)
+
+
+def impulse_response(entry: DiscreteEntry, length: int) -> np.ndarray:
+    """The first ``length`` samples of a sampled entry's response to a unit pulse."""
+    state, h = np.zeros(entry.Ad.shape[0]), np.zeros(length)
+    d = entry.delay_samples
+    for k in range(length):
+        now, before = float(k == d), float(k == d + 1)
+        h[k] = entry.C @ state + entry.D * before
+        state = entry.Ad @ state + entry.B0 * now + entry.B1 * before
+    return h
+
+
+def replay_weights(process: ProcessMatrix, samples: int, ts: float, period_s: float
+                   ) -> tuple[np.ndarray, slice]:
+    """``q[i, k, h]``: the phasor at harmonic ``h`` of ``G_ik`` driven by ``u``, over a window
+    of whole periods after 300 s (or a period) of warm-up, is ``q[i, k, h] @ u`` (the sampled
+    model's impulse response correlated with the phasor's basis; exact for the simulator)."""
+    warm = round(max(period_s, 300.0) / ts)
+    whole = round((samples - warm) * ts // period_s * period_s / ts)
+    t = np.arange(whole) * ts
+    basis = np.exp(-2j * np.pi * np.outer(REPLAY_HARMONICS, t) / period_s) * 2 / whole
+    n = len(process)
+    q = np.zeros((n, n, len(REPLAY_HARMONICS), samples), complex)
+    for i, row in enumerate(process):
+        for k, g in enumerate(row):
+            if g is None:
+                continue
+            h = impulse_response(discretise(g, ts), warm)
+            for m, b in enumerate(basis):
+                full = np.zeros(samples, complex)
+                full[warm:warm + whole] = b
+                q[i, k, m] = fftconvolve(full[::-1], h)[:samples][::-1]
+    return q, slice(warm, warm + whole)
+
+
+def ridge_misfit(y: np.ndarray, weight: np.ndarray, regs: np.ndarray, sigma: float | None
+                 ) -> float:
+    """``min |w (y - sum_k (1 + e_k) z_k)|^2 + sum_k e_k^2 / sigma^2`` over real gain errors
+    ``e_k`` of one PV's row (``regs[k]`` the phasors ``z_k`` of ``G_ik u_k``); no ``e`` when
+    ``sigma`` is None."""
+    r, z = weight * (y - regs.sum(axis=0)), regs * weight
+    if sigma is None:
+        return float(np.sum(np.abs(r) ** 2))
+    a = np.real(np.conj(z) @ z.T) + np.eye(len(regs)) / sigma**2
+    b = np.real(np.conj(z) @ r)
+    return float(np.sum(np.abs(r) ** 2) - b @ np.linalg.solve(a, b))
+
+
+def oracle_replay() -> None:
+    """Would a replay of the sticky valves see valve 3 beside another, if each valve's
+    S, J and stick state were found?  On the calibration seeds, each sticky valve replayed
+    from its OP with its true fs and fd, its starting position chosen (of 201 over
+    [-fs, fs], by coordinate descent from the middle) to fit the PV phasors at harmonics
+    1, 3, 5, 7 (through the sampled model,
+    each matrix gain free within sigma = 20 %, or exact); the misfit of the true set and of
+    the set without its last valve (healthy), in units of 2 % of each PV phasor."""
+    print("== oracle: the replayed set with and without its last valve (calibration seeds) ==")
+    for seed in CALIBRATION_SEEDS[:2]:
+        for sticky in ((1, 2), (1, 3), (2, 3), (1, 2, 3)):
+            model, _ = randomised_column(sticky, seed)
+            run = model.run()
+            late = run.t >= 2000.0
+            op = [x - x.mean() for x in run.op[:, late]]
+            pv = list(run.pv[:, late])
+            period = measure_fingerprint(op, pv, 0.5).period_s
+            replays = {}
+            for i in sticky:
+                valve = model.loops[i - 1].valve
+                assert isinstance(valve, HeValve)
+                replays[i - 1] = he_replays(op[i - 1], valve.fs, valve.fd,
+                                            op[i - 1][0] + np.linspace(-valve.fs, valve.fs, 201))
+            line = []
+            for label, error, sigma in (("exact", 0.0, 0.2), ("20 % off", 0.2, 0.2),
+                                        ("20 % off, gains fixed", 0.2, None)):
+                um = unit_model(model, gain_error=error, seed=seed)
+                q, window = replay_weights(um.process, op[0].size, 0.5, period)
+                length = window.stop - window.start
+                basis = np.exp(-2j * np.pi * np.outer(REPLAY_HARMONICS, np.arange(length) * 0.5)
+                               / period) * 2 / length
+                y = np.array([basis @ (p[window] - p[window].mean()) for p in pv])
+                noise = np.array([np.diff(p).std() for p in pv]) * 2 / np.sqrt(2 * length)
+                weight = 1.0 / (0.02 * np.abs(y) + noise[:, None])
+                tables = {k: np.einsum("ihs,ps->pih", q[:, k], u) for k, u in replays.items()}
+                healthy = np.einsum("ikhs,ks->kih", q, np.array(op))
+
+                def misfit(chosen: dict[int, int], q_: np.ndarray = healthy,
+                           t_: dict[int, np.ndarray] = tables, w_: np.ndarray = weight,
+                           y_: np.ndarray = y, s_: float | None = sigma) -> float:
+                    return sum(ridge_misfit(y_[i], w_[i], np.array(
+                        [t_[k][chosen[k], i] if k in chosen else q_[k, i] for k in range(3)]), s_)
+                        for i in range(3))
+
+                def fit(members: list[int]) -> float:
+                    chosen = {k: 100 for k in members}
+                    for _ in range(3):
+                        for k in members:
+                            chosen[k] = min(range(201),
+                                            key=lambda at, k=k: misfit({**chosen, k: at}))
+                    return misfit(chosen)
+
+                members = [i - 1 for i in sticky]
+                line.append(f"{label}: {fit(members):.1f} against {fit(members[:-1]):.1f}")
+            print(f"  seed {seed} sticky {','.join(map(str, sticky)):6s} without valve "
+                  f"{sticky[-1]}: " + "; ".join(line), flush=True)
+    print()
+
+
 def tep_unit(name: str) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
     data = np.loadtxt(TEP / name)
     if data.shape[0] == 52:
@@ -401,6 +594,15 @@ def speed() -> None:
 if __name__ == "__main__":
     if sys.argv[1:] == ["model"]:
         model_localisation()
+        sys.exit()
+    if sys.argv[1:2] == ["score"]:
+        score_sets(SCORED_SEEDS if sys.argv[2:] == ["held-out"] else CALIBRATION_SEEDS)
+        sys.exit()
+    if sys.argv[1:] == ["oracle"]:
+        oracle_replay()
+        sys.exit()
+    if sys.argv[1:] == ["sync"]:
+        replay_sync()
         sys.exit()
     if sys.argv[1:] == ["why"]:
         confusion()
