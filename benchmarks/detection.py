@@ -234,6 +234,8 @@ def synthetic(transient: bool = False) -> None:
     errors_S, errors_J = [], []
     held_S, held_J = [], []  # the 95 % intervals (issue 19) hold the simulated S, J
     given: dict[str, list[bool | float]] = defaultdict(list)  # the same, the gain given
+    episode_ratios: list[float] = []  # S from the episodes over the simulated S
+    agreements: list[bool] = []  # the episodes' S agrees with the Hammerstein S
     for case in transient_library() if transient else synthetic_library():
         result = case.simulate()
         d = diagnose_loop(
@@ -244,6 +246,10 @@ def synthetic(transient: bool = False) -> None:
         by_cause[case.cause].append((case.label, d.stiction.verdict))
         ok = "ok " if case.label == d.stiction.verdict else "XX "
         size = ""
+        if d.episode_size is not None and d.episode_size.S is not None and case.S:
+            episode_ratios.append(d.episode_size.S / case.S)
+        if d.size_comparison is not None:
+            agreements.append(d.size_comparison.agree)
         q = d.quantification
         if q is not None and q.S is not None and q.J is not None and case.S and case.J:
             errors_S.append(abs(q.S - case.S) / case.S)
@@ -276,6 +282,11 @@ def synthetic(transient: bool = False) -> None:
     if held_S:
         print(f"95 % intervals hold the simulated S in {np.mean(held_S):.0%}, J in "
               f"{np.mean(held_J):.0%} of {len(held_S)} cases")
+    if episode_ratios:
+        low, mid, high = np.percentile(episode_ratios, [0, 50, 100])
+        print(f"S from the episodes (OP's travel from its turn to the slip) over the simulated "
+              f"S in {len(episode_ratios)} windows: median {mid:.2f}, range {low:.2f}-{high:.2f}; "
+              f"agrees with the Hammerstein S in {sum(agreements)} of {len(agreements)}")
     if given["S"]:
         print(f"with the simulated process gain given (quantify_with_gain): median relative "
               f"error S {statistics.median(given['S']):.1%}, J {statistics.median(given['J']):.1%};"
