@@ -7,7 +7,8 @@ So the OP travel from OP's turning point to the slip measures ``S`` itself,
 wherever the hold that PV shows begins: PV keeps answering the previous slip
 for a while after the valve stopped, so the hold's own OP travel
 (:func:`analytics.diagnosis.episode_stick_band`) misses the first part of the
-band and reads low (0.3-1.0 S on the synthetic library, median 0.65).
+band and reads low (0.38-0.81 S on the stiction cycles of the synthetic library,
+median 0.67).
 Without a reversal the valve, pushed on the same way after it stopped, slips
 again after ``J`` in Kano's model: that travel lies between ``J`` and ``S``.
 
