@@ -52,7 +52,12 @@ from analytics.errors import ModelSpecError
 from analytics.limit_cycle import simulate_limit_cycle
 from analytics.lti import TransferFunction
 from analytics.simulation import ClosedLoopModel
-from analytics.tuning import AMPLITUDE_TOLERANCE, PERIOD_TOLERANCE, excited_model
+from analytics.tuning import (
+    AMPLITUDE_TOLERANCE,
+    PERIOD_TOLERANCE,
+    excited_model,
+    relative_error,
+)
 from analytics.valves import ChoudhuryValve, HeValve, KanoValve, ValveModel, sj_to_fsfd
 
 __all__ = ["CycleFit", "FittedValve", "ValveKind", "fit_valve_to_cycle", "valve_of"]
@@ -102,12 +107,6 @@ def _sj(valve: ValveModel) -> tuple[float, float]:
         return valve.S, valve.J
     assert isinstance(valve, ChoudhuryValve)
     return valve.S, valve.J
-
-
-def _error(model: float | None, measured: float | None) -> float | None:
-    if model is None or measured is None or not measured > 0 or not math.isfinite(model):
-        return None
-    return (model - measured) / measured
 
 
 @dataclass(frozen=True)
@@ -298,7 +297,7 @@ class _Simulator:
             period = sim.period_s if sim.oscillating else None
             self.tried[key] = FittedValve(
                 kind, float(S), float(J), period, amplitude,
-                _error(period, self.period_s), _error(amplitude, self.amplitude))
+                relative_error(period, self.period_s), relative_error(amplitude, self.amplitude))
         return self.tried[key]
 
 

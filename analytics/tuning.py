@@ -1404,7 +1404,8 @@ PERIOD_TOLERANCE = 0.15
 AMPLITUDE_TOLERANCE = 0.25
 
 
-def _relative_error(model: float | None, measured: float | None) -> float | None:
+def relative_error(model: float | None, measured: float | None) -> float | None:
+    """``(model - measured) / measured``; None without both, or a measured value <= 0."""
     if model is None or measured is None or not measured > 0 or not math.isfinite(model):
         return None
     return (model - measured) / measured
@@ -1465,10 +1466,10 @@ class CycleAgreement:
         """
         return cls(
             period_s, amplitude,
-            _relative_error(predicted[0], period_s),
-            _relative_error(simulated[0], period_s),
-            _relative_error(predicted[1], amplitude),
-            _relative_error(simulated[1], amplitude),
+            relative_error(predicted[0], period_s),
+            relative_error(simulated[0], period_s),
+            relative_error(predicted[1], amplitude),
+            relative_error(simulated[1], amplitude),
         )
 
     @property
