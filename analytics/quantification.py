@@ -27,7 +27,7 @@ Linear part, first order with dead time, optionally with an integrator::
 on block means of ``h / ts`` raw samples (``h`` about a 25th of the
 oscillation period), with MV delayed by a whole number of *raw* samples
 before the averaging; the lag's block means are exact for MV held at its
-block mean (:func:`_lags`).  The dead time needs that resolution: a later slip of
+block mean (:func:`_lag_step`).  The dead time needs that resolution: a later slip of
 a larger stick band and a longer dead time look alike, so a coarse delay
 would bias S by the OP travel in one block.  The offset ``c`` and ramp
 ``d b`` take up the unknown operating point and a slow drift (for an
@@ -435,30 +435,47 @@ def combine_windows(
 # compiled kernels
 
 
+@njit(cache=True, inline="always")
+def _block_mean(cm: FloatArray, factor: int, delay: int, b: int) -> float:
+    """Mean over block ``b`` of MV delayed by ``delay`` raw samples, from its cumulative
+    sum ``cm`` (``cm[k]`` is the sum of the first ``k`` raw MV samples).  A block
+    reaching before the first sample averages what exists (it lies in the unscored
+    start)."""
+    lo = max(b * factor - delay, 0)
+    hi = max((b + 1) * factor - delay, 0)
+    return (cm[hi] - cm[lo]) / (hi - lo) if hi > lo else cm[1]
+
+
 @njit(cache=True)
 def _delayed_block_means(cm: FloatArray, factor: int, delay: int, n_blocks: int) -> FloatArray:
-    """Block means of MV delayed by ``delay`` raw samples, from its cumulative sum ``cm``.
-
-    ``cm[k]`` is the sum of the first ``k`` raw MV samples.  Blocks reaching
-    before the first sample average what exists (they lie in the unscored
-    start).
-    """
+    """The :func:`_block_mean` of every block."""
     out = np.empty(n_blocks)
     for b in range(n_blocks):
-        lo = max(b * factor - delay, 0)
-        hi = max((b + 1) * factor - delay, 0)
-        out[b] = (cm[hi] - cm[lo]) / (hi - lo) if hi > lo else cm[1]
+        out[b] = _block_mean(cm, factor, delay, b)
     return out
 
 
-@njit(cache=True)
-def _lags(u: FloatArray, factor: int, poles: FloatArray) -> FloatArray:
-    """Block means of the lag ``x_k = r x_{k-1} + (1 - r) u_k`` of the raw samples, one
-    column per pole ``a`` of ``poles`` (``r = a^(1 / factor)``, ``a`` the lag's pole
-    per block), driven by the raw samples held at the block means ``u``.
+@njit(cache=True, inline="always")
+def _lag_gains(a: float, factor: int) -> tuple[float, float]:
+    """Gains ``(a, g)`` of :func:`_lag_step` for the pole ``a`` per block of ``factor``
+    raw samples (no lag for ``a = 0``)."""
+    r = a ** (1.0 / factor) if a > 0.0 else 0.0
+    end_gain = a if a > 0.0 else 0.0
+    mean_gain = r * (1.0 - end_gain) / (factor * (1.0 - r)) if r > 0.0 else 0.0
+    return end_gain, mean_gain
 
-    The lag's state ``e`` at the end of a block and its mean over the next,
-    whose input mean is ``u``, follow exactly from the raw recursion::
+
+@njit(cache=True, inline="always")
+def _lag_step(
+    state: float, u: float, end_gain: float, mean_gain: float
+) -> tuple[float, float]:
+    """One block of the lag ``x_k = r x_{k-1} + (1 - r) u_k`` of the raw samples
+    (``r = a^(1 / factor)``, ``a`` the lag's pole per block), driven by the raw samples
+    held at the block's mean ``u``: the lag's mean over the block and its state at
+    the block's end.
+
+    The state ``e`` at the end of a block and the mean over the next follow
+    exactly from the raw recursion (gains from :func:`_lag_gains`)::
 
         e_b = a e_{b-1} + (1 - a) u_b
         mean_b = g e_{b-1} + (1 - g) u_b,    g = r (1 - a) / (factor (1 - r))
@@ -470,42 +487,32 @@ def _lags(u: FloatArray, factor: int, poles: FloatArray) -> FloatArray:
     process, enough for a valve model that slips at another time to fit
     better (the demo's FV-105, He S 8, J 4, read as a Kano valve of S 6.96
     in one window: R^2 0.993 against 0.991 for its own valve, 0.9998 with the
-    exact lag).  The poles run side by side (the columns are contiguous per
-    block), so their recursions overlap instead of waiting on each other; a
-    single pole keeps its state in a register instead.
+    exact lag).
+    """
+    return (mean_gain * state + (1.0 - mean_gain) * u,
+            end_gain * state + (1.0 - end_gain) * u)
+
+
+@njit(cache=True)
+def _lags(u: FloatArray, factor: int, poles: FloatArray) -> FloatArray:
+    """Block means of the lag of each pole of ``poles`` driven by the block means ``u``
+    (:func:`_lag_step`), one column per pole, the lag starting at rest at ``u[0]``.
+
+    The poles run side by side (the columns are contiguous per block), so their
+    recursions overlap instead of waiting on each other.
     """
     n_blocks, n_poles = u.shape[0], poles.shape[0]
     end_gain = np.empty(n_poles)
     mean_gain = np.empty(n_poles)
     for p in range(n_poles):
-        a = poles[p]
-        r = a ** (1.0 / factor) if a > 0.0 else 0.0
-        end_gain[p] = a if a > 0.0 else 0.0
-        mean_gain[p] = r * (1.0 - end_gain[p]) / (factor * (1.0 - r)) if r > 0.0 else 0.0
+        end_gain[p], mean_gain[p] = _lag_gains(poles[p], factor)
     out = np.empty((n_blocks, n_poles))
-    if n_poles == 1:
-        end, mean = end_gain[0], mean_gain[0]
-        state_1 = u[0]
-        for b in range(n_blocks):
-            out[b, 0] = mean * state_1 + (1.0 - mean) * u[b]
-            state_1 = end * state_1 + (1.0 - end) * u[b]
-        return out
     state = np.full(n_poles, u[0])
     for b in range(n_blocks):
         row = out[b]
         for p in range(n_poles):
-            row[p] = mean_gain[p] * state[p] + (1.0 - mean_gain[p]) * u[b]
-            state[p] = end_gain[p] * state[p] + (1.0 - end_gain[p]) * u[b]
+            row[p], state[p] = _lag_step(state[p], u[b], end_gain[p], mean_gain[p])
     return out
-
-
-@njit(cache=True)
-def _lagged_block_means(
-    cm: FloatArray, factor: int, delay: int, n_blocks: int, poles: FloatArray
-) -> FloatArray:
-    """:func:`_lags` of MV delayed by ``delay`` raw samples and held at its mean over
-    each block (``cm`` is MV's cumulative sum, as for :func:`_delayed_block_means`)."""
-    return _lags(_delayed_block_means(cm, factor, delay, n_blocks), factor, poles)
 
 
 @njit(cache=True)
@@ -536,26 +543,30 @@ def _residual(
 
 
 @njit(cache=True)
-def _fit_columns(
-    x: FloatArray, y: FloatArray, start: int, sign: float, fixed: float
-) -> tuple[FloatArray, FloatArray]:
-    """Residual and gain of ``y_i ~ c + d i + K x[start + i, p]`` for each column ``p``
-    of ``x`` (``y`` detrended; ``K = fixed`` unless NaN)."""
+def _fit_at_delay(
+    cm: FloatArray, factor: int, delay: int, a: float, y: FloatArray, start: int,
+    sign: float, fixed: float,
+) -> tuple[float, float]:
+    """Residual and gain of ``y_i ~ c + d i + K x_{start + i}`` (``y`` detrended;
+    ``K = fixed`` unless NaN), ``x`` the lag of pole ``a`` (:func:`_lag_step`) of MV
+    delayed by ``delay`` raw samples (:func:`_block_mean`): the lag and the sums of
+    the fit in one pass."""
     m = y.shape[0]
     t_mean = 0.5 * (m - 1)
-    sse = np.empty(x.shape[1])
-    gain = np.empty(x.shape[1])
-    for p in range(x.shape[1]):
-        s_r = s_rr = s_tr = s_ry = s_yy = 0.0
-        for i in range(m):
-            v = x[start + i, p]
-            s_r += v
-            s_rr += v * v
-            s_tr += (i - t_mean) * v
-            s_ry += v * y[i]
-            s_yy += y[i] * y[i]
-        sse[p], gain[p] = _residual(s_r, s_rr, s_tr, s_ry, s_yy, m, sign, fixed)
-    return sse, gain
+    end_gain, mean_gain = _lag_gains(a, factor)
+    state = _block_mean(cm, factor, delay, 0)
+    for b in range(start):
+        state = _lag_step(state, _block_mean(cm, factor, delay, b), end_gain, mean_gain)[1]
+    s_r = s_rr = s_tr = s_ry = s_yy = 0.0
+    for i in range(m):
+        v, state = _lag_step(state, _block_mean(cm, factor, delay, start + i), end_gain,
+                             mean_gain)
+        s_r += v
+        s_rr += v * v
+        s_tr += (i - t_mean) * v
+        s_ry += v * y[i]
+        s_yy += y[i] * y[i]
+    return _residual(s_r, s_rr, s_tr, s_ry, s_yy, m, sign, fixed)
 
 
 @njit(cache=True)
@@ -640,7 +651,8 @@ def _best_linear_fits(
     best = np.full(n_t, np.inf)
     best_pole = np.full(n_t, limits[0])
     best_delay = np.ones(n_t, dtype=np.int64)
-    x = _lagged_block_means(cm, factor, 1, n_blocks, poles[limits[0] : limits[1] + 1])
+    x = _lags(_delayed_block_means(cm, factor, 1, n_blocks), factor,
+              poles[limits[0] : limits[1] + 1])
     p1, p2, pk = _prefix_sums(x)
     lo_min = start - limits[3]
     n_poles = x.shape[1]
@@ -661,13 +673,12 @@ def _best_linear_fits(
     max_delay = 1 + limits[3] * factor
     for t in range(n_t):
         step = factor // 2
-        pole = poles[best_pole[t] : best_pole[t] + 1]
         while step >= 1:
             centre = best_delay[t]
             for delay in (centre - step, centre + step):
                 if 1 <= delay <= max_delay:
-                    x = _lagged_block_means(cm, factor, delay, n_blocks, pole)
-                    sse = _fit_columns(x, targets[t], start, sign, fixed[t])[0][0]
+                    sse = _fit_at_delay(cm, factor, delay, poles[best_pole[t]], targets[t],
+                                        start, sign, fixed[t])[0]
                     if sse < best[t]:
                         best[t] = sse
                         best_delay[t] = delay
@@ -688,18 +699,13 @@ def _every_linear_fit(
 ) -> tuple[float, int, int]:
     """Best output-error fit of ``target`` over every pole and every raw delay from 1 to
     ``max_delay``: residual, pole index and delay (for the one healthy-valve candidate,
-    see :meth:`_Window.score_healthy_valve`); of equal fits the first pole, then the
-    shortest delay."""
-    n_blocks = start + target.shape[0]
-    sse = np.empty((poles.shape[0], max_delay))
-    for delay in range(1, max_delay + 1):
-        x = _lagged_block_means(cm, factor, delay, n_blocks, poles)
-        sse[:, delay - 1] = _fit_columns(x, target, start, sign, fixed)[0]
+    see :meth:`_Window.score_healthy_valve`)."""
     best, best_pole, best_delay = np.inf, 0, 1
     for ip in range(poles.shape[0]):
         for delay in range(1, max_delay + 1):
-            if sse[ip, delay - 1] < best:
-                best, best_pole, best_delay = sse[ip, delay - 1], ip, delay
+            sse = _fit_at_delay(cm, factor, delay, poles[ip], target, start, sign, fixed)[0]
+            if sse < best:
+                best, best_pole, best_delay = sse, ip, delay
     return best, best_pole, best_delay
 
 
@@ -1215,8 +1221,8 @@ def _final_fit(
     fixed = float(window.fixed_gains[row])
 
     def residual(a: float) -> float:
-        x = _lagged_block_means(cm, window.factor, delay, n_blocks, np.array([a]))
-        return float(_fit_columns(x, target, window.start, window.gain_sign, fixed)[0][0])
+        return float(_fit_at_delay(cm, window.factor, delay, a, target, window.start,
+                                   window.gain_sign, fixed)[0])
 
     a = float(window.poles[pole])
     lo = float(window.poles[max(pole - 1, 0)])
@@ -1224,7 +1230,8 @@ def _final_fit(
     found = minimize_scalar(residual, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
     if float(found.fun) < residual(a):
         a = float(found.x)
-    x = _lagged_block_means(cm, window.factor, delay, n_blocks, np.array([a]))[window.start :, 0]
+    u = _delayed_block_means(cm, window.factor, delay, n_blocks)
+    x = _lags(u, window.factor, np.array([a]))[window.start :, 0]
     m = x.size
     line = np.column_stack([np.ones(m), np.arange(m, dtype=np.float64)])
     if not math.isnan(fixed):  # the gain is given: only the offset and ramp are fitted
