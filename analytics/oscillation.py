@@ -61,7 +61,7 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
 from scipy import signal
 from scipy.stats import f as f_dist
@@ -259,35 +259,59 @@ def _bandpass_gain(f: FloatArray, fc: float, band_ratio: float, order: int) -> F
     return np.asarray(h2, dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class _Bank:
+    """The part of :func:`_filterbank` that depends only on the channels' frequencies."""
+
+    bins: NDArray[np.int64]  # fine bin of each channel that falls in one
+    in_bins: NDArray[np.bool_]  # which channels do (of ``f[1:]``)
+    n_bins: int
+    occupied: NDArray[np.bool_]  # bins holding a channel
+    gain: FloatArray  # filter gain, band x occupied bin
+    weight: FloatArray  # each band's gain summed over the channels
+
+
+@lru_cache(maxsize=64)
+def _bank(nfft: int, centres: tuple[float, ...], band_ratio: float, order: int) -> _Bank:
+    """The fine log-spaced bins of the channels of an ``nfft``-point transform and the
+    gains of the bands at ``centres`` over them (cached: the segments of a window,
+    and the windows of a loop, share their lengths)."""
+    f = (np.arange(nfft // 2 + 1, dtype=np.float64) / nfft)[1:]
+    fc = np.array(centres)
+    lo = float(fc[0]) / (4.0 * band_ratio)
+    hi = 0.5 + 1e-12
+    nb = max(int(np.ceil(np.log2(hi / lo) * 32)), 8)
+    edges = lo * (hi / lo) ** (np.arange(nb + 1) / nb)
+    idx = np.searchsorted(edges, f, side="right") - 1
+    ok = (idx >= 0) & (idx < nb)
+    cb = np.bincount(idx[ok], minlength=nb).astype(np.float64)
+    fsum = np.bincount(idx[ok], weights=f[ok], minlength=nb)
+    has = cb > 0
+    fb = fsum[has] / cb[has]
+    bw = band_ratio - 1.0 / band_ratio
+    w2 = np.square((fb[None, :] / fc[:, None] - fc[:, None] / fb[None, :]) / bw)
+    g = 1.0 / (1.0 + w2 if order == 1 else 1.0 + w2**order)
+    bank = _Bank(idx[ok], ok, nb, has, g, g @ cb[has])
+    for array in (bank.bins, bank.in_bins, bank.occupied, bank.gain, bank.weight):
+        array.setflags(write=False)  # shared by every caller
+    return bank
+
+
 def _filterbank(
     spec: Spectrum, centres: FloatArray, band_ratio: float, order: int
 ) -> tuple[FloatArray, FloatArray]:
     """Power fraction and mean spectral density of each band of a constant-Q bank.
 
     The periodogram channels are first summed into fine log-spaced bins so the
-    cost does not grow with the window length.  The density is normalised by
-    the filter's gain summed over the channels that exist, so bands that reach
-    past 0 or the Nyquist frequency are not biased.
+    cost does not grow with the window length (:func:`_bank`).  The density is
+    normalised by the filter's gain summed over the channels that exist, so
+    bands that reach past 0 or the Nyquist frequency are not biased.
     """
-    f = spec.f[1:]
+    bank = _bank(spec.nfft, tuple(centres.tolist()), band_ratio, order)
     P = spec.P[1:]
-    lo = float(centres[0]) / (4.0 * band_ratio)
-    hi = 0.5 + 1e-12
-    nb = max(int(np.ceil(np.log2(hi / lo) * 32)), 8)
-    edges = lo * (hi / lo) ** (np.arange(nb + 1) / nb)
-    idx = np.searchsorted(edges, f, side="right") - 1
-    ok = (idx >= 0) & (idx < nb)
-    pb = np.bincount(idx[ok], weights=P[ok], minlength=nb)
-    cb = np.bincount(idx[ok], minlength=nb).astype(np.float64)
-    fsum = np.bincount(idx[ok], weights=f[ok], minlength=nb)
-    has = cb > 0
-    fb = fsum[has] / cb[has]
-    pb, cb = pb[has], cb[has]
-    bw = band_ratio - 1.0 / band_ratio
-    w2 = np.square((fb[None, :] / centres[:, None] - centres[:, None] / fb[None, :]) / bw)
-    g = 1.0 / (1.0 + w2 if order == 1 else 1.0 + w2**order)
-    power = g @ pb
-    weight = g @ cb
+    pb = np.bincount(bank.bins, weights=P[bank.in_bins], minlength=bank.n_bins)
+    power = bank.gain @ pb[bank.occupied]
+    weight = bank.weight
     frac = power / spec.total
     dens = np.where(weight > 0, power / np.where(weight > 0, weight, 1.0), 0.0)
     return np.asarray(frac, dtype=np.float64), np.asarray(dens, dtype=np.float64)

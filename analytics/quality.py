@@ -506,25 +506,26 @@ def _check_signal(
     scale = hi - lo
     eps = 1e-9 * max(scale, abs(hi), abs(lo))
 
-    sat_values = _check_saturation(name, x, rng, lo, hi, eps, lim, issues)
+    values, counts = np.unique(x, return_counts=True)  # sorted, for three of the checks
+    sat_values = _check_saturation(name, x, rng, values, counts, lim, issues)
     if name not in HELD_BY_DESIGN_SIGNALS:
         _check_flatline(name, x, sat_values, lim, issues)
-    quantised = _check_quantisation(name, x, eps, lim, issues)
+    quantised = _check_quantisation(name, x, values.size, eps, lim, issues)
     if name not in HELD_BY_DESIGN_SIGNALS:
-        _check_compression(name, x, eps, quantised, lim, issues)
+        _check_compression(name, x, values, eps, quantised, lim, issues)
 
 
 def _check_saturation(
     name: str,
     x: NDArray[np.float64],
     rng: tuple[float, float] | None,
-    lo: float,
-    hi: float,
-    eps: float,
+    levels: NDArray[np.float64],
+    counts: NDArray[np.intp],
     lim: QualityLimits,
     issues: list[QualityIssue],
 ) -> tuple[float, ...]:
-    """Report clipping at the range ends; returns the saturated value(s)."""
+    """Report clipping at the range ends; returns the saturated value(s).  ``levels``
+    and ``counts`` are the distinct values of ``x`` and how often each occurs."""
     n = x.size
     found: list[tuple[str, float, float]] = []  # (end, value, fraction)
     if rng is not None:
@@ -537,15 +538,13 @@ def _check_saturation(
             frac = np.count_nonzero(mask) / n
             if frac >= lim.saturation_fraction:
                 found.append((end, value, frac))
-    else:
-        levels, counts = np.unique(x, return_counts=True)
-        if levels.size >= 3:
-            for end, k, nb in (("lower", 0, 1), ("upper", -1, -2)):
-                frac = counts[k] / n
-                # A clipped signal piles up at the limit; a quantised one visits
-                # its extreme level about as often as the neighbouring level.
-                if frac >= lim.saturation_fraction and counts[k] >= 3 * counts[nb]:
-                    found.append((end, float(levels[k]), frac))
+    elif levels.size >= 3:
+        for end, k, nb in (("lower", 0, 1), ("upper", -1, -2)):
+            frac = counts[k] / n
+            # A clipped signal piles up at the limit; a quantised one visits
+            # its extreme level about as often as the neighbouring level.
+            if frac >= lim.saturation_fraction and counts[k] >= 3 * counts[nb]:
+                found.append((end, float(levels[k]), frac))
     total = sum(f for _, _, f in found)
     if not found:
         return ()
@@ -600,6 +599,7 @@ def _check_flatline(
 def _check_quantisation(
     name: str,
     x: NDArray[np.float64],
+    n_distinct: int,
     eps: float,
     lim: QualityLimits,
     issues: list[QualityIssue],
@@ -612,7 +612,6 @@ def _check_quantisation(
     p1, p99 = np.percentile(x, [1, 99])
     span = float(p99 - p1) if p99 > p1 else float(x.max() - x.min())
     levels = span / q
-    n_distinct = int(np.unique(x).size)
     if n_distinct <= lim.quantisation_fatal_levels:
         sev: Severity = "fatal"
     elif levels < lim.quantisation_levels:
@@ -635,6 +634,7 @@ def _check_quantisation(
 def _check_compression(
     name: str,
     x: NDArray[np.float64],
+    u: NDArray[np.float64],
     eps: float,
     quantised: bool,
     lim: QualityLimits,
@@ -647,8 +647,7 @@ def _check_compression(
     # Values read back from an archive are rounded to its resolution; the
     # finest spacing between distinct values estimates that resolution.
     tol = 8.0 * eps
-    u = np.unique(x)
-    if u.size > 1:
+    if u.size > 1:  # u: the distinct values of x, sorted
         lsb = float(np.min(np.diff(u)))
         nz1 = np.abs(d1[np.abs(d1) > eps])
         # Only trust a coarse storage resolution when the signal's own steps

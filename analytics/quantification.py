@@ -27,7 +27,7 @@ Linear part, first order with dead time, optionally with an integrator::
 on block means of ``h / ts`` raw samples (``h`` about a 25th of the
 oscillation period), with MV delayed by a whole number of *raw* samples
 before the averaging; the lag's block means are exact for MV held at its
-block mean (:func:`_lagged_block_means`).  The dead time needs that resolution: a later slip of
+block mean (:func:`_lag_step`).  The dead time needs that resolution: a later slip of
 a larger stick band and a longer dead time look alike, so a coarse delay
 would bias S by the OP travel in one block.  The offset ``c`` and ramp
 ``d b`` take up the unknown operating point and a slow drift (for an
@@ -476,33 +476,47 @@ def combine_windows(
 # compiled kernels
 
 
+@njit(cache=True, inline="always")
+def _block_mean(cm: FloatArray, factor: int, delay: int, b: int) -> float:
+    """Mean over block ``b`` of MV delayed by ``delay`` raw samples, from its cumulative
+    sum ``cm`` (``cm[k]`` is the sum of the first ``k`` raw MV samples).  A block
+    reaching before the first sample averages what exists (it lies in the unscored
+    start)."""
+    lo = max(b * factor - delay, 0)
+    hi = max((b + 1) * factor - delay, 0)
+    return (cm[hi] - cm[lo]) / (hi - lo) if hi > lo else cm[1]
+
+
 @njit(cache=True)
 def _delayed_block_means(cm: FloatArray, factor: int, delay: int, n_blocks: int) -> FloatArray:
-    """Block means of MV delayed by ``delay`` raw samples, from its cumulative sum ``cm``.
-
-    ``cm[k]`` is the sum of the first ``k`` raw MV samples.  Blocks reaching
-    before the first sample average what exists (they lie in the unscored
-    start).
-    """
+    """The :func:`_block_mean` of every block."""
     out = np.empty(n_blocks)
     for b in range(n_blocks):
-        lo = max(b * factor - delay, 0)
-        hi = max((b + 1) * factor - delay, 0)
-        out[b] = (cm[hi] - cm[lo]) / (hi - lo) if hi > lo else cm[1]
+        out[b] = _block_mean(cm, factor, delay, b)
     return out
 
 
-@njit(cache=True)
-def _lagged_block_means(
-    cm: FloatArray, factor: int, delay: int, n_blocks: int, a: float
-) -> FloatArray:
-    """Block means of the lag ``x_k = r x_{k-1} + (1 - r) u_k`` of the raw samples
-    (``r = a^(1 / factor)``, ``a`` the lag's pole per block), driven by MV delayed by
-    ``delay`` raw samples and held at its mean over each block (``cm`` is MV's
-    cumulative sum, as for :func:`_delayed_block_means`).
+@njit(cache=True, inline="always")
+def _lag_gains(a: float, factor: int) -> tuple[float, float]:
+    """Gains ``(a, g)`` of :func:`_lag_step` for the pole ``a`` per block of ``factor``
+    raw samples (no lag for ``a = 0``)."""
+    r = a ** (1.0 / factor) if a > 0.0 else 0.0
+    end_gain = a if a > 0.0 else 0.0
+    mean_gain = r * (1.0 - end_gain) / (factor * (1.0 - r)) if r > 0.0 else 0.0
+    return end_gain, mean_gain
 
-    The lag's state ``e`` at the end of a block and its mean over the next,
-    whose input mean is ``u``, follow exactly from the raw recursion::
+
+@njit(cache=True, inline="always")
+def _lag_step(
+    state: float, u: float, end_gain: float, mean_gain: float
+) -> tuple[float, float]:
+    """One block of the lag ``x_k = r x_{k-1} + (1 - r) u_k`` of the raw samples
+    (``r = a^(1 / factor)``, ``a`` the lag's pole per block), driven by the raw samples
+    held at the block's mean ``u``: the lag's mean over the block and its state at
+    the block's end.
+
+    The state ``e`` at the end of a block and the mean over the next follow
+    exactly from the raw recursion (gains from :func:`_lag_gains`)::
 
         e_b = a e_{b-1} + (1 - a) u_b
         mean_b = g e_{b-1} + (1 - g) u_b,    g = r (1 - a) / (factor (1 - r))
@@ -516,15 +530,29 @@ def _lagged_block_means(
     in one window: R^2 0.993 against 0.991 for its own valve, 0.9998 with the
     exact lag).
     """
-    u = _delayed_block_means(cm, factor, delay, n_blocks)
-    r = a ** (1.0 / factor) if a > 0.0 else 0.0
-    end_gain = a if a > 0.0 else 0.0
-    mean_gain = r * (1.0 - end_gain) / (factor * (1.0 - r)) if r > 0.0 else 0.0
-    out = np.empty(n_blocks)
-    state = u[0]
+    return (mean_gain * state + (1.0 - mean_gain) * u,
+            end_gain * state + (1.0 - end_gain) * u)
+
+
+@njit(cache=True)
+def _lags(u: FloatArray, factor: int, poles: FloatArray) -> FloatArray:
+    """Block means of the lag of each pole of ``poles`` driven by the block means ``u``
+    (:func:`_lag_step`), one column per pole, the lag starting at rest at ``u[0]``.
+
+    The poles run side by side (the columns are contiguous per block), so their
+    recursions overlap instead of waiting on each other.
+    """
+    n_blocks, n_poles = u.shape[0], poles.shape[0]
+    end_gain = np.empty(n_poles)
+    mean_gain = np.empty(n_poles)
+    for p in range(n_poles):
+        end_gain[p], mean_gain[p] = _lag_gains(poles[p], factor)
+    out = np.empty((n_blocks, n_poles))
+    state = np.full(n_poles, u[0])
     for b in range(n_blocks):
-        out[b] = mean_gain * state + (1.0 - mean_gain) * u[b]
-        state = end_gain * state + (1.0 - end_gain) * u[b]
+        row = out[b]
+        for p in range(n_poles):
+            row[p], state[p] = _lag_step(state[p], u[b], end_gain[p], mean_gain[p])
     return out
 
 
@@ -556,16 +584,24 @@ def _residual(
 
 
 @njit(cache=True)
-def _fit_at_shift(
-    x: FloatArray, shift: int, y: FloatArray, start: int, sign: float, fixed: float
+def _fit_at_delay(
+    cm: FloatArray, factor: int, delay: int, a: float, y: FloatArray, start: int,
+    sign: float, fixed: float,
 ) -> tuple[float, float]:
-    """Residual and gain of ``y_i ~ c + d i + K x_{start + i - shift}`` (``y`` detrended;
-    ``K = fixed`` unless NaN)."""
+    """Residual and gain of ``y_i ~ c + d i + K x_{start + i}`` (``y`` detrended;
+    ``K = fixed`` unless NaN), ``x`` the lag of pole ``a`` (:func:`_lag_step`) of MV
+    delayed by ``delay`` raw samples (:func:`_block_mean`): the lag and the sums of
+    the fit in one pass."""
     m = y.shape[0]
     t_mean = 0.5 * (m - 1)
+    end_gain, mean_gain = _lag_gains(a, factor)
+    state = _block_mean(cm, factor, delay, 0)
+    for b in range(start):
+        state = _lag_step(state, _block_mean(cm, factor, delay, b), end_gain, mean_gain)[1]
     s_r = s_rr = s_tr = s_ry = s_yy = 0.0
     for i in range(m):
-        v = x[start + i - shift]
+        v, state = _lag_step(state, _block_mean(cm, factor, delay, start + i), end_gain,
+                             mean_gain)
         s_r += v
         s_rr += v * v
         s_tr += (i - t_mean) * v
@@ -575,37 +611,65 @@ def _fit_at_shift(
 
 
 @njit(cache=True)
-def _cross_products(x: FloatArray, lo: int, targets: FloatArray, n_q: int) -> FloatArray:
-    """``out[t, q] = sum_i x[lo + q + i] targets[t, i]`` for ``q < n_q``.
+def _prefix_sums(x: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Running sums of ``x[k]``, ``x[k]^2`` and ``k x[k]`` down each column of ``x``,
+    with a leading row of zeros."""
+    n, n_columns = x.shape
+    p1 = np.zeros((n + 1, n_columns))
+    p2 = np.zeros((n + 1, n_columns))
+    pk = np.zeros((n + 1, n_columns))
+    for k in range(n):
+        for p in range(n_columns):
+            v = x[k, p]
+            p1[k + 1, p] = p1[k, p] + v
+            p2[k + 1, p] = p2[k, p] + v * v
+            pk[k + 1, p] = pk[k, p] + k * v
+    return p1, p2, pk
 
-    Each sum runs over ``i`` in order, as a single dot product would; four
-    shifts at a time share the loads and keep four sums in flight.
+
+@njit(cache=True)
+def _cross_products(x: FloatArray, lo: int, targets: FloatArray, n_q: int) -> FloatArray:
+    """``out[t, q * P + p] = sum_i x[lo + q + i, p] targets[t, i]`` for ``q < n_q``, ``P``
+    the columns of ``x``.
+
+    Each sum runs over ``i`` in order, as a single dot product would.  For one
+    ``i`` the sums of every ``q`` and ``p`` take the rows ``lo + i .. lo + i + n_q - 1``,
+    which are contiguous: each ``i`` adds one slice of ``x`` times ``targets[t, i]``,
+    four ``i`` at a time so that each sum is loaded and stored once per four.
     """
     n_t, m = targets.shape
-    out = np.empty((n_t, n_q))
+    n_columns = x.shape[1]
+    span = n_q * n_columns
+    flat = x.ravel()
+    out = np.zeros((n_t, span))
     for t in range(n_t):
         y = targets[t]
-        q = 0
-        while q + 4 <= n_q:
-            xs = x[lo + q :]
-            s0 = s1 = s2 = s3 = 0.0
-            for i in range(m):
-                s0 += xs[i] * y[i]
-                s1 += xs[i + 1] * y[i]
-                s2 += xs[i + 2] * y[i]
-                s3 += xs[i + 3] * y[i]
-            out[t, q] = s0
-            out[t, q + 1] = s1
-            out[t, q + 2] = s2
-            out[t, q + 3] = s3
-            q += 4
-        for r in range(q, n_q):
-            xs = x[lo + r :]
-            s0 = 0.0
-            for i in range(m):
-                s0 += xs[i] * y[i]
-            out[t, r] = s0
+        sums = out[t]
+        i = 0
+        while i + 4 <= m:
+            at = (lo + i) * n_columns
+            x0 = flat[at : at + span]
+            x1 = flat[at + n_columns : at + n_columns + span]
+            x2 = flat[at + 2 * n_columns : at + 2 * n_columns + span]
+            x3 = flat[at + 3 * n_columns : at + 3 * n_columns + span]
+            y0, y1, y2, y3 = y[i], y[i + 1], y[i + 2], y[i + 3]
+            for k in range(span):
+                sums[k] = sums[k] + x0[k] * y0 + x1[k] * y1 + x2[k] * y2 + x3[k] * y3
+            i += 4
+        for rest in range(i, m):
+            at = (lo + rest) * n_columns
+            x0 = flat[at : at + span]
+            for k in range(span):
+                sums[k] += x0[k] * y[rest]
     return out
+
+
+VECTOR_COLUMNS = 16
+"""The compiled loops over the columns of :func:`_lags` and :func:`_prefix_sums` run
+in vector registers in groups of this many columns (8 lanes of AVX-512, unrolled
+twice) and one column at a time for the rest: the 14 poles of the full linear-model
+grid are padded to 16, which costs less than the scalar loop over 14; the three
+poles around a point are left as they are."""
 
 
 @njit(cache=True)
@@ -636,33 +700,28 @@ def _best_linear_fits(
     best = np.full(n_t, np.inf)
     best_pole = np.full(n_t, limits[0])
     best_delay = np.ones(n_t, dtype=np.int64)
-    p1 = np.empty(n_blocks + 1)
-    p2 = np.empty(n_blocks + 1)
-    pk = np.empty(n_blocks + 1)
-    p1[0] = p2[0] = pk[0] = 0.0
+    tried = poles[limits[0] : limits[1] + 1]
+    n_tried = tried.shape[0]
+    if n_tried > VECTOR_COLUMNS // 2:  # padded with the last pole, never chosen
+        width = -(-n_tried // VECTOR_COLUMNS) * VECTOR_COLUMNS
+        tried = np.concatenate((tried, np.full(width - n_tried, tried[-1])))
+    x = _lags(_delayed_block_means(cm, factor, 1, n_blocks), factor, tried)
+    p1, p2, pk = _prefix_sums(x)
     lo_min = start - limits[3]
-    for ip in range(limits[0], limits[1] + 1):
-        x = _lagged_block_means(cm, factor, 1, n_blocks, poles[ip])
-        c1 = c2 = ck = 0.0
-        for k in range(n_blocks):
-            c1 += x[k]
-            c2 += x[k] * x[k]
-            ck += k * x[k]
-            p1[k + 1] = c1
-            p2[k + 1] = c2
-            pk[k + 1] = ck
-        cross = _cross_products(x, lo_min, targets, limits[3] - limits[2] + 1)
+    n_poles = x.shape[1]
+    cross = _cross_products(x, lo_min, targets, limits[3] - limits[2] + 1)
+    for p in range(n_tried):
         for j in range(limits[2], limits[3] + 1):
             lo = start - j
-            s_r = p1[lo + m] - p1[lo]
-            s_rr = p2[lo + m] - p2[lo]
-            s_tr = pk[lo + m] - pk[lo] - (lo + t_mean) * s_r
+            s_r = p1[lo + m, p] - p1[lo, p]
+            s_rr = p2[lo + m, p] - p2[lo, p]
+            s_tr = pk[lo + m, p] - pk[lo, p] - (lo + t_mean) * s_r
             for t in range(n_t):
-                s_ry = cross[t, lo - lo_min]
+                s_ry = cross[t, (lo - lo_min) * n_poles + p]
                 sse = _residual(s_r, s_rr, s_tr, s_ry, s_yy[t], m, sign, fixed[t])[0]
                 if sse < best[t]:
                     best[t] = sse
-                    best_pole[t] = ip
+                    best_pole[t] = limits[0] + p
                     best_delay[t] = 1 + j * factor
     max_delay = 1 + limits[3] * factor
     for t in range(n_t):
@@ -671,8 +730,8 @@ def _best_linear_fits(
             centre = best_delay[t]
             for delay in (centre - step, centre + step):
                 if 1 <= delay <= max_delay:
-                    x = _lagged_block_means(cm, factor, delay, n_blocks, poles[best_pole[t]])
-                    sse = _fit_at_shift(x, 0, targets[t], start, sign, fixed[t])[0]
+                    sse = _fit_at_delay(cm, factor, delay, poles[best_pole[t]], targets[t],
+                                        start, sign, fixed[t])[0]
                     if sse < best[t]:
                         best[t] = sse
                         best_delay[t] = delay
@@ -694,12 +753,10 @@ def _every_linear_fit(
     """Best output-error fit of ``target`` over every pole and every raw delay from 1 to
     ``max_delay``: residual, pole index and delay (for the one healthy-valve candidate,
     see :meth:`_Window.score_healthy_valve`)."""
-    n_blocks = start + target.shape[0]
     best, best_pole, best_delay = np.inf, 0, 1
     for ip in range(poles.shape[0]):
         for delay in range(1, max_delay + 1):
-            x = _lagged_block_means(cm, factor, delay, n_blocks, poles[ip])
-            sse = _fit_at_shift(x, 0, target, start, sign, fixed)[0]
+            sse = _fit_at_delay(cm, factor, delay, poles[ip], target, start, sign, fixed)[0]
             if sse < best:
                 best, best_pole, best_delay = sse, ip, delay
     return best, best_pole, best_delay
@@ -1217,8 +1274,8 @@ def _final_fit(
     fixed = float(window.fixed_gains[row])
 
     def residual(a: float) -> float:
-        x = _lagged_block_means(cm, window.factor, delay, n_blocks, a)
-        return float(_fit_at_shift(x, 0, target, window.start, window.gain_sign, fixed)[0])
+        return float(_fit_at_delay(cm, window.factor, delay, a, target, window.start,
+                                   window.gain_sign, fixed)[0])
 
     a = float(window.poles[pole])
     lo = float(window.poles[max(pole - 1, 0)])
@@ -1226,7 +1283,8 @@ def _final_fit(
     found = minimize_scalar(residual, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
     if float(found.fun) < residual(a):
         a = float(found.x)
-    x = _lagged_block_means(cm, window.factor, delay, n_blocks, a)[window.start :]
+    u = _delayed_block_means(cm, window.factor, delay, n_blocks)
+    x = _lags(u, window.factor, np.array([a]))[window.start :, 0]
     m = x.size
     line = np.column_stack([np.ones(m), np.arange(m, dtype=np.float64)])
     if not math.isnan(fixed):  # the gain is given: only the offset and ramp are fitted

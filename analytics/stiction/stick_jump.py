@@ -309,7 +309,8 @@ def loop_gain_sign(op: FloatArray, pv: FloatArray, sp: FloatArray | None) -> int
 @njit(cache=True)
 def _hold_kernel(y: FloatArray, band: float) -> tuple[NDArray[np.int64], NDArray[np.int64],
                                                       FloatArray]:
-    """Starts, ends and median levels of the holds of :func:`_holds`, compiled."""
+    """Starts, ends and median levels of the holds of :func:`_flat_holds` before the
+    length and flatness tests, compiled."""
     starts = np.empty(y.size, dtype=np.int64)
     ends = np.empty(y.size, dtype=np.int64)
     levels = np.empty(y.size)
@@ -335,20 +336,34 @@ def _hold_kernel(y: FloatArray, band: float) -> tuple[NDArray[np.int64], NDArray
     return starts[:count], ends[:count], levels[:count]
 
 
-def _holds(y: FloatArray, band: float) -> list[tuple[int, int, float]]:
-    """Runs of ``y`` inside a band of half width ``band`` (cut greedily, a new run
-    wherever the band would widen past ``2 band``), merged when their median
-    levels differ by less than the band: ``(start, end, level)`` per hold."""
-    starts, ends, levels = _hold_kernel(np.ascontiguousarray(y, dtype=np.float64), band)
-    return list(zip(starts.tolist(), ends.tolist(), levels.tolist(), strict=True))
-
-
 @njit(cache=True)
 def _is_flat(y: FloatArray, band: float) -> bool:
     """True if the last third of ``y`` sits within ``band`` of its first third: a
     hold, not a piece of a ramp or of a slow swing cut by the band."""
     third = max(y.size // 3, 1)
     return bool(abs(np.median(y[y.size - third:]) - np.median(y[:third])) <= band)
+
+
+@njit(cache=True)
+def _flat_kernel(y: FloatArray, starts: NDArray[np.int64], ends: NDArray[np.int64],
+                 band: float, min_hold: int) -> NDArray[np.bool_]:
+    """Which holds of :func:`_flat_holds` are ``min_hold`` long and flat, compiled."""
+    keep = np.empty(starts.size, dtype=np.bool_)
+    for h in range(starts.size):
+        keep[h] = ends[h] - starts[h] >= min_hold and _is_flat(y[starts[h]:ends[h]], band)
+    return keep
+
+
+def _flat_holds(y: FloatArray, band: float, min_hold: int) -> list[tuple[int, int, float]]:
+    """Runs of ``y`` inside a band of half width ``band`` (cut greedily, a new run
+    wherever the band would widen past ``2 band``), merged when their median
+    levels differ by less than the band, that last ``min_hold`` samples and are
+    flat (:func:`_is_flat`): ``(start, end, level)`` per hold."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    starts, ends, levels = _hold_kernel(y, band)
+    keep = _flat_kernel(y, starts, ends, band, min_hold)
+    return list(zip(starts[keep].tolist(), ends[keep].tolist(), levels[keep].tolist(),
+                    strict=True))
 
 
 KICK_SAMPLES = 3
@@ -450,14 +465,12 @@ def find_stick_episodes(
     u = moving_average(op, smoothing)
     span = float(np.ptp(y))
     band = max(band_sigmas * pv_noise / np.sqrt(smoothing), 1e-9 * max(span, 1.0))
-    if reference is None:
-        reference = np.full(y.size, float(np.median(y)))
+    median_level = float(np.median(y))  # the reference when none is given
     if level_error is not None:
         error = moving_average(level_error, smoothing)
         error_band = band_sigmas * robust_noise(level_error) / np.sqrt(smoothing)
     moves = travel_increments(u, travel_sigmas * op_noise)
-    flat = [h for h in _holds(y, band) if h[1] - h[0] >= min_hold and _is_flat(y[h[0]:h[1]], band)]
-    periods = _stuck_periods(flat, band, max_transition_fraction)
+    periods = _stuck_periods(_flat_holds(y, band, min_hold), band, max_transition_fraction)
     hold_travel = sum(float(moves[s:e].sum()) for s, e, _ in periods)
     reversal = max((_reversal(u[s:e], moves[s:e]) for s, e, _ in periods), default=0.0)
     min_travel = max(min_hold_travel_sigmas * op_noise, min_range_share * float(np.ptp(u)))
@@ -522,8 +535,9 @@ def find_stick_episodes(
         # moved PV towards it (a load moves PV away from where it held).  The
         # reference during the hold, or just after the jump: operators often
         # move the set point to where a sticky valve's flow ended up.
-        offsets = (float(np.median(reference[s:e])) - level,
-                   float(np.median(reference[s_after:s_after + min_hold])) - level)
+        offsets = (
+            (median_level if reference is None else float(np.median(reference[part]))) - level
+            for part in (slice(s, e), slice(s_after, s_after + min_hold)))
         toward = any(abs(offset) >= band and np.sign(pv_jump) == np.sign(offset)
                      for offset in offsets)
         if level_error is not None and not toward:
