@@ -18,7 +18,13 @@ from numpy.typing import NDArray
 
 from analytics.diagnosis import LoopDiagnosis, diagnose_loop
 from analytics.errors import ModelSpecError
-from analytics.kpi import LoopKpis, longest_normal_stretch, loop_kpis, manual_samples
+from analytics.kpi import (
+    LoopKpis,
+    longest_normal_stretch,
+    loop_health,
+    loop_kpis,
+    manual_samples,
+)
 from analytics.lti import TransferFunction, process_gain, simulate_open_loop
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
@@ -84,35 +90,20 @@ def stiction_pattern_text(pattern: str | None, op_travel: float | None = None) -
 
 
 def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None:
-    """Loop health from 0 (bad actor) to 100 (healthy); None when data are unusable.
+    """Loop health from 0 (bad actor) to 100 (healthy) of a stored diagnosis
+    (:func:`analytics.kpi.loop_health`); None when data are unusable.
 
-    A loop that does not oscillate scores 100 less 5 per data-quality warning
-    (at most 20).  An oscillating loop starts at 70 and loses up to 30 for a
-    regular oscillation (regularity r, ``min(r, 10) / 10 * 30``, Thornhill et
-    al. 2003: the more regular, the more certainly a persistent cycle).
-    Either loses up to 40 for a stiction verdict (confidence * 40): a
-    regularly cycling loop with a confidently sticky valve is the worst
-    actor, and a valve that sticks without a sustained cycle (pattern
-    ``stick_jump``, or ``stuck``) is a bad actor too, if a milder one.  A
-    stuck valve freezes PV, which makes the data unusable for everything
-    else; its stiction verdict is scored all the same.  The verdict is the final one
-    on the valve (the diagnosis's ``valve``, :func:`service.verdicts.valve_verdict`) when
-    it has one, else the loop's own.
+    The stiction verdict scored is the final one on the valve (the diagnosis's
+    ``valve``, :func:`service.verdicts.valve_verdict`) when it has one, else the
+    loop's own.
     """
     stored = (diagnosis if isinstance(diagnosis, StoredDiagnosis)
               else StoredDiagnosis.from_dict(diagnosis))
     final = stored.final
-    sticky = final.verdict == "stiction"
-    if not stored.quality.usable and not sticky:
-        return None
-    osc = stored.oscillation
-    if osc.detected:
-        score = 70.0 - min(float(osc.regularity or 0.0), 10.0) / 10.0 * 30.0
-    else:
-        score = 100.0 - min(20, 5 * stored.quality.warnings)
-    if sticky:
-        score -= 40.0 * float(final.confidence)
-    return max(0.0, score)
+    return loop_health(
+        usable=stored.quality.usable, quality_warnings=stored.quality.warnings,
+        oscillating=stored.oscillation.detected, regularity=stored.oscillation.regularity,
+        stiction_confidence=final.confidence if final.verdict == "stiction" else None)
 
 
 def dead_time_samples(loop: dict[str, Any]) -> int | None:
