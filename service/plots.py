@@ -47,11 +47,10 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 import resvg_py
 from numpy.typing import ArrayLike
-from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
 from analytics.replay import StictionModelPath
-from analytics.signals import autocorrelation, detrend, spectrum
+from analytics.signals import autocorrelation, power_spectrum
 from analytics.stiction.signature import EllipseFit
 from analytics.types import FloatArray
 
@@ -69,7 +68,6 @@ __all__ = [
     "history_figure",
     "model_check_figure",
     "nyquist_figure",
-    "power_spectrum",
     "render_png",
     "render_svg",
     "signature_figure",
@@ -170,28 +168,6 @@ class Figure:
 def format_utc(t: float) -> str:
     """``2023-11-14 22:13 UTC`` for a UNIX time."""
     return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M UTC")
-
-
-def power_spectrum(x: ArrayLike, ts: float) -> tuple[FloatArray, FloatArray]:
-    """Periods (s, longest first) and power of ``x`` normalised to its largest peak.
-
-    A Hann-windowed periodogram of the linearly detrended signal
-    (:func:`analytics.signals.spectrum`; non-finite samples are left out of
-    the mean and treated as its value), one-sided: the Nyquist channel, which
-    has no negative-frequency twin, counts once.  The zero-frequency channel is
-    dropped, so the first period is the window length.
-    """
-    values = np.asarray(x, dtype=np.float64)
-    finite = np.isfinite(values)
-    if finite.sum() < 8:
-        raise ValueError(f"power_spectrum needs at least 8 finite samples, got {finite.sum()}")
-    filled = np.where(finite, values, np.mean(values[finite]))
-    spec = spectrum(detrend(filled) * sps.get_window("hann", filled.size))
-    power = spec.P[1:].copy()
-    if spec.nfft % 2 == 0:
-        power[-1] /= 2.0
-    peak = float(power.max())
-    return spec.nfft * ts / np.arange(1, spec.P.size), power / peak if peak > 0 else power
 
 
 def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, FloatArray]:
