@@ -72,6 +72,7 @@ __all__ = [
     "harris_index",
     "identify_dead_time",
     "longest_normal_stretch",
+    "loop_health",
     "loop_kpis",
     "manual_samples",
     "oscillation_index",
@@ -756,7 +757,7 @@ def oscillation_index(detected: bool, regularity: float | None) -> float:
     ``min(r, 10) / 10`` for a detected oscillation of regularity ``r``
     (Thornhill et al. 2003: ``r > 1`` is a regular oscillation, the larger the
     more certainly a persistent cycle), 0 when none was detected -- the same
-    scale the loop health score uses (:func:`service.analysis.health_score`).
+    scale the loop health score uses (:func:`loop_health`).
 
     >>> oscillation_index(True, 4.0), oscillation_index(False, 4.0), oscillation_index(True, 25)
     (0.4, 0.0, 1.0)
@@ -764,6 +765,39 @@ def oscillation_index(detected: bool, regularity: float | None) -> float:
     if not detected or regularity is None:
         return 0.0
     return min(float(regularity), 10.0) / 10.0
+
+
+def loop_health(*, usable: bool, quality_warnings: int, oscillating: bool,
+                regularity: float | None, stiction_confidence: float | None) -> float | None:
+    """Loop health from 0 (bad actor) to 100 (healthy); None when the data are unusable.
+
+    A loop that does not oscillate scores 100 less 5 per data-quality warning
+    (at most 20).  An oscillating loop starts at 70 and loses up to 30 for a
+    regular oscillation (30 times its :func:`oscillation_index`: the more
+    regular, the more certainly a persistent cycle).  Either loses up to 40
+    for a stiction verdict (``stiction_confidence * 40``; None without one): a
+    regularly cycling loop with a confidently sticky valve is the worst actor,
+    and a valve that sticks without a sustained cycle is a bad actor too, if a
+    milder one.  A stuck valve freezes PV, which makes the data unusable for
+    everything else; its stiction verdict is scored all the same.
+
+    >>> loop_health(usable=True, quality_warnings=1, oscillating=False, regularity=None,
+    ...             stiction_confidence=None)
+    95.0
+    >>> loop_health(usable=True, quality_warnings=0, oscillating=True, regularity=5.0,
+    ...             stiction_confidence=0.5)
+    35.0
+    """
+    sticky = stiction_confidence is not None
+    if not usable and not sticky:
+        return None
+    if oscillating:
+        score = 70.0 - oscillation_index(True, regularity) * 30.0
+    else:
+        score = 100.0 - min(20, 5 * quality_warnings)
+    if stiction_confidence is not None:
+        score -= 40.0 * float(stiction_confidence)
+    return max(0.0, score)
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ Each is written once here; the oscillation detection (Thornhill et al. 2003:
 ACF zero crossings, the band-pass filters and the spectral peaks), the
 oscillation groups of a unit (band spectra), the cycle shapes (cycles cut at
 PV's upward crossings), the OP-PV cross-correlation test, the model check's
-correlation time and the dashboard's spectrum and ACF plots use them.
+correlation time and the dashboard's spectrum and ACF plots (:func:`power_spectrum`)
+use them.
 """
 
 from __future__ import annotations
@@ -15,11 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import fft as sfft
+from scipy import signal as sps
 
 from analytics.types import FloatArray
 
-__all__ = ["Spectrum", "autocorrelation", "detrend", "spectrum", "upward_crossings",
-           "zero_crossings"]
+__all__ = ["Spectrum", "autocorrelation", "detrend", "power_spectrum", "spectrum",
+           "upward_crossings", "zero_crossings"]
 
 
 def zero_crossings(y: FloatArray) -> FloatArray:
@@ -128,3 +130,25 @@ def spectrum(x: ArrayLike, *, pad: bool = False) -> Spectrum:
     P = np.asarray(X.real**2 + X.imag**2, dtype=np.float64)
     f = np.arange(P.size, dtype=np.float64) / nfft
     return Spectrum(n, nfft, X, P, f, float(P[1:].sum()))
+
+
+def power_spectrum(x: ArrayLike, ts: float) -> tuple[FloatArray, FloatArray]:
+    """Periods (s, longest first) and power of ``x`` normalised to its largest peak.
+
+    A Hann-windowed periodogram of the linearly detrended signal
+    (:func:`spectrum`; non-finite samples are left out of
+    the mean and treated as its value), one-sided: the Nyquist channel, which
+    has no negative-frequency twin, counts once.  The zero-frequency channel is
+    dropped, so the first period is the window length.
+    """
+    values = np.asarray(x, dtype=np.float64)
+    finite = np.isfinite(values)
+    if finite.sum() < 8:
+        raise ValueError(f"power_spectrum needs at least 8 finite samples, got {finite.sum()}")
+    filled = np.where(finite, values, np.mean(values[finite]))
+    spec = spectrum(detrend(filled) * sps.get_window("hann", filled.size))
+    power = spec.P[1:].copy()
+    if spec.nfft % 2 == 0:
+        power[-1] /= 2.0
+    peak = float(power.max())
+    return spec.nfft * ts / np.arange(1, spec.P.size), power / peak if peak > 0 else power

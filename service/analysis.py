@@ -10,20 +10,26 @@ buffers, for the scheduler and for the unit diagnosis route alike.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from analytics.diagnosis import diagnose_loop
+from analytics.diagnosis import LoopDiagnosis, diagnose_loop
 from analytics.errors import ModelSpecError
-from analytics.kpi import longest_normal_stretch, loop_kpis, manual_samples
+from analytics.kpi import (
+    LoopKpis,
+    longest_normal_stretch,
+    loop_health,
+    loop_kpis,
+    manual_samples,
+)
 from analytics.lti import TransferFunction, process_gain, simulate_open_loop
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
 from analytics.types import FloatArray
-from service.stored import StoredDiagnosis, StoredUnitDiagnosis
+from service.stored import ManualStretch, StoredDiagnosis, StoredUnitDiagnosis
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
@@ -33,6 +39,7 @@ __all__ = [
     "MIN_FINITE_INPUT",
     "UnitWindows",
     "UnitWindowsError",
+    "WindowAnalysis",
     "analyse_unit",
     "analyse_window",
     "dead_time_samples",
@@ -83,35 +90,20 @@ def stiction_pattern_text(pattern: str | None, op_travel: float | None = None) -
 
 
 def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None:
-    """Loop health from 0 (bad actor) to 100 (healthy); None when data are unusable.
+    """Loop health from 0 (bad actor) to 100 (healthy) of a stored diagnosis
+    (:func:`analytics.kpi.loop_health`); None when data are unusable.
 
-    A loop that does not oscillate scores 100 less 5 per data-quality warning
-    (at most 20).  An oscillating loop starts at 70 and loses up to 30 for a
-    regular oscillation (regularity r, ``min(r, 10) / 10 * 30``, Thornhill et
-    al. 2003: the more regular, the more certainly a persistent cycle).
-    Either loses up to 40 for a stiction verdict (confidence * 40): a
-    regularly cycling loop with a confidently sticky valve is the worst
-    actor, and a valve that sticks without a sustained cycle (pattern
-    ``stick_jump``, or ``stuck``) is a bad actor too, if a milder one.  A
-    stuck valve freezes PV, which makes the data unusable for everything
-    else; its stiction verdict is scored all the same.  The verdict is the final one
-    on the valve (the diagnosis's ``valve``, :func:`service.verdicts.valve_verdict`) when
-    it has one, else the loop's own.
+    The stiction verdict scored is the final one on the valve (the diagnosis's
+    ``valve``, :func:`service.verdicts.valve_verdict`) when it has one, else the
+    loop's own.
     """
     stored = (diagnosis if isinstance(diagnosis, StoredDiagnosis)
               else StoredDiagnosis.from_dict(diagnosis))
     final = stored.final
-    sticky = final.verdict == "stiction"
-    if not stored.quality.usable and not sticky:
-        return None
-    osc = stored.oscillation
-    if osc.detected:
-        score = 70.0 - min(float(osc.regularity or 0.0), 10.0) / 10.0 * 30.0
-    else:
-        score = 100.0 - min(20, 5 * stored.quality.warnings)
-    if sticky:
-        score -= 40.0 * float(final.confidence)
-    return max(0.0, score)
+    return loop_health(
+        usable=stored.quality.usable, quality_warnings=stored.quality.warnings,
+        oscillating=stored.oscillation.detected, regularity=stored.oscillation.regularity,
+        stiction_confidence=final.confidence if final.verdict == "stiction" else None)
 
 
 def dead_time_samples(loop: dict[str, Any]) -> int | None:
@@ -248,34 +240,78 @@ def sizing_pv(pv: FloatArray, ts: float, couplings: Mapping[str, Mapping[str, An
     return result
 
 
-def manual_stretch(diagnosis: dict[str, Any], manual: NDArray[np.bool_], t: FloatArray,
-                   judged: slice, ts: float) -> dict[str, Any]:
+def manual_stretch(diagnosis: LoopDiagnosis, manual: NDArray[np.bool_], t: FloatArray,
+                   judged: slice, ts: float) -> tuple[LoopDiagnosis, ManualStretch]:
     """What a window with samples in manual was diagnosed on, for the pages and the alarms.
 
-    ``share`` of the window in manual, the ``judged_from`` / ``judged_to``
-    times and ``judged_samples`` of the stretch in auto or cascade that was
-    diagnosed, and a ``note``.  When that stretch is too short to judge, the
-    diagnosis's reason says so instead of calling the data unusable: a loop in
-    manual is out of service, not a failed transmitter (ISA-18.2 suppresses
-    its alarms by design).
+    The stretch (``share`` of the window in manual, the ``judged_from`` /
+    ``judged_to`` times and ``judged_samples`` of the stretch in auto or
+    cascade that was diagnosed, and a ``note``) and the diagnosis: when that
+    stretch is too short to judge, with the note as its reason instead of
+    calling the data unusable (a loop in manual is out of service, not a
+    failed transmitter; ISA-18.2 suppresses its alarms by design).
 
-    >>> d = {"quality": {"usable": False}, "stiction": {"reason": "data unusable: too short"}}
-    >>> m = manual_stretch(d, np.array([1, 1, 1, 0], dtype=bool), np.arange(4.0), slice(3, 4), 1.0)
-    >>> m["share"], m["judged_samples"], d["stiction"]["reason"]
+    >>> from analytics.diagnosis import LoopDiagnosis, diagnose_loop
+    >>> d = diagnose_loop(ts=1.0, op=np.full(3, 50.0), pv=np.full(3, 50.0))
+    >>> d, m = manual_stretch(d, np.array([1, 1, 1, 0], dtype=bool), np.arange(4.0),
+    ...                       slice(3, 4), 1.0)
+    >>> m.share, m.judged_samples, d.stiction.reason
     (0.75, 1, 'in manual 75 % of the window: the 1 s in auto or cascade are too few to judge')
     """
     kept = t[judged]
     share = float(manual.mean())
-    if kept.size and diagnosis["quality"]["usable"]:
+    if kept.size and diagnosis.quality.usable:
         note = (f"in manual {100 * share:.0f} % of the window: diagnosed on its "
                 f"{kept.size * ts / 60:.0f} min in auto or cascade")
     else:
         note = (f"in manual {100 * share:.0f} % of the window: the {kept.size * ts:.0f} s in "
                 "auto or cascade are too few to judge")
-        diagnosis["stiction"]["reason"] = note
-    return {"share": share, "judged_from": float(kept[0]) if kept.size else None,
-            "judged_to": float(kept[-1]) if kept.size else None,
-            "judged_samples": int(kept.size), "note": note}
+        diagnosis = replace(diagnosis, stiction=replace(diagnosis.stiction, reason=note))
+    stretch = ManualStretch(share, float(kept[0]) if kept.size else None,
+                            float(kept[-1]) if kept.size else None, int(kept.size), note)
+    return diagnosis, stretch
+
+
+@dataclass(frozen=True)
+class WindowAnalysis:
+    """What :func:`analyse_window` finds in one window of one loop: a loop run's result.
+
+    Attributes
+    ----------
+    diagnosis : LoopDiagnosis
+        The pipeline's diagnosis of the window (of its stretch in auto or cascade).
+    gain_source : str or None
+        Where the process gain the valve was sized with came from (the configuration's
+        words, :func:`independent_gain`); None when the gain was fitted.
+    manual : ManualStretch or None
+        The stretch diagnosed, when the window has samples in manual.
+    first_sample_at : float or None
+        Time of the diagnosed stretch's first sample (UNIX s): the stiction episodes'
+        times count from it.
+    kpis : LoopKpis
+        The KPIs of the whole window.
+    """
+
+    diagnosis: LoopDiagnosis
+    gain_source: str | None
+    manual: ManualStretch | None
+    first_sample_at: float | None
+    kpis: LoopKpis
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored JSON (``AnalysisRun.result``, read back as
+        :class:`~service.stored.StoredDiagnosis`): :meth:`LoopDiagnosis.to_dict` with the
+        estimate's ``gain_source``, ``manual`` (when there is one), ``health``
+        (:func:`health_score`), ``first_sample_at`` and ``kpis``."""
+        diagnosis = self.diagnosis.to_dict()
+        estimate = self.diagnosis.quantification
+        sized = None if estimate is None else estimate.to_dict()
+        if sized is not None and self.gain_source is not None:
+            diagnosis |= {"quantification": {**sized, "gain_source": self.gain_source}}
+        if self.manual is not None:
+            diagnosis |= {"manual": self.manual.to_dict()}
+        return {**diagnosis, "health": health_score(diagnosis),
+                "first_sample_at": self.first_sample_at, "kpis": self.kpis.to_dict()}
 
 
 def analyse_window(
@@ -314,16 +350,13 @@ def analyse_window(
     Returns
     -------
     dict
-        :meth:`analytics.diagnosis.LoopDiagnosis.to_dict` plus ``health``
-        (:func:`health_score`), ``first_sample_at``, the time of the
-        window's first sample (UNIX s): the stiction episodes' times
-        (``start_s``, ...) count from it, and ``kpis``
-        (:meth:`analytics.kpi.LoopKpis.to_dict` of the same window in % of
-        span; the Harris index from the configured dead time,
-        :func:`dead_time_samples`, else from the one the window's set-point
-        steps or manual OP moves tell, :func:`analytics.kpi.identify_dead_time`;
-        ``dead_time_note`` says which, or why none).  With samples in manual, ``manual``
-        (:func:`manual_stretch`) says which stretch was diagnosed.
+        :meth:`WindowAnalysis.to_dict`: the diagnosis, and the KPIs
+        (:func:`analytics.kpi.loop_kpis`) of the same window in % of span (the
+        Harris index from the configured dead time, :func:`dead_time_samples`,
+        else from the one the window's set-point steps or manual OP moves tell,
+        :func:`analytics.kpi.identify_dead_time`; ``dead_time_note`` says which,
+        or why none).  With samples in manual, ``manual`` (:func:`manual_stretch`)
+        says which stretch was diagnosed.
     """
     ranges: dict[str, tuple[float, float]] = {
         k: (float(v[0]), float(v[1])) for k, v in (loop.get("ranges") or {}).items()
@@ -354,26 +387,29 @@ def analyse_window(
         sp=cut(scaled.get("sp")), mv=cut(scaled.get("mv")), process_type=process_type,
         process_gain=None if gain is None else float(gain["K"]), sizing_pv=cut(sizing),
         ranges={name: (0.0, 100.0) for name in ranges},
-    ).to_dict()
-    if gain is not None and (diagnosis.get("quantification") or {}).get("gain_given"):
-        diagnosis["quantification"]["gain_source"] = gain["source"]
+    )
+    estimate = diagnosis.quantification
+    gain_source = gain["source"] if gain is not None and estimate is not None and (
+        estimate.gain_given) else None
+    stretch = None
     if manual is not None and manual.any():
-        diagnosis["manual"] = manual_stretch(diagnosis, manual, t, judged, ts)
-    diagnosis["health"] = health_score(diagnosis)
-    diagnosis["first_sample_at"] = float(t[judged][0]) if t[judged].size else None
+        diagnosis, stretch = manual_stretch(diagnosis, manual, t, judged, ts)
     limits = loop.get("pv_limits")
     pv_limits = None
     if limits is not None:
         low, high = ranges.get("pv", (0.0, 100.0))
         pv_limits = (100.0 * (float(limits[0]) - low) / (high - low),
                      100.0 * (float(limits[1]) - low) / (high - low))
-    diagnosis["kpis"] = loop_kpis(
+    cycle = diagnosis.oscillation  # None on unusable data
+    kpis = loop_kpis(
         ts, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
         dead_time=dead_time_samples({**loop, "ts": ts}), pv_limits=pv_limits,
         mode=mode, mode_mapping=mode_mapping,
-        oscillation=diagnosis["oscillation"] if diagnosis["quality"]["usable"] else None,
-    ).to_dict()
-    return diagnosis
+        oscillation=None if cycle is None else {"detected": cycle.detected,
+                                                "regularity": cycle.regularity},
+    )
+    first_sample_at = float(t[judged][0]) if t[judged].size else None
+    return WindowAnalysis(diagnosis, gain_source, stretch, first_sample_at, kpis).to_dict()
 
 
 class UnitWindowsError(ValueError):

@@ -20,7 +20,7 @@ Figures
   :func:`analytics.stiction.signature.fit_signature_ellipse` and its width
   along OP, the apparent stiction (Choudhury, Shah, Thornhill & Shook 2006,
   Control Eng. Practice 14:1395-1412, section 6), and the fitted stiction
-  model of :func:`stiction_model_path` (the Hammerstein fit of
+  model of :func:`analytics.replay.stiction_model_path` (the Hammerstein fit of
   :func:`analytics.quantification.quantify_stiction` replayed on the
   measured OP): OP against its predicted PV and against its MV.
 * :func:`spectrum_figure`: power spectrum and autocorrelation of OP and PV
@@ -47,14 +47,12 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 import resvg_py
 from numpy.typing import ArrayLike
-from scipy import signal as sps
 
 from analytics.limit_cycle import NyquistCurves, Prediction
-from analytics.lti import TransferFunction, simulate_open_loop
-from analytics.signals import autocorrelation, detrend, spectrum
+from analytics.replay import StictionModelPath
+from analytics.signals import autocorrelation, power_spectrum
 from analytics.stiction.signature import EllipseFit
 from analytics.types import FloatArray
-from analytics.valves import ValveModel
 
 __all__ = [
     "COLOURS",
@@ -65,18 +63,15 @@ __all__ = [
     "Marker",
     "Panel",
     "Series",
-    "StictionModelPath",
     "ellipse_points",
     "format_utc",
     "history_figure",
     "model_check_figure",
     "nyquist_figure",
-    "power_spectrum",
     "render_png",
     "render_svg",
     "signature_figure",
     "spectrum_figure",
-    "stiction_model_path",
     "trend_figure",
 ]
 
@@ -175,28 +170,6 @@ def format_utc(t: float) -> str:
     return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def power_spectrum(x: ArrayLike, ts: float) -> tuple[FloatArray, FloatArray]:
-    """Periods (s, longest first) and power of ``x`` normalised to its largest peak.
-
-    A Hann-windowed periodogram of the linearly detrended signal
-    (:func:`analytics.signals.spectrum`; non-finite samples are left out of
-    the mean and treated as its value), one-sided: the Nyquist channel, which
-    has no negative-frequency twin, counts once.  The zero-frequency channel is
-    dropped, so the first period is the window length.
-    """
-    values = np.asarray(x, dtype=np.float64)
-    finite = np.isfinite(values)
-    if finite.sum() < 8:
-        raise ValueError(f"power_spectrum needs at least 8 finite samples, got {finite.sum()}")
-    filled = np.where(finite, values, np.mean(values[finite]))
-    spec = spectrum(detrend(filled) * sps.get_window("hann", filled.size))
-    power = spec.P[1:].copy()
-    if spec.nfft % 2 == 0:
-        power[-1] /= 2.0
-    peak = float(power.max())
-    return spec.nfft * ts / np.arange(1, spec.P.size), power / peak if peak > 0 else power
-
-
 def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, FloatArray]:
     """OP and PV coordinates of the fitted ellipse, closed (first point repeated).
 
@@ -209,89 +182,6 @@ def ellipse_points(fit: EllipseFit, points: int = 181) -> tuple[FloatArray, Floa
     x = cx + m * np.cos(t) * math.cos(a) - n * np.sin(t) * math.sin(a)
     y = cy + m * np.cos(t) * math.sin(a) + n * np.sin(t) * math.cos(a)
     return x, y
-
-
-@dataclass(frozen=True)
-class StictionModelPath:
-    """The fitted stiction model replayed on the measured OP (:func:`stiction_model_path`).
-
-    Attributes
-    ----------
-    mv : ndarray
-        Valve position of the model, per sample of OP (NaN before ``start``).
-    pv : ndarray
-        PV the model predicts (valve, then the identified process), with the
-        offset and drift of the measured PV (NaN before ``start``).
-    start : int
-        The sample the model starts from: an OP maximum (see the function).
-    period : int
-        The oscillation period, samples.
-    r2 : float
-        ``1 - SSE / SST`` of the predicted against the measured PV from ``start`` on.
-    label : str
-        The model in words, e.g. ``kano valve, S = 4.01, J = 1.98``.
-    """
-
-    mv: FloatArray
-    pv: FloatArray
-    start: int
-    period: int
-    r2: float
-    label: str
-
-
-def stiction_model_path(
-    op: ArrayLike, pv: ArrayLike, ts: float, *, valve: ValveModel, process: TransferFunction,
-    period_s: float, label: str,
-) -> StictionModelPath:
-    """Replay a Hammerstein stiction model (valve, then linear process) on the measured OP.
-
-    The valve's state at the first sample is unknown, and with OP swinging
-    barely more than the stick band (a limit cycle) a valve started in the
-    wrong place never moves.  At a maximum of OP in a stiction cycle the state
-    is known: the valve has followed OP up and rests on the trailing edge of
-    its band.  So the model starts at the least pronounced OP maximum of the
-    first three periods (as :func:`analytics.quantification.quantify_stiction`
-    starts at a turning point), at rest after two lead-in steps of one stick
-    band from below, and the first samples are left out.  The process is
-    driven by the deviation of MV from its value there, from rest, and the
-    offset and drift (a straight line in time, which the identification
-    removes from PV as well) are fitted to the measured PV by least squares.
-
-    Raises
-    ------
-    ValueError
-        If ``op`` and ``pv`` differ in shape, are shorter than one period or
-        hold non-finite samples, or ``period_s`` is not positive.
-    """
-    op_values, pv_values = _array(op), _array(pv)
-    if op_values.shape != pv_values.shape or op_values.ndim != 1:
-        raise ValueError(f"stiction_model_path: op and pv must be 1-D and equally long, got "
-                         f"{op_values.shape} and {pv_values.shape}")
-    if not (np.isfinite(op_values).all() and np.isfinite(pv_values).all()):
-        raise ValueError("stiction_model_path: op and pv must be finite (the window has gaps)")
-    if not (math.isfinite(period_s) and period_s > 0):
-        raise ValueError(f"stiction_model_path: period_s must be positive, got {period_s}")
-    period = max(1, round(period_s / ts))
-    if op_values.size < period + 1:
-        raise ValueError(f"stiction_model_path: {op_values.size} samples, fewer than one "
-                         f"period of {period}")
-    maxima = [k + int(np.argmax(op_values[k:k + period]))
-              for k in range(0, min(3 * period, op_values.size - period + 1), period)]
-    start = min(maxima, key=lambda k: op_values[k])
-    lead_in = op_values[start] - valve.stick_band * np.array([2.0, 1.0])
-    mv_run = valve.simulate(np.concatenate([lead_in, op_values[start:]]), dt=ts)[lead_in.size:]
-    response = simulate_open_loop(process, mv_run - mv_run[0], ts)
-    measured = pv_values[start:]
-    line = np.column_stack([np.ones(measured.size), ts * np.arange(measured.size)])
-    offset_and_drift = np.linalg.lstsq(line, measured - response, rcond=None)[0]
-    predicted = response + line @ offset_and_drift
-    spread = float(np.sum((measured - measured.mean()) ** 2))
-    r2 = 1.0 - float(np.sum((measured - predicted) ** 2)) / spread if spread > 0 else math.nan
-    mv, pv_model = np.full(op_values.size, np.nan), np.full(op_values.size, np.nan)
-    mv[start:], pv_model[start:] = mv_run, predicted
-    return StictionModelPath(mv=mv, pv=pv_model, start=start, period=period, r2=r2,
-                             label=label)
 
 
 # ---------------------------------------------------------------------------- figures
@@ -405,7 +295,7 @@ def signature_figure(
     (:func:`analytics.stiction.signature.fit_signature_ellipse`); the black
     bar through its centre is its width along the OP axis, the apparent
     stiction of Choudhury et al. (2006, section 6).  The fitted stiction
-    ``model`` (:func:`stiction_model_path`) is drawn as its path from OP to
+    ``model`` (:func:`analytics.replay.stiction_model_path`) is drawn as its path from OP to
     the predicted PV over the OP-PV signature and from OP to its MV: over the
     measured OP-MV signature, or in a panel of its own when MV is not
     measured.  Only pairs where both signals are finite are drawn.

@@ -4,7 +4,14 @@ autocorrelation of a sine and of white noise, a line's trend and a sine's spectr
 import numpy as np
 import pytest
 
-from analytics.signals import autocorrelation, detrend, spectrum, upward_crossings, zero_crossings
+from analytics.signals import (
+    autocorrelation,
+    detrend,
+    power_spectrum,
+    spectrum,
+    upward_crossings,
+    zero_crossings,
+)
 
 
 def test_crossings_of_a_sampled_sine_are_its_zeros():
@@ -56,3 +63,14 @@ def test_spectrum_of_a_sine_peaks_at_its_frequency_and_keeps_parseval(n):
         assert s.total == pytest.approx(s.P[1:].sum())
     padded = spectrum(x, pad=True)  # no wrap-around: the padded transform inverts to x
     np.testing.assert_allclose(np.fft.irfft(padded.X, padded.nfft)[:n], x, atol=1e-12)
+
+
+def test_power_spectrum_peaks_at_a_sine_s_period_and_refuses_too_few_samples():
+    """The plotted spectrum: periods longest first (the window first), power 1 at the peak."""
+    ts, n = 2.0, 400
+    x = 5.0 + np.sin(2 * np.pi * ts * np.arange(n) / 40.0)  # period 40 s: channel 20
+    periods, power = power_spectrum(x, ts)
+    assert periods[0] == n * ts and np.all(np.diff(periods) < 0)
+    assert periods[int(np.argmax(power))] == pytest.approx(40.0) and power.max() == 1.0
+    with pytest.raises(ValueError, match="at least 8 finite samples, got 3"):
+        power_spectrum([1.0, 2.0, 3.0, np.nan], 1.0)

@@ -21,11 +21,12 @@ import pytest
 
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
 from analytics.lti import TransferFunction
+from analytics.replay import stiction_model_path
 from analytics.simulation import PIDController
 from analytics.stiction.signature import fit_signature_ellipse
-from analytics.synthetic_cases import synthetic_library
 from analytics.valves import ChoudhuryValve, KanoValve
 from service import plots
+from tests.analytics.test_replay import TRUE_FLOW_PROCESS, sticky_flow_loop
 from tests.service.test_api import ADMIN, T0
 
 SVG = "{http://www.w3.org/2000/svg}"
@@ -153,60 +154,9 @@ def test_signature_with_mv_has_a_second_panel():
         "Valve signature: OP against PV", "Valve signature: OP against MV"]
 
 
-def sticky_flow_loop() -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """OP, MV, PV and ts of the synthetic library's flow loop with a Kano valve (S 4, J 2)."""
-    case = next(c for c in synthetic_library(3600) if c.name == "flow-kano-S4-J2-ts1")
-    run = case.simulate()
-    return run.op[0], run.mv[0], run.pv[0], run.dt
-
-
-TRUE_FLOW_PROCESS = TransferFunction.fopdt(1.2, 8.0, 2.0)
-"""The process of ``flow-kano-S4-J2-ts1`` (analytics.synthetic_cases)."""
-
-
-def test_model_path_is_the_valve_simulation_started_at_an_op_maximum():
-    """With the true valve and process, the replayed MV is the simulator's MV and the
-    predicted PV explains the measured one up to its measurement noise (0.2 % sd)."""
-    op, mv, pv, ts = sticky_flow_loop()
-    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
-                                     process=TRUE_FLOW_PROCESS, period_s=100.0, label="true")
-    assert np.isnan(path.mv[:path.start]).all() and np.isnan(path.pv[:path.start]).all()
-    first = path.start // 100 * 100  # a maximum of one of the first three periods
-    assert path.start < 300 and op[path.start] == op[first:first + 100].max()
-    mismatch = np.abs(path.mv[path.start:] - mv[path.start:])
-    assert np.median(mismatch) < 1e-9  # the same valve on the same OP: the same MV
-    assert np.mean(mismatch > 0.1) < 0.01  # bar a few slips a sample early or late
-    noise = 0.2**2 / np.var(pv[path.start:])
-    assert path.r2 == pytest.approx(1.0 - noise, abs=0.02)
-
-
-def test_model_path_predicts_pv_through_the_process_with_fitted_offset_and_drift():
-    """An ideal valve with S = 0 passes OP on; PV = 3 + 0.01 t + G(OP - OP[start]) is
-    reproduced exactly, G simulated independently by its difference equation."""
-    ts, tau, K = 1.0, 5.0, 2.0
-    k = np.arange(1000)
-    op = 50 + 5 * np.sin(2 * np.pi * k / 100)
-    a = math.exp(-ts / tau)
-    start = int(np.argmax(op[:100]))
-    u = op[start:] - op[start]
-    lag = np.zeros(u.size)
-    for i in range(1, u.size):  # ZOH FOPDT with 3 samples dead time, 1 of them the hold
-        lag[i] = a * lag[i - 1] + K * (1 - a) * (u[i - 3] if i >= 3 else 0.0)
-    pv = np.full(k.size, np.nan)
-    pv[start:] = 3.0 + 0.01 * ts * np.arange(u.size) + lag
-    pv[:start] = pv[start]
-    path = plots.stiction_model_path(op, pv, ts, valve=ChoudhuryValve(0.0, 0.0),
-                                     process=TransferFunction.fopdt(K, tau, 2.0),
-                                     period_s=100.0, label="linear")
-    assert path.start == start
-    np.testing.assert_allclose(path.mv[start:], op[start:])
-    np.testing.assert_allclose(path.pv[start:], pv[start:], atol=1e-9)
-    assert path.r2 == pytest.approx(1.0)
-
-
 def test_signature_draws_the_fitted_model_over_pv_and_in_a_valve_panel():
     op, _, pv, ts = sticky_flow_loop()
-    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+    path = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
                                      process=TRUE_FLOW_PROCESS, period_s=100.0,
                                      label="fitted kano valve, S = 4.00 %, J = 2.00 %")
     root = parse(plots.render_svg(plots.signature_figure(op, pv, model=path, title="s")))
@@ -226,7 +176,7 @@ def test_signature_draws_the_fitted_model_over_pv_and_in_a_valve_panel():
 
 def test_signature_with_measured_mv_draws_the_model_over_it():
     op, mv, pv, ts = sticky_flow_loop()
-    path = plots.stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+    path = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
                                      process=TRUE_FLOW_PROCESS, period_s=100.0, label="m")
     root = parse(plots.render_svg(plots.signature_figure(op, pv, mv=mv, model=path,
                                                          title="s")))
@@ -318,8 +268,6 @@ def test_bad_input_is_refused_with_the_reason():
         plots.trend_figure({"flow": (t, t)}, title="x")
     with pytest.raises(ValueError, match=r"op and pv differ in shape, \(10,\) and \(9,\)"):
         plots.signature_figure(t, t[:9], title="x")
-    with pytest.raises(ValueError, match="at least 8 finite samples, got 3"):
-        plots.power_spectrum([1.0, 2.0, 3.0, np.nan], 1.0)
     with pytest.raises(ValueError, match="neither op nor pv"):
         plots.spectrum_figure(None, None, 1.0, title="x")
 

@@ -43,6 +43,7 @@ from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
 from analytics.lti import FirstOrderProcess
 from analytics.quantification import VALVE_MODELS
+from analytics.replay import StictionModelPath, stiction_model_path
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
 from analytics.types import INTEGRATING, SELF_REGULATING
 from service import plots
@@ -180,7 +181,7 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
 
 
 def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: StoredDiagnosis
-                  ) -> plots.StictionModelPath | None:
+                  ) -> StictionModelPath | None:
     """The latest stiction estimate's valve and process replayed on the window's OP.
 
     None without an estimate (no stiction verdict), without a period, or with
@@ -197,7 +198,7 @@ def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: StoredDi
         return None
     kind = INTEGRATING if process.integrating else SELF_REGULATING
     model = FirstOrderProcess(kind, process.K, process.tau, process.theta)
-    return plots.stiction_model_path(
+    return stiction_model_path(
         op, pv, ts, valve=VALVE_MODELS[estimate.valve_model](S, J),
         process=model.transfer_function(), period_s=period,
         label=f"fitted {estimate.valve_model} valve, S = {S:.2f} %, J = {J:.2f} %",

@@ -19,6 +19,7 @@ from sqlalchemy import select
 
 from analytics.lti import TransferFunction
 from analytics.quantification import VALVE_MODELS
+from analytics.replay import stiction_model_path
 from analytics.stiction.signature import EllipseFit
 from service import plots
 from service.buffer import LoopBuffers
@@ -72,7 +73,7 @@ def test_signature_draws_the_latest_estimate_replayed_on_the_window(analysed, se
     signature, valve = panels(parse(get_plot(analysed, "FIC-1", "signature").text))
     window = service.state.buffers.window("FIC-1", 3600, T0)
     x, y = drawn(valve, "model_mv")
-    path = plots.stiction_model_path(
+    path = stiction_model_path(
         window.op, window.pv, window.ts,
         valve=VALVE_MODELS[estimate["valve_model"]](estimate["S"], estimate["J"]),
         process=TransferFunction.fopdt(estimate["process"]["K"], estimate["process"]["tau"],

@@ -1,0 +1,106 @@
+"""A fitted Hammerstein stiction model replayed on the measured OP.
+
+:func:`analytics.quantification.quantify_stiction` fits a valve model and a
+first-order process to a window; :func:`stiction_model_path` runs that valve
+and process on the window's OP again, from a sample where the valve's state is
+known, so that a plot can draw the model's MV and its predicted PV over the
+measured signature (:func:`service.plots.signature_figure`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from analytics.lti import TransferFunction, simulate_open_loop
+from analytics.types import FloatArray
+from analytics.valves import ValveModel
+
+__all__ = ["StictionModelPath", "stiction_model_path"]
+
+
+@dataclass(frozen=True)
+class StictionModelPath:
+    """The fitted stiction model replayed on the measured OP (:func:`stiction_model_path`).
+
+    Attributes
+    ----------
+    mv : ndarray
+        Valve position of the model, per sample of OP (NaN before ``start``).
+    pv : ndarray
+        PV the model predicts (valve, then the identified process), with the
+        offset and drift of the measured PV (NaN before ``start``).
+    start : int
+        The sample the model starts from: an OP maximum (see the function).
+    period : int
+        The oscillation period, samples.
+    r2 : float
+        ``1 - SSE / SST`` of the predicted against the measured PV from ``start`` on.
+    label : str
+        The model in words, e.g. ``kano valve, S = 4.01, J = 1.98``.
+    """
+
+    mv: FloatArray
+    pv: FloatArray
+    start: int
+    period: int
+    r2: float
+    label: str
+
+
+def stiction_model_path(
+    op: ArrayLike, pv: ArrayLike, ts: float, *, valve: ValveModel, process: TransferFunction,
+    period_s: float, label: str,
+) -> StictionModelPath:
+    """Replay a Hammerstein stiction model (valve, then linear process) on the measured OP.
+
+    The valve's state at the first sample is unknown, and with OP swinging
+    barely more than the stick band (a limit cycle) a valve started in the
+    wrong place never moves.  At a maximum of OP in a stiction cycle the state
+    is known: the valve has followed OP up and rests on the trailing edge of
+    its band.  So the model starts at the least pronounced OP maximum of the
+    first three periods (as :func:`analytics.quantification.quantify_stiction`
+    starts at a turning point), at rest after two lead-in steps of one stick
+    band from below, and the first samples are left out.  The process is
+    driven by the deviation of MV from its value there, from rest, and the
+    offset and drift (a straight line in time, which the identification
+    removes from PV as well) are fitted to the measured PV by least squares.
+
+    Raises
+    ------
+    ValueError
+        If ``op`` and ``pv`` differ in shape, are shorter than one period or
+        hold non-finite samples, or ``period_s`` is not positive.
+    """
+    op_values = np.asarray(op, dtype=np.float64)
+    pv_values = np.asarray(pv, dtype=np.float64)
+    if op_values.shape != pv_values.shape or op_values.ndim != 1:
+        raise ValueError(f"stiction_model_path: op and pv must be 1-D and equally long, got "
+                         f"{op_values.shape} and {pv_values.shape}")
+    if not (np.isfinite(op_values).all() and np.isfinite(pv_values).all()):
+        raise ValueError("stiction_model_path: op and pv must be finite (the window has gaps)")
+    if not (math.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"stiction_model_path: period_s must be positive, got {period_s}")
+    period = max(1, round(period_s / ts))
+    if op_values.size < period + 1:
+        raise ValueError(f"stiction_model_path: {op_values.size} samples, fewer than one "
+                         f"period of {period}")
+    maxima = [k + int(np.argmax(op_values[k:k + period]))
+              for k in range(0, min(3 * period, op_values.size - period + 1), period)]
+    start = min(maxima, key=lambda k: op_values[k])
+    lead_in = op_values[start] - valve.stick_band * np.array([2.0, 1.0])
+    mv_run = valve.simulate(np.concatenate([lead_in, op_values[start:]]), dt=ts)[lead_in.size:]
+    response = simulate_open_loop(process, mv_run - mv_run[0], ts)
+    measured = pv_values[start:]
+    line = np.column_stack([np.ones(measured.size), ts * np.arange(measured.size)])
+    offset_and_drift = np.linalg.lstsq(line, measured - response, rcond=None)[0]
+    predicted = response + line @ offset_and_drift
+    spread = float(np.sum((measured - measured.mean()) ** 2))
+    r2 = 1.0 - float(np.sum((measured - predicted) ** 2)) / spread if spread > 0 else math.nan
+    mv, pv_model = np.full(op_values.size, np.nan), np.full(op_values.size, np.nan)
+    mv[start:], pv_model[start:] = mv_run, predicted
+    return StictionModelPath(mv=mv, pv=pv_model, start=start, period=period, r2=r2,
+                             label=label)
