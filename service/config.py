@@ -210,8 +210,36 @@ class CmmsConfig(_Strict):
         return CmmsConfig.model_validate(merged)
 
 
+def _nul_at(value: Any, where: str = "") -> str | None:
+    """Where in ``value`` (a key or a string, nested dicts and lists searched) a NUL
+    character stands; None if nowhere."""
+    if isinstance(value, str):
+        return where or "the value" if "\x00" in value else None
+    if isinstance(value, dict):
+        items: list[tuple[str, Any]] = []
+        for key, item in value.items():
+            if isinstance(key, str) and "\x00" in key:
+                return f"{where}.{key!r}".lstrip(".")
+            items.append((f"{where}.{key}".lstrip("."), item))
+        return next((found for path, item in items if (found := _nul_at(item, path))), None)
+    if isinstance(value, list | tuple):
+        return next((found for k, item in enumerate(value)
+                     if (found := _nul_at(item, f"{where}[{k}]"))), None)
+    return None
+
+
 class LoopConfig(_Strict):
     """One control loop."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_nul(cls, data: Any) -> Any:
+        """A NUL character fits no text field of the store (PostgreSQL refuses it in text,
+        and in JSON once it is read as such): refused with where it stands."""
+        where = _nul_at(data)
+        if where is not None:
+            raise ValueError(f"text cannot hold a NUL (0x00) character: at {where}")
+        return data
 
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")
     name: str = ""

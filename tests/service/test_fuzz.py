@@ -397,3 +397,21 @@ def test_read_loop_csv_gives_back_exactly_the_numbers_written(tmp_path: Path):
         assert data.t.tolist() == [k * ts for k in range(len(rows))]
 
     check()
+
+
+def test_a_value_the_store_refuses_leaves_the_running_plant_as_stored(service):
+    # Found by the fuzzing above on PostgreSQL: a valve tag with a NUL character is kept in
+    # the loop's JSON configuration, whose json column took it, until a later read of the
+    # same request cast it; the refusal (422) came after the running plant had the loop.
+    # Now it is refused before, on every store, saying where the NUL stands.
+    client = TestClient(service.app)
+    snapshot = Snapshot(service)
+    for config, where in (({**VALID_LOOP, "valve_asset": "FV\x009"}, "valve_asset"),
+                          ({**VALID_LOOP, "tags": {"op": "A.OP", "pv": "A\x00PV"}}, "tags.pv"),
+                          ({**VALID_LOOP, "cmms": {"sap_pm": {"\x00": "x"}}},
+                           "cmms.sap_pm.'\\x00'")):
+        response = client.put("/api/v1/loops/NEW-3", json=config, headers={"X-API-Key": ADMIN})
+        assert response.status_code == 422, response.text
+        (error,) = response.json()["detail"]
+        assert error["msg"].endswith(f"text cannot hold a NUL (0x00) character: at {where}")
+        snapshot.assert_running_plant_is_stored()
