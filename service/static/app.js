@@ -747,8 +747,37 @@ function adviceResult(advice) {
     ...(advice.notes || []).map((note) => h("p", { class: "note" }, note)));
 }
 
-async function adviceSection(path) {
+/** Why the Nyquist plot and the tuning advice cannot be had for this diagnosis, known
+ * without asking: the page redraws at every analysis, and a healthy loop's page would
+ * otherwise log a 404 and a 409 on the server and in the console every time. */
+const NO_NYQUIST = "the latest analysis has no stiction estimate (S, J) with an identified "
+  + "process model";
+const NO_ADVICE = "Advice not available: the loop does not cycle and its valve is not sticky; "
+  + "there is nothing to retune";
+
+function nyquistUnavailable(diagnosis) {
+  const q = diagnosis ? diagnosis.quantification : undefined;
+  return diagnosis && (!q || q.S === null || q.S === undefined || !q.process) ? NO_NYQUIST
+    : null;
+}
+
+function adviceUnavailable(diagnosis) {
+  if (!diagnosis || !diagnosis.oscillation || diagnosis.oscillation.detected) return null;
+  const valve = diagnosis.valve || diagnosis.stiction;
+  return valve && valve.verdict !== "stiction" ? NO_ADVICE : null;
+}
+
+function unavailablePlot(kind, reason) {
+  return h("figure", { class: "plot unavailable", "data-plot": kind },
+    h("p", {}, `${kind[0].toUpperCase()}${kind.slice(1)} plot not available: ${reason}`));
+}
+
+async function adviceSection(path, unavailable = null) {
   const box = h("div", { "data-advice-box": path });
+  if (unavailable) {
+    box.append(h("p", { class: "unavailable" }, unavailable));
+    return section("Tuning advice", "advice-title", box);
+  }
   try {
     box.append(adviceResult(await api(path)));
   } catch (error) {
@@ -842,11 +871,12 @@ async function renderLoop(loopId) {
       section("Stiction estimate", "estimate-title", estimateFacts(diagnosis),
         await plot(loopId, "history"))),
     h("div", { class: "grid-2" },
-      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", await plot(loopId, "nyquist"),
+      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", nyquistUnavailable(diagnosis)
+        ? unavailablePlot("nyquist", nyquistUnavailable(diagnosis)) : await plot(loopId, "nyquist"),
         h("p", { class: "help" }, "The loop (identified process and configured controller) "
           + "against the describing function of the estimated stiction; a limit cycle is "
           + "predicted where the curves meet (harmonic balance, thesis Eq. 3.16).")),
-      await adviceSection(`${path}/advice`)),
+      await adviceSection(`${path}/advice`, adviceUnavailable(diagnosis))),
     section("Model check", "model-check-title",
       h("p", {}, "Replays the loop's model on the current window: where the simulation "
         + "differs from the measured PV, the cause, the extended model and what it gains."),

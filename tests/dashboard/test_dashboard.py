@@ -442,8 +442,16 @@ def test_loop_page_shows_alarm_buttons_whole_and_plot_notes_once(
     note.wait_for()
     assert note.inner_text() == f"Nyquist plot not available: {reason}"
     assert "not available" not in reason
-    # the healthy loop's Nyquist plot (404) and advice (409) are refused as they should be
-    browser.errors[:] = [e for e in browser.errors if "/api/v1/loops/FIC-2/" not in e]
+    # The healthy loop's page says why there is no Nyquist plot and no advice without asking
+    # for them: it redraws at every analysis, and each 404 and 409 was a line in the server's
+    # log and an error in the browser's console, every 15 s for as long as the page was open.
+    status, _, body = running.fetch("/api/v1/loops/FIC-2/advice", "viewer")
+    assert status == 409
+    advice = page.locator('[data-advice-box$="/advice"] p')
+    assert advice.inner_text() == json.loads(body)["detail"]
+    asked = [url for url in browser.requests
+             if url.endswith(("/loops/FIC-2/plots/nyquist", "/loops/FIC-2/advice"))]
+    assert asked == []
 
 
 def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Browser) -> None:
