@@ -1130,6 +1130,37 @@ async function renderModelCheck(loopId) {
 
 /* ------------------------------------------------------------------ ticket view */
 
+/** A ticket's evidence keys as a planner reads them: the name, and the unit of the value. */
+const EVIDENCE_NAMES = {
+  S: ["S (stick band + deadband)", "% of valve span"],
+  J: ["J (slip jump)", "% of valve span"],
+  S_interval: ["S, 95 % interval", "% of valve span"],
+  J_interval: ["J, 95 % interval", "% of valve span"],
+  fs: ["fs (He's model)", "% of valve span"],
+  fd: ["fd (He's model)", "% of valve span"],
+  episode_S: ["S from the episodes", "% of span"],
+  episode_stick_band: ["OP travel while PV held", "% of span"],
+  op_travel: ["OP travel in the window", "% of span"],
+  period_s: ["Period", "s"],
+  amplitude_op: ["OP amplitude", "% of span"],
+  amplitude_pv: ["PV amplitude", "% of span"],
+  episodes_found: ["Stick-jump episodes found", ""],
+  size_windows: ["Windows combined in S and J", ""],
+  size_check: ["Episodes and Hammerstein", ""],
+  confirmations: ["Confirmations (separate windows)", ""],
+};
+
+function evidenceValue(key, value) {
+  const unit = (EVIDENCE_NAMES[key] || [])[1];
+  const suffix = unit ? ` ${unit}` : "";
+  if (Array.isArray(value)) return `${num(value[0], 2)} to ${num(value[1], 2)}${suffix}`;
+  if (key.startsWith("window") && typeof value === "number") return utc(value);
+  if (typeof value === "number" && !Number.isInteger(value)) {
+    return `${num(value, unit === "s" ? 1 : 3)}${suffix}`;
+  }
+  return `${String(value)}${suffix}`;
+}
+
 async function renderTicket(ticketId) {
   const main = document.getElementById("main");
   const ticket = await api(`/tickets/${encodeURIComponent(ticketId)}`);
@@ -1140,7 +1171,8 @@ async function renderTicket(ticketId) {
   const kinds = Object.keys(e.plots || { trend: 1, signature: 1, spectrum: 1 });
   const figures = await Promise.all(kinds.map((kind) =>
     plot(ticket.loop_id, kind, kind === "trend" ? trendParams : {})));
-  const numbers = Object.entries(e).filter(([, v]) => v === null || typeof v !== "object");
+  const numbers = Object.entries(e).filter(([, v]) => v === null || typeof v !== "object"
+    || (Array.isArray(v) && v.length === 2 && v.every((x) => typeof x === "number")));
   main.replaceChildren(
     h("p", { class: "crumbs no-print" }, h("a", { href: "#/" }, "Plant overview"), " › ",
       loopLink(ticket.loop_id)),
@@ -1155,9 +1187,9 @@ async function renderTicket(ticketId) {
       h("p", { class: "description" }, ticket.description),
       h("h2", {}, "Evidence"),
       table("Evidence", ["Quantity", "Value"], numbers.map(([k, v]) =>
-        h("tr", {}, h("th", { scope: "row" }, k.replace(/_/g, " ")),
-          h("td", {}, typeof v === "number" && !Number.isInteger(v) ? num(v, 3)
-            : (k.startsWith("window") ? utc(v) : String(v))))), "No evidence recorded."),
+        h("tr", { "data-evidence": k }, h("th", { scope: "row" },
+          (EVIDENCE_NAMES[k] || [k.replace(/_/g, " ")])[0]), h("td", {}, evidenceValue(k, v)))),
+      "No evidence recorded."),
       h("h3", {}, "Stick-jump episodes"),
       episodesTable(e.episodes, "No stick-jump episodes recorded."),
       h("div", { class: "evidence-plots" }, figures),

@@ -474,6 +474,32 @@ def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Br
     assert page.locator("svg").evaluate_all(TITLES_OUTSIDE) == []
 
 
+def test_ticket_evidence_gives_every_size_its_unit(running: RunningService,
+                                                  browser: Browser) -> None:
+    """The ticket's evidence table listed "S 4.179", "period s 200.122" and "op travel
+    146.151" without units, and left out the intervals of S and J that its text names."""
+    page = browser.page
+    ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
+    evidence = running.call("GET", f"/api/v1/tickets/{ticket['id']}", "viewer")["evidence"]
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.goto(f"{running.base_url}/#/ticket/{ticket['id']}")
+    row = page.locator('tr[data-evidence="S"]')
+    row.wait_for()
+    assert row.inner_text() == f"S (stick band + deadband)\t{evidence['S']:.3f} % of valve span"
+    assert page.locator('tr[data-evidence="J"] td').inner_text() == (
+        f"{evidence['J']:.3f} % of valve span")
+    assert page.locator('tr[data-evidence="period_s"]').inner_text() == (
+        f"Period\t{evidence['period_s']:.1f} s")
+    low, high = evidence["S_interval"]
+    assert page.locator('tr[data-evidence="S_interval"] td').inner_text() == (
+        f"{low:.2f} to {high:.2f} % of valve span")
+    for key in ("op_travel", "amplitude_op", "amplitude_pv"):
+        if evidence.get(key) is not None:
+            assert page.locator(f'tr[data-evidence="{key}"] td').inner_text().endswith(
+                "% of span")
+
+
 TITLES_OUTSIDE = """svgs => svgs.flatMap(svg => {
     const width = svg.viewBox.baseVal.width;
     return [...svg.querySelectorAll(':scope > text, g.panel > text:first-of-type')]
