@@ -1023,9 +1023,17 @@ function parameterText(parameters) {
   // of S and J for each direction.
   const entries = Object.entries(parameters || {});
   if (entries.length === 0) return "—";
-  const value = (v) => (typeof v === "number" ? num(v, 3)
+  const value = (k, v) => (typeof v === "number" ? num(v, 3) + parameterUnit(k)
     : v && typeof v === "object" ? `(${parameterText(v)})` : v);
-  return entries.map(([k, v]) => `${k} ${value(v)}`).join(", ");
+  return entries.map(([k, v]) => `${k} ${value(k, v)}`).join(", ");
+}
+
+/** The unit of a model parameter (the model file's: times in s, valve sizes, positions and
+ * load amplitudes in % of span, a load's phase in rad); none for gains and ratios. */
+function parameterUnit(key) {
+  if (["tau", "theta", "Ti", "Td", "period", "dt"].includes(key)) return " s";
+  if (/^(S|J|fs|fd|low|high|amplitude)$|_(S|J|fs|fd)$/.test(key)) return " %";
+  return key === "phase" ? " rad" : "";
 }
 
 function modelFacts(model) {
@@ -1106,7 +1114,8 @@ async function renderModelCheck(loopId) {
       const parts = await modelCheckResult(loopId, answer);
       if (page !== session.page) return;  // the user went elsewhere meanwhile
       result.replaceChildren(...parts);
-      announce(`Model check of ${loopId} done: ${answer.cause.effect.replace(/_/g, " ")}`);
+      announce(`Model check of ${loopId} done: ${answer.cause.effect === "none"
+        ? "no effect found" : answer.cause.effect.replace(/_/g, " ")}`);
     } catch (error) {
       result.replaceChildren(h("p", { class: "error", role: "alert" },
         `Model check not available: ${error.message}`));

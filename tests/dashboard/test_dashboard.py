@@ -517,7 +517,13 @@ def test_nested_model_parameters_read_as_words(running: RunningService, browser:
     page.get_by_label("API key").wait_for()
     text = page.evaluate("parameterText({model: 'kano', opening: {S: 4, J: 2}, "
                          "closing: {S: 3.5, J: 1.25}})")
-    assert text == "model kano, opening (S 4.000, J 2.000), closing (S 3.500, J 1.250)"
+    assert text == "model kano, opening (S 4.000 %, J 2.000 %), closing (S 3.500 %, J 1.250 %)"
+    # and every size with its unit: tau 7.841 and period 224.687 were seconds unsaid
+    text = page.evaluate("parameterText({type: 'fopdt', K: 1.2, tau: 7.8, theta: 3}) + '; ' "
+                         "+ parameterText({amplitude: 0.05, period: 224.7, phase: -0.4}) + '; '"
+                         "+ parameterText({type: 'PI', Kc: 0.5, Ti: 8})")
+    assert text == ("type fopdt, K 1.200, tau 7.800 s, theta 3.000 s; amplitude 0.050 %, "
+                    "period 224.700 s, phase -0.400 rad; type PI, Kc 0.500, Ti 8.000 s")
 
 
 DAY = 86400.0
