@@ -673,14 +673,16 @@ function estimateFacts(diagnosis) {
     if (size.J_note) pairs.push(["J of the valve size", size.J_note]);
   }
   if (q) {
-    pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
-      ["J (slip jump)", `${num(q.J)} % of span`],
+    // This window's own estimate: beside the combined size it is a second S and J, said so.
+    const own = size && size.S_interval ? ", this window" : "";
+    pairs.push([`S (stick band + deadband)${own}`, `${num(q.S)} % of span`],
+      [`J (slip jump)${own}`, `${num(q.J)} % of span`],
       ["fs, fd (He's model)", `${num(q.fs)}, ${num(q.fd)} %`],
       ["Fit R² (Hammerstein)", num(q.fit_r2, 3)],
       ["Valve model", q.valve_model],
       ["Process model", `K ${num(q.process.K, 3)}, τ ${num(q.process.tau, 1)} s, θ `
         + `${num(q.process.theta, 1)} s${q.process.integrating ? ", integrating" : ""}`],
-      ["Process gain", q.gain_given ? `given (${q.gain_source || "plant file"})`
+      ["Process gain", q.gain_given ? `given: ${q.gain_source || "plant file"}`
         : `fitted${q.J_product_only ? ": J known only through K·J " + num(q.KJ, 3) : ""}`],
       ["Trustworthy", q.trustworthy ? "yes" : `no: ${q.issues.join("; ")}`]);
   }

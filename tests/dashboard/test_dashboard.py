@@ -235,6 +235,12 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     assert (f"{sized['S']:.2f} % of span (OP's travel from its turn to the slip, median of "
             f"{sized['reversals']} after a reversal)") in facts.inner_text()
     assert sized["note"] in facts.inner_text()
+    # Two sizes of one valve on one page: the combined one and this window's, each named.
+    assert diagnosis["valve"]["S_interval"] is not None
+    assert "windows combined" in facts.inner_text()
+    for name, value in (("S (stick band + deadband)", estimate["S"]),
+                        ("J (slip jump)", estimate["J"])):
+        assert f"{name}, this window\n{value:.2f} % of span" in facts.inner_text()
     nyquist = page.locator('figure[data-plot="nyquist"] svg[data-kind="nyquist"]')
     nyquist.wait_for()
     for series in ("loop", "df"):
