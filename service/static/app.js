@@ -667,7 +667,9 @@ function estimateFacts(diagnosis) {
   if (size && size.S_interval) {
     // the valve's size combined over the windows of its streak (issue 19), nominal 95 %
     // intervals (on simulated valves they hold the true size in about 5 cases of 6)
-    pairs.push([`Valve size, ${size.size_windows.length} windows combined`,
+    const windows = size.size_windows.length;
+    pairs.push([windows === 1 ? "Valve size, from 1 window" : `Valve size, ${windows} windows `
+      + "combined",
       `S ${num(size.S)} % (${num(size.S_interval[0])} to ${num(size.S_interval[1])}), `
       + `J ${num(size.J)} % (${num(size.J_interval[0])} to ${num(size.J_interval[1])})`]);
     if (size.J_note) pairs.push(["J of the valve size", size.J_note]);
