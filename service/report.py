@@ -237,7 +237,8 @@ def report_pdf(report: BadActorReport) -> bytes:
         # The note wraps onto as many lines as it needs: one line ran off the page's edge.
         note = _latin1(f"{named}{row.why}; {diagnosis}{dead_time}")
         pdf.set_font("Helvetica", "I", 7)
-        note_lines = len(pdf.multi_cell(0, note_h, note, dry_run=True, output="LINES"))
+        lines = pdf.multi_cell(0, note_h, note, dry_run=True, output="LINES")
+        note_lines = len(lines) if isinstance(lines, list) else 1
         if pdf.get_y() + row_h + note_h * note_lines > pdf.h - pdf.b_margin:
             pdf.add_page()
             header()
