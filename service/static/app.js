@@ -1197,7 +1197,10 @@ async function renderTicket(ticketId) {
         ["Location", ticket.location || "—"], ["State", ticket.state],
         ["Priority", ticket.priority], ["Malfunction since", utc(ticket.malfunction_start)],
         ["Opened", utc(ticket.created_at)]]),
-      h("p", { class: "description" }, ticket.description),
+      // The long text as the CMMS gets it, but for its episode lines: the table below
+      // lists the same episodes (they were on the page twice, 20 lines each).
+      h("p", { class: "description" }, ticket.description.split("\n")
+        .filter((line) => !/^Episode \d+: hold /.test(line)).join("\n")),
       h("h2", {}, "Evidence"),
       table("Evidence", ["Quantity", "Value"], numbers.map(([k, v]) =>
         h("tr", { "data-evidence": k }, h("th", { scope: "row" },

@@ -485,7 +485,8 @@ def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Br
 def test_ticket_evidence_gives_every_size_its_unit(running: RunningService,
                                                   browser: Browser) -> None:
     """The ticket's evidence table listed "S 4.179", "period s 200.122" and "op travel
-    146.151" without units, and left out the intervals of S and J that its text names."""
+    146.151" without units, and left out the intervals of S and J that its text names; the
+    stick-jump episodes were on the page twice (the long text's lines and the table)."""
     page = browser.page
     ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
     evidence = running.call("GET", f"/api/v1/tickets/{ticket['id']}", "viewer")["evidence"]
@@ -502,6 +503,13 @@ def test_ticket_evidence_gives_every_size_its_unit(running: RunningService,
     low, high = evidence["S_interval"]
     assert page.locator('tr[data-evidence="S_interval"] td').inner_text() == (
         f"{low:.2f} to {high:.2f} % of valve span")
+    # The episodes once, in their table: the long text's episode lines are left out of it.
+    description = page.locator("p.description").inner_text()
+    assert "Valve stiction confirmed by" in description and "Confidence" in description
+    assert evidence["episodes"] and "Episode 1: hold" in running.call(
+        "GET", f"/api/v1/tickets/{ticket['id']}", "viewer")["description"]
+    assert "Episode 1: hold" not in description
+    assert page.locator("tr[data-episode]").count() == len(evidence["episodes"])
     for key in ("op_travel", "amplitude_op", "amplitude_pv"):
         if evidence.get(key) is not None:
             assert page.locator(f'tr[data-evidence="{key}"] td').inner_text().endswith(
