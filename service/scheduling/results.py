@@ -54,7 +54,7 @@ def alarm_message(diagnosis: dict[str, Any]) -> str:
     else:
         pattern = stiction_pattern_text(stiction.pattern, stiction.op_travel)
     # in words, as the dashboard's verdicts read ("no stiction", not "no_stiction")
-    valve = (f"valve: {final.verdict.replace('_', ' ')}"
+    valve = (f"valve: {str(final.verdict).replace('_', ' ')}"
              + ("" if pattern is None else f" ({pattern})"))
     if not stored.quality.usable:
         if final.verdict == "stiction":
