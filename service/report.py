@@ -148,6 +148,17 @@ def _latin1(text: str) -> str:
     return text.encode("latin-1", "replace").decode("latin-1")
 
 
+def _fit(pdf: FPDF, text: str, width: float) -> str:
+    """``text`` shortened to fit a cell ``width`` mm wide in the current font, with
+    "..." where it was cut (a cut mid-word without a mark read as a wrong name)."""
+    room = width - 2 * pdf.c_margin
+    if pdf.get_string_width(text) <= room:
+        return text
+    while text and pdf.get_string_width(text + "...") > room:
+        text = text[:-1]
+    return text.rstrip() + "..."
+
+
 def _stamp(t: float) -> str:
     return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M UTC")
 
@@ -195,7 +206,7 @@ def report_pdf(report: BadActorReport) -> bytes:
     pdf.cell(0, 8, f"Bad-actor report: the worst loops over {report.period}",
              new_x="LMARGIN", new_y="NEXT")
     pdf.set_font("Helvetica", "", 9)
-    pdf.cell(0, 5, _latin1(
+    pdf.multi_cell(0, 5, _latin1(
         f"{_stamp(report.since)} to {_stamp(report.until)}. Score = 100 x severity x "
         "importance weight x share of the period's runs that were bad; the trend is each "
         "analysis window's severity (dotted: bad from 0.3)."), new_x="LMARGIN", new_y="NEXT")
@@ -214,10 +225,23 @@ def report_pdf(report: BadActorReport) -> bytes:
         pdf.cell(0, 8, "No loop is configured.", new_x="LMARGIN", new_y="NEXT")
     row_h, note_h = 8.0, 4.5
     for line in report.lines:
-        if pdf.get_y() + row_h + note_h > pdf.h - pdf.b_margin:
+        row, f = line.loop, StoredKpis.from_dict(line.kpis)
+        diagnosis = (f"oscillating, period {row.period_s:.0f} s" if row.oscillating
+                     and row.period_s is not None else
+                     "oscillating" if row.oscillating else "not oscillating"
+                     if row.oscillating is not None else "not analysed")
+        dead_time = f"; Harris dead time {f.dead_time_note}" if f.dead_time_note else ""
+        pdf.set_font("Helvetica", "", 8)
+        name = f"{row.id} {row.name}"
+        named = "" if _fit(pdf, _latin1(name), HEADER[1][1]) == _latin1(name) else f"{name}: "
+        # The note wraps onto as many lines as it needs: one line ran off the page's edge.
+        note = _latin1(f"{named}{row.why}; {diagnosis}{dead_time}")
+        pdf.set_font("Helvetica", "I", 7)
+        lines = pdf.multi_cell(0, note_h, note, dry_run=True, output="LINES")
+        note_lines = len(lines) if isinstance(lines, list) else 1
+        if pdf.get_y() + row_h + note_h * note_lines > pdf.h - pdf.b_margin:
             pdf.add_page()
             header()
-        row, f = line.loop, StoredKpis.from_dict(line.kpis)
         cells = [
             str(line.rank), f"{row.id} {row.name}", row.importance, f"{row.score:.1f}",
             _number(row.health, 3), row.verdict or "", _number(f.oscillation_index, 2),
@@ -228,7 +252,7 @@ def report_pdf(report: BadActorReport) -> bytes:
         pdf.set_font("Helvetica", "", 8)
         y = pdf.get_y()
         for text, (_, width) in zip(cells, HEADER, strict=False):
-            pdf.cell(width, row_h, _latin1(text)[: int(width * 0.6)], border="LTB")
+            pdf.cell(width, row_h, _fit(pdf, _latin1(text), width), border="LTB")
         x = pdf.get_x()
         spark_w = HEADER[-2][1]
         pdf.cell(spark_w, row_h, "", border="LTB")
@@ -238,11 +262,5 @@ def report_pdf(report: BadActorReport) -> bytes:
         pdf.cell(HEADER[-1][1], row_h, _latin1(", ".join(line.tickets) or "none"), border=1)
         pdf.ln()
         pdf.set_font("Helvetica", "I", 7)
-        diagnosis = (f"oscillating, period {row.period_s:.0f} s" if row.oscillating
-                     and row.period_s is not None else
-                     "oscillating" if row.oscillating else "not oscillating"
-                     if row.oscillating is not None else "not analysed")
-        dead_time = f"; Harris dead time {f.dead_time_note}" if f.dead_time_note else ""
-        pdf.cell(0, note_h, _latin1(f"   {row.why}; {diagnosis}{dead_time}"), border="LRB",
-                 new_x="LMARGIN", new_y="NEXT")
+        pdf.multi_cell(0, note_h, note, border="LRB", new_x="LMARGIN", new_y="NEXT")
     return bytes(pdf.output())

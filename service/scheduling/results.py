@@ -53,7 +53,9 @@ def alarm_message(diagnosis: dict[str, Any]) -> str:
         pattern: str | None = final.reason
     else:
         pattern = stiction_pattern_text(stiction.pattern, stiction.op_travel)
-    valve = f"valve: {final.verdict}" + ("" if pattern is None else f" ({pattern})")
+    # in words, as the dashboard's verdicts read ("no stiction", not "no_stiction")
+    valve = (f"valve: {str(final.verdict).replace('_', ' ')}"
+             + ("" if pattern is None else f" ({pattern})"))
     if not stored.quality.usable:
         if final.verdict == "stiction":
             return f"data unusable, {valve}"

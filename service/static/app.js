@@ -667,20 +667,24 @@ function estimateFacts(diagnosis) {
   if (size && size.S_interval) {
     // the valve's size combined over the windows of its streak (issue 19), nominal 95 %
     // intervals (on simulated valves they hold the true size in about 5 cases of 6)
-    pairs.push([`Valve size, ${size.size_windows.length} windows combined`,
+    const windows = size.size_windows.length;
+    pairs.push([windows === 1 ? "Valve size, from 1 window" : `Valve size, ${windows} windows `
+      + "combined",
       `S ${num(size.S)} % (${num(size.S_interval[0])} to ${num(size.S_interval[1])}), `
       + `J ${num(size.J)} % (${num(size.J_interval[0])} to ${num(size.J_interval[1])})`]);
     if (size.J_note) pairs.push(["J of the valve size", size.J_note]);
   }
   if (q) {
-    pairs.push(["S (stick band + deadband)", `${num(q.S)} % of span`],
-      ["J (slip jump)", `${num(q.J)} % of span`],
+    // This window's own estimate: beside the combined size it is a second S and J, said so.
+    const own = size && size.S_interval ? ", this window" : "";
+    pairs.push([`S (stick band + deadband)${own}`, `${num(q.S)} % of span`],
+      [`J (slip jump)${own}`, `${num(q.J)} % of span`],
       ["fs, fd (He's model)", `${num(q.fs)}, ${num(q.fd)} %`],
       ["Fit R² (Hammerstein)", num(q.fit_r2, 3)],
       ["Valve model", q.valve_model],
       ["Process model", `K ${num(q.process.K, 3)}, τ ${num(q.process.tau, 1)} s, θ `
         + `${num(q.process.theta, 1)} s${q.process.integrating ? ", integrating" : ""}`],
-      ["Process gain", q.gain_given ? `given (${q.gain_source || "plant file"})`
+      ["Process gain", q.gain_given ? `given: ${q.gain_source || "plant file"}`
         : `fitted${q.J_product_only ? ": J known only through K·J " + num(q.KJ, 3) : ""}`],
       ["Trustworthy", q.trustworthy ? "yes" : `no: ${q.issues.join("; ")}`]);
   }
@@ -747,8 +751,37 @@ function adviceResult(advice) {
     ...(advice.notes || []).map((note) => h("p", { class: "note" }, note)));
 }
 
-async function adviceSection(path) {
+/** Why the Nyquist plot and the tuning advice cannot be had for this diagnosis, known
+ * without asking: the page redraws at every analysis, and a healthy loop's page would
+ * otherwise log a 404 and a 409 on the server and in the console every time. */
+const NO_NYQUIST = "the latest analysis has no stiction estimate (S, J) with an identified "
+  + "process model";
+const NO_ADVICE = "Advice not available: the loop does not cycle and its valve is not sticky; "
+  + "there is nothing to retune";
+
+function nyquistUnavailable(diagnosis) {
+  const q = diagnosis ? diagnosis.quantification : undefined;
+  return diagnosis && (!q || q.S === null || q.S === undefined || !q.process) ? NO_NYQUIST
+    : null;
+}
+
+function adviceUnavailable(diagnosis) {
+  if (!diagnosis || !diagnosis.oscillation || diagnosis.oscillation.detected) return null;
+  const valve = diagnosis.valve || diagnosis.stiction;
+  return valve && valve.verdict !== "stiction" ? NO_ADVICE : null;
+}
+
+function unavailablePlot(kind, reason) {
+  return h("figure", { class: "plot unavailable", "data-plot": kind },
+    h("p", {}, `${kind[0].toUpperCase()}${kind.slice(1)} plot not available: ${reason}`));
+}
+
+async function adviceSection(path, unavailable = null) {
   const box = h("div", { "data-advice-box": path });
+  if (unavailable) {
+    box.append(h("p", { class: "unavailable" }, unavailable));
+    return section("Tuning advice", "advice-title", box);
+  }
   try {
     box.append(adviceResult(await api(path)));
   } catch (error) {
@@ -842,11 +875,12 @@ async function renderLoop(loopId) {
       section("Stiction estimate", "estimate-title", estimateFacts(diagnosis),
         await plot(loopId, "history"))),
     h("div", { class: "grid-2" },
-      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", await plot(loopId, "nyquist"),
+      section("Nyquist plot: G Gc and -1/N(A)", "nyquist-title", nyquistUnavailable(diagnosis)
+        ? unavailablePlot("nyquist", nyquistUnavailable(diagnosis)) : await plot(loopId, "nyquist"),
         h("p", { class: "help" }, "The loop (identified process and configured controller) "
           + "against the describing function of the estimated stiction; a limit cycle is "
           + "predicted where the curves meet (harmonic balance, thesis Eq. 3.16).")),
-      await adviceSection(`${path}/advice`)),
+      await adviceSection(`${path}/advice`, adviceUnavailable(diagnosis))),
     section("Model check", "model-check-title",
       h("p", {}, "Replays the loop's model on the current window: where the simulation "
         + "differs from the measured PV, the cause, the extended model and what it gains."),
@@ -993,9 +1027,17 @@ function parameterText(parameters) {
   // of S and J for each direction.
   const entries = Object.entries(parameters || {});
   if (entries.length === 0) return "—";
-  const value = (v) => (typeof v === "number" ? num(v, 3)
+  const value = (k, v) => (typeof v === "number" ? num(v, 3) + parameterUnit(k)
     : v && typeof v === "object" ? `(${parameterText(v)})` : v);
-  return entries.map(([k, v]) => `${k} ${value(v)}`).join(", ");
+  return entries.map(([k, v]) => `${k} ${value(k, v)}`).join(", ");
+}
+
+/** The unit of a model parameter (the model file's: times in s, valve sizes, positions and
+ * load amplitudes in % of span, a load's phase in rad); none for gains and ratios. */
+function parameterUnit(key) {
+  if (["tau", "theta", "Ti", "Td", "period", "dt"].includes(key)) return " s";
+  if (/^(S|J|fs|fd|low|high|amplitude)$|_(S|J|fs|fd)$/.test(key)) return " %";
+  return key === "phase" ? " rad" : "";
 }
 
 function modelFacts(model) {
@@ -1076,7 +1118,8 @@ async function renderModelCheck(loopId) {
       const parts = await modelCheckResult(loopId, answer);
       if (page !== session.page) return;  // the user went elsewhere meanwhile
       result.replaceChildren(...parts);
-      announce(`Model check of ${loopId} done: ${answer.cause.effect.replace(/_/g, " ")}`);
+      announce(`Model check of ${loopId} done: ${answer.cause.effect === "none"
+        ? "no effect found" : answer.cause.effect.replace(/_/g, " ")}`);
     } catch (error) {
       result.replaceChildren(h("p", { class: "error", role: "alert" },
         `Model check not available: ${error.message}`));
@@ -1100,6 +1143,37 @@ async function renderModelCheck(loopId) {
 
 /* ------------------------------------------------------------------ ticket view */
 
+/** A ticket's evidence keys as a planner reads them: the name, and the unit of the value. */
+const EVIDENCE_NAMES = {
+  S: ["S (stick band + deadband)", "% of valve span"],
+  J: ["J (slip jump)", "% of valve span"],
+  S_interval: ["S, 95 % interval", "% of valve span"],
+  J_interval: ["J, 95 % interval", "% of valve span"],
+  fs: ["fs (He's model)", "% of valve span"],
+  fd: ["fd (He's model)", "% of valve span"],
+  episode_S: ["S from the episodes", "% of span"],
+  episode_stick_band: ["OP travel while PV held", "% of span"],
+  op_travel: ["OP travel in the window", "% of span"],
+  period_s: ["Period", "s"],
+  amplitude_op: ["OP amplitude", "% of span"],
+  amplitude_pv: ["PV amplitude", "% of span"],
+  episodes_found: ["Stick-jump episodes found", ""],
+  size_windows: ["Windows combined in S and J", ""],
+  size_check: ["Episodes and Hammerstein", ""],
+  confirmations: ["Confirmations (separate windows)", ""],
+};
+
+function evidenceValue(key, value) {
+  const unit = (EVIDENCE_NAMES[key] || [])[1];
+  const suffix = unit ? ` ${unit}` : "";
+  if (Array.isArray(value)) return `${num(value[0], 2)} to ${num(value[1], 2)}${suffix}`;
+  if (key.startsWith("window") && typeof value === "number") return utc(value);
+  if (typeof value === "number" && !Number.isInteger(value)) {
+    return `${num(value, unit === "s" ? 1 : 3)}${suffix}`;
+  }
+  return `${String(value)}${suffix}`;
+}
+
 async function renderTicket(ticketId) {
   const main = document.getElementById("main");
   const ticket = await api(`/tickets/${encodeURIComponent(ticketId)}`);
@@ -1110,7 +1184,8 @@ async function renderTicket(ticketId) {
   const kinds = Object.keys(e.plots || { trend: 1, signature: 1, spectrum: 1 });
   const figures = await Promise.all(kinds.map((kind) =>
     plot(ticket.loop_id, kind, kind === "trend" ? trendParams : {})));
-  const numbers = Object.entries(e).filter(([, v]) => v === null || typeof v !== "object");
+  const numbers = Object.entries(e).filter(([, v]) => v === null || typeof v !== "object"
+    || (Array.isArray(v) && v.length === 2 && v.every((x) => typeof x === "number")));
   main.replaceChildren(
     h("p", { class: "crumbs no-print" }, h("a", { href: "#/" }, "Plant overview"), " › ",
       loopLink(ticket.loop_id)),
@@ -1122,12 +1197,15 @@ async function renderTicket(ticketId) {
         ["Location", ticket.location || "—"], ["State", ticket.state],
         ["Priority", ticket.priority], ["Malfunction since", utc(ticket.malfunction_start)],
         ["Opened", utc(ticket.created_at)]]),
-      h("p", { class: "description" }, ticket.description),
+      // The long text as the CMMS gets it, but for its episode lines: the table below
+      // lists the same episodes (they were on the page twice, 20 lines each).
+      h("p", { class: "description" }, ticket.description.split("\n")
+        .filter((line) => !/^Episode \d+: hold /.test(line)).join("\n")),
       h("h2", {}, "Evidence"),
       table("Evidence", ["Quantity", "Value"], numbers.map(([k, v]) =>
-        h("tr", {}, h("th", { scope: "row" }, k.replace(/_/g, " ")),
-          h("td", {}, typeof v === "number" && !Number.isInteger(v) ? num(v, 3)
-            : (k.startsWith("window") ? utc(v) : String(v))))), "No evidence recorded."),
+        h("tr", { "data-evidence": k }, h("th", { scope: "row" },
+          (EVIDENCE_NAMES[k] || [k.replace(/_/g, " ")])[0]), h("td", {}, evidenceValue(k, v)))),
+      "No evidence recorded."),
       h("h3", {}, "Stick-jump episodes"),
       episodesTable(e.episodes, "No stick-jump episodes recorded."),
       h("div", { class: "evidence-plots" }, figures),

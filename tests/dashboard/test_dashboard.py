@@ -235,6 +235,14 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     assert (f"{sized['S']:.2f} % of span (OP's travel from its turn to the slip, median of "
             f"{sized['reversals']} after a reversal)") in facts.inner_text()
     assert sized["note"] in facts.inner_text()
+    # Two sizes of one valve on one page: the combined one and this window's, each named.
+    assert diagnosis["valve"]["S_interval"] is not None
+    windows = len(diagnosis["valve"]["size_windows"])
+    assert (f"Valve size, {windows} windows combined\n" if windows > 1
+            else "Valve size, from 1 window\n") in facts.inner_text()  # not "1 windows"
+    for name, value in (("S (stick band + deadband)", estimate["S"]),
+                        ("J (slip jump)", estimate["J"])):
+        assert f"{name}, this window\n{value:.2f} % of span" in facts.inner_text()
     nyquist = page.locator('figure[data-plot="nyquist"] svg[data-kind="nyquist"]')
     nyquist.wait_for()
     for series in ("loop", "df"):
@@ -442,8 +450,16 @@ def test_loop_page_shows_alarm_buttons_whole_and_plot_notes_once(
     note.wait_for()
     assert note.inner_text() == f"Nyquist plot not available: {reason}"
     assert "not available" not in reason
-    # the healthy loop's Nyquist plot (404) and advice (409) are refused as they should be
-    browser.errors[:] = [e for e in browser.errors if "/api/v1/loops/FIC-2/" not in e]
+    # The healthy loop's page says why there is no Nyquist plot and no advice without asking
+    # for them: it redraws at every analysis, and each 404 and 409 was a line in the server's
+    # log and an error in the browser's console, every 15 s for as long as the page was open.
+    status, _, body = running.fetch("/api/v1/loops/FIC-2/advice", "viewer")
+    assert status == 409
+    advice = page.locator('[data-advice-box$="/advice"] p')
+    assert advice.inner_text() == json.loads(body)["detail"]
+    asked = [url for url in browser.requests
+             if url.endswith(("/loops/FIC-2/plots/nyquist", "/loops/FIC-2/advice"))]
+    assert asked == []
 
 
 def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Browser) -> None:
@@ -466,6 +482,40 @@ def test_ticket_plot_titles_fit_their_plots(running: RunningService, browser: Br
     assert page.locator("svg").evaluate_all(TITLES_OUTSIDE) == []
 
 
+def test_ticket_evidence_gives_every_size_its_unit(running: RunningService,
+                                                  browser: Browser) -> None:
+    """The ticket's evidence table listed "S 4.179", "period s 200.122" and "op travel
+    146.151" without units, and left out the intervals of S and J that its text names; the
+    stick-jump episodes were on the page twice (the long text's lines and the table)."""
+    page = browser.page
+    ticket = running.call("GET", "/api/v1/tickets?loop_id=FIC-1", "viewer")["data"][0]
+    evidence = running.call("GET", f"/api/v1/tickets/{ticket['id']}", "viewer")["evidence"]
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.goto(f"{running.base_url}/#/ticket/{ticket['id']}")
+    row = page.locator('tr[data-evidence="S"]')
+    row.wait_for()
+    assert row.inner_text() == f"S (stick band + deadband)\t{evidence['S']:.3f} % of valve span"
+    assert page.locator('tr[data-evidence="J"] td').inner_text() == (
+        f"{evidence['J']:.3f} % of valve span")
+    assert page.locator('tr[data-evidence="period_s"]').inner_text() == (
+        f"Period\t{evidence['period_s']:.1f} s")
+    low, high = evidence["S_interval"]
+    assert page.locator('tr[data-evidence="S_interval"] td').inner_text() == (
+        f"{low:.2f} to {high:.2f} % of valve span")
+    # The episodes once, in their table: the long text's episode lines are left out of it.
+    description = page.locator("p.description").inner_text()
+    assert "Valve stiction confirmed by" in description and "Confidence" in description
+    assert evidence["episodes"] and "Episode 1: hold" in running.call(
+        "GET", f"/api/v1/tickets/{ticket['id']}", "viewer")["description"]
+    assert "Episode 1: hold" not in description
+    assert page.locator("tr[data-episode]").count() == len(evidence["episodes"])
+    for key in ("op_travel", "amplitude_op", "amplitude_pv"):
+        if evidence.get(key) is not None:
+            assert page.locator(f'tr[data-evidence="{key}"] td').inner_text().endswith(
+                "% of span")
+
+
 TITLES_OUTSIDE = """svgs => svgs.flatMap(svg => {
     const width = svg.viewBox.baseVal.width;
     return [...svg.querySelectorAll(':scope > text, g.panel > text:first-of-type')]
@@ -483,7 +533,13 @@ def test_nested_model_parameters_read_as_words(running: RunningService, browser:
     page.get_by_label("API key").wait_for()
     text = page.evaluate("parameterText({model: 'kano', opening: {S: 4, J: 2}, "
                          "closing: {S: 3.5, J: 1.25}})")
-    assert text == "model kano, opening (S 4.000, J 2.000), closing (S 3.500, J 1.250)"
+    assert text == "model kano, opening (S 4.000 %, J 2.000 %), closing (S 3.500 %, J 1.250 %)"
+    # and every size with its unit: tau 7.841 and period 224.687 were seconds unsaid
+    text = page.evaluate("parameterText({type: 'fopdt', K: 1.2, tau: 7.8, theta: 3}) + '; ' "
+                         "+ parameterText({amplitude: 0.05, period: 224.7, phase: -0.4}) + '; '"
+                         "+ parameterText({type: 'PI', Kc: 0.5, Ti: 8})")
+    assert text == ("type fopdt, K 1.200, tau 7.800 s, theta 3.000 s; amplitude 0.050 %, "
+                    "period 224.700 s, phase -0.400 rad; type PI, Kc 0.500, Ti 8.000 s")
 
 
 DAY = 86400.0

@@ -66,7 +66,7 @@ def test_stiction_pattern_text(pattern, op_travel, words):
     (diagnosis(detected=True, verdict="stiction", pattern="limit_cycle"),
      "oscillation, period 48 s; valve: stiction (limit cycle)"),
     (diagnosis(detected=True, verdict="no_stiction"), "oscillation, period 48 s; valve: "
-     "no_stiction"),
+     "no stiction"),
     (diagnosis(usable=False, verdict="stiction", pattern="stuck", op_travel=30.0),
      "data unusable, valve: stiction (stuck: OP travelled 30.0 % with no PV response)"),
     # the reason of unusable data is the diagnosis's own, which says so (it was said twice)

@@ -175,7 +175,7 @@ def test_every_page_reads_the_units_final_verdict_on_each_valve(make_service, ba
             assert listed[loop_id]["S"] is not None
             assert health["stiction_pattern"] == "limit cycle"
         else:
-            assert alarm["message"].endswith("valve: no_stiction (cycles because FV-502 sticks)")
+            assert alarm["message"].endswith("valve: no stiction (cycles because FV-502 sticks)")
             assert health["diagnosis"]["valve"]["reason"] == "cycles because FV-502 sticks"
             assert (listed[loop_id]["S"], listed[loop_id]["J"]) == (None, None)
             assert health["stiction_pattern"] is None

@@ -328,7 +328,9 @@ def model_check_plot(
         figure = plots.model_check_figure(
             overlay.t, _values(overlay.pv), _values(overlay.pv_base),
             _values(overlay.pv_extended), overlay.scored,
-            title=f"{_name(loop)}: model check, extended with {cause.effect.replace('_', ' ')}",
+            title=f"{_name(loop)}: model check, " + (
+                "no effect found" if cause.effect == "none"
+                else f"extended with {cause.effect.replace('_', ' ')}"),
         )
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None

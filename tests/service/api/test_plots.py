@@ -110,7 +110,9 @@ def test_model_check_plot_draws_the_answer_of_the_model_check(analysed):
     assert response.status_code == 200, response.text
     root = parse(response.text)
     assert root.get("data-kind") == "model-check"
-    assert answer["cause"]["effect"].replace("_", " ") in root.get("aria-label")
+    effect = answer["cause"]["effect"]
+    assert (effect.replace("_", " ") if effect != "none" else "no effect found") \
+        in root.get("aria-label")
     overlay, _ = panels(root)
     x, y = drawn(overlay, "pv_extended")
     scored = np.array(answer["overlay"]["scored"])
@@ -305,3 +307,18 @@ def test_the_model_check_plot_needs_an_overlay_of_equal_lengths(client):
         "[(1,), (2,)]")})
     answer = client.post("/api/v1/loops/NOPE/plots/model-check", json=body, headers=HEADERS)
     assert (answer.status_code, answer.json()) == (404, {"detail": "Loop not found"})
+
+
+def test_a_model_check_that_finds_nothing_is_not_titled_extended_with_none(client):
+    """The model check of a loop its model explains was titled "model check, extended with
+    none"."""
+    overlay = {"t": [T0, T0 + 1, T0 + 2], "pv": [1.0, 2.0, 1.5], "pv_base": [1.1, 1.9, 1.5],
+               "pv_extended": [1.1, 1.9, 1.5], "scored": [False, True, True]}
+    answer = client.post("/api/v1/loops/FIC-1/plots/model-check", headers=HEADERS,
+                         json={"overlay": overlay, "cause": {"effect": "none"}})
+    assert answer.status_code == 200, answer.text
+    label = parse(answer.text).get("aria-label")
+    assert "model check, no effect found" in label and "extended with none" not in label
+    answer = client.post("/api/v1/loops/FIC-1/plots/model-check", headers=HEADERS,
+                         json={"overlay": overlay, "cause": {"effect": "gain_mismatch"}})
+    assert "model check, extended with gain mismatch" in parse(answer.text).get("aria-label")
