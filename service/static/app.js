@@ -103,7 +103,12 @@ class ApiError extends Error {
 }
 
 async function request(path, options = {}) {
-  const headers = { "X-API-Key": sessionStorage.getItem(KEY_STORAGE) || "" };
+  // A page still loading when its user signed out asks nothing more (it would only be
+  // refused), and a refusal counts only for the key it was sent with: a late 401 of a
+  // page left before a new sign-in must not sign the new session out.
+  const key = sessionStorage.getItem(KEY_STORAGE);
+  if (!key) throw new ApiError(401, "signed out");
+  const headers = { "X-API-Key": key };
   if (options.body !== undefined) headers["Content-Type"] = "application/json";
   const response = await fetch(path, {
     method: options.method || "GET", headers,
@@ -118,7 +123,8 @@ async function request(path, options = {}) {
   if (!response.ok) {
     let detail = response.statusText;
     try { detail = (await response.json()).detail; } catch (_) { /* not JSON */ }
-    if (response.status === 401 && !options.signingIn) {
+    if (response.status === 401 && !options.signingIn
+        && sessionStorage.getItem(KEY_STORAGE) === key) {
       signOut(`Signed out: ${detail}`);
     }
     throw new ApiError(response.status, detail);
@@ -776,19 +782,22 @@ function unavailablePlot(kind, reason) {
     h("p", {}, `${kind[0].toUpperCase()}${kind.slice(1)} plot not available: ${reason}`));
 }
 
-async function adviceSection(path, unavailable = null) {
+function adviceSection(path, unavailable = null) {
+  // The advice simulates the loop model (seconds on a busy server): the page is shown at
+  // once and the advice fills its box when it arrives.
   const box = h("div", { "data-advice-box": path });
   if (unavailable) {
     box.append(h("p", { class: "unavailable" }, unavailable));
     return section("Tuning advice", "advice-title", box);
   }
-  try {
-    box.append(adviceResult(await api(path)));
-  } catch (error) {
+  box.setAttribute("aria-busy", "true");
+  box.append(h("p", { class: "unavailable", role: "status" },
+    "Working out the advice: the loop model is simulated at each tuning…"));
+  api(path).then((advice) => box.replaceChildren(adviceResult(advice))).catch((error) => {
     // 409: the loop has no estimate or no controller yet; the answer says which
-    box.append(h("p", { class: "unavailable" }, error instanceof ApiError && error.status === 409
-      ? error.message : `Tuning advice: not available (${error.message}).`));
-  }
+    box.replaceChildren(h("p", { class: "unavailable" }, error instanceof ApiError
+      && error.status === 409 ? error.message : `Tuning advice: not available (${error.message}).`));
+  }).finally(() => box.removeAttribute("aria-busy"));
   return section("Tuning advice", "advice-title", box);
 }
 
@@ -880,7 +889,7 @@ async function renderLoop(loopId) {
         h("p", { class: "help" }, "The loop (identified process and configured controller) "
           + "against the describing function of the estimated stiction; a limit cycle is "
           + "predicted where the curves meet (harmonic balance, thesis Eq. 3.16).")),
-      await adviceSection(`${path}/advice`, adviceUnavailable(diagnosis))),
+      adviceSection(`${path}/advice`, adviceUnavailable(diagnosis))),
     section("Model check", "model-check-title",
       h("p", {}, "Replays the loop's model on the current window: where the simulation "
         + "differs from the measured PV, the cause, the extended model and what it gains."),
