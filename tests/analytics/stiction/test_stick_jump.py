@@ -118,6 +118,19 @@ def test_pv_that_holds_through_an_op_reversal_is_stuck():
     assert StuckSectionsDetector().detect(LoopWindow(1.0, op, following)).decision == UNDECIDED
 
 
+def test_a_zig_zag_through_a_hold_is_as_large_as_its_largest_leg():
+    """Six swings of 1.5 while PV holds are a reversal of 1.5, not the 9 the legs
+    add up to: OP that swings within a stick band never went further out."""
+    rng = np.random.default_rng(8)
+    swings = 42.0 + 0.75 * (2.0 / np.pi) * np.arcsin(np.sin(np.linspace(0, 12 * np.pi, 720)))
+    op = np.concatenate([np.linspace(40, 42, 300), swings, np.full(300, 42.0)])
+    pv = 50.0 + 1.5 * (np.minimum(op[:300], 42.0) - 40.0)
+    pv = np.concatenate([pv, np.full(1020, 53.0)]) + 0.05 * rng.standard_normal(op.size)
+    analysis = analyse_window(LoopWindow(1.0, op, pv))
+    assert analysis is not None
+    assert analysis.hold_reversal == pytest.approx(1.5, rel=0.15)
+
+
 def test_too_little_valve_movement_is_not_judged():
     op = 40 + 0.2 * np.random.default_rng(6).standard_normal(1000)
     pv = 50 + 0.1 * np.random.default_rng(7).standard_normal(1000)
