@@ -132,9 +132,10 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     assert ticketed == {"FV-101", "FV-105", "FV-502"}  # no healthy valve has a ticket
     # each sticky valve's size is combined over the two windows of the history rounds that
     # do not overlap, with its interval (issue 19).  FV-101 (Kano S 4, J 2) measured
-    # 4.00/1.99.  FV-105 (He S 8, J 4, no process model configured) 7.94-7.96/3.33-3.65
-    # over three runs (the windows start a few seconds apart): J is not always within
-    # 15 % (benchmarks/demo_sizes.py --offsets: -8 % to -17 %; both windows read J low).
+    # 4.00/1.99.  FV-105 (He S 8, J 4, sized with its configured process model's gain)
+    # is fitted as a Kano valve and reads J low, -13 % to -18 % over live runs whose
+    # windows start a few seconds apart (benchmarks/demo_sizes.py --offsets): not always
+    # within 15 %.
     # FV-502 (He S 4, J 2) is sized with the column's process matrix, J 2.03; its S is
     # the second window's (3.7-4.2): the start-up window (1.5-3.2, R^2 0.74-0.97 against
     # 0.99) counts less for its worse fit, whichever interval is the narrower.
