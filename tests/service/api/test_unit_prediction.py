@@ -211,6 +211,27 @@ def test_agree_needs_the_model_to_reproduce_the_measured_cycle(client: TestClien
     assert body["comparison"]["agree"] is False
 
 
+@pytest.mark.parametrize(("model", "valve"), [
+    ("kano", {"model": "kano", "S": 4.0, "J": 2.0}),
+    ("he", {"model": "he", "fs": 3.0, "fd": 1.0}),  # thesis Eq. 1.2
+    (None, {"model": "choudhury", "S": 4.0, "J": 2.0}),  # stored before valve_model
+])
+def test_the_valve_is_the_estimates_model_at_the_combined_size(
+    client: TestClient, model: str | None, valve: dict[str, Any],
+) -> None:
+    """Issue 19: the unit's model took a Choudhury valve of the latest window's S and J;
+    the valve is the model the Hammerstein fit chose, at the size combined over the
+    valve's windows (the final verdict's), as the single-loop advice takes it."""
+    viewer = key(client, "viewer")
+    window = {"S": 3.1, "J": 0.9, "valve_model": model}  # the latest window alone
+    combined = {"verdict": "stiction", "decided_by": "loop", "S": 4.0, "J": 2.0,
+                "S_interval": [3.5, 4.5], "J_interval": [1.5, 2.5]}
+    store_run(client, "TIC-1", "stiction", window, valve=combined)
+    store_run(client, "FIC-2", "no_stiction")
+    body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
+    assert body["valves"][0]["valve"] == pytest.approx(valve)
+
+
 def test_missing_configuration_and_estimates_are_named(client: TestClient) -> None:
     viewer = key(client, "viewer")
     missing = client.get("/api/v1/units/nope/prediction", headers=viewer)
