@@ -1200,6 +1200,38 @@ def nyquist_model(
     )
 
 
+
+def equivalent_loop_phase(model: ClosedLoopModel, loop: int, period_s: float) -> float:
+    """Phase of the loop seen by loop ``loop``'s valve at ``period_s``, degrees in (-360, 0].
+
+    ``L_eq(jw)`` of thesis Eq. 3.20 with every other valve healthy and the hold of
+    :func:`predict_model`.  The harmonic balance ``L_eq = -1/N(A)`` needs it between
+    -180 and -90 degrees: ``-1/N`` of a sticky valve runs from ``-j pi S / (4 J)`` at
+    ``A -> S/2`` to ``-1`` as ``A`` grows (thesis Table 5.1, ERRATA item 1), so at a
+    phase outside that range no valve size cycles with that period.
+
+    Examples
+    --------
+    The temperature loop of thesis section 5.5.1 (Kc 10, Ti 10 s) at its predicted
+    36.4 s cycle, where ``-1/N`` is near ``-1``:
+
+    >>> from analytics.scenarios import temperature_loop
+    >>> round(equivalent_loop_phase(temperature_loop(), 0, 36.4))
+    -173
+    """
+    if not (math.isfinite(period_s) and period_s > 0):
+        raise ModelSpecError(f"period_s must be a positive number of seconds, got {period_s}")
+    n = len(model.loops)
+    if not 0 <= loop < n:
+        raise ModelSpecError(f"loop must be 0 to {n - 1}, got {loop}")
+    linear = _LinearPart(_as_matrix(model.process, n), tuple(lp.controller for lp in model.loops),
+                         model.dt / 2)
+    pm, _ = linear.matrix(np.array([2j * math.pi / period_s]))
+    response = complex(_equivalent_loop(pm, np.ones((1, n), dtype=np.complex128), loop)[0])
+    phase = math.degrees(math.atan2(response.imag, response.real))
+    return phase - 360.0 if phase > 0 else phase
+
+
 def _schmitt_rises(x: FloatArray, hysteresis: float) -> FloatArray:
     """Fractional sample indices where ``x`` rises through ``+hysteresis`` after
     having been below ``-hysteresis`` (a Schmitt trigger, immune to noise smaller

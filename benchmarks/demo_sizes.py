@@ -18,10 +18,10 @@ combines the hours (:func:`analytics.quantification.combine_windows`) as
 Each window also prints the process gain K of the fit and the product K J.  A
 stiction limit cycle pins K J, the PV step of a slip, best: OP travels only just
 past S, each valve slips once per reversal, MV is nearly a square wave of height
-J.  The demo's plant file configures no process model for its single loops, so
-FV-101 and FV-105 are sized with the gain fitted (J then rests on the fitted
-linear model: with the exact block means of the lag the fit tells J from K on
-these loops); FV-502's gain comes from the column's matrix.  Without it FV-502's
+J.  The demo's plant file configures each single loop's simulated process
+(``process_model``), so FV-101 and FV-105 are sized with its gain, 1.2 (before, with the
+gain fitted, J rested on the fitted linear model); FV-502's gain comes from the column's
+matrix.  Without it FV-502's
 second hour fits K -0.72, J 4.18 and K -1.44, J 2.09 about as well, and says
 "J is not told from the process gain".  The column's first hour is its start-up
 (at rest until a set-point step at 10 s; the first slip at 370 s, the period
@@ -31,11 +31,15 @@ for the next hour), and the combination weighs each window by its lack of fit as
 its interval (:func:`analytics.quantification.combine_windows` with ``fit_r2``): before,
 with two windows the weighted median was the estimate of the window whose interval was
 narrower, by under 1 % either way, so the start-up hour decided S in some live runs (S
-3.21 and 2.95 for windows starting 7 and 12 s after the plant's origin).  FV-105 is
-fitted as a Kano valve in both hours (R^2 0.998, a He fit 0.995): both hours read J low
-(3.3-3.7 of 4 across live runs, -8 % to -17 % combined), which no combination of the two
-can correct; the advice tells the valve family by the closed loop instead
-(:mod:`analytics.cycle_fit`).
+3.21 and 2.95 for windows starting 7 and 12 s after the plant's origin).  FV-105 (a He
+valve) is fitted as a Kano valve in both hours, with the gain fitted (R^2 0.998, a He fit
+0.995) and with the configured gain: K J, which the cycle pins, comes out at 4.64 and 3.95
+against the simulated 4.8, so J reads 3.87 and 3.29 of 4 (combined -13 % to -18 % across
+live runs; -8 % to -15 % with the gain fitted).  With the gain given a He fit of the same
+hours finds J 4.00 and 4.01 but S -7 to -10 % (R^2 0.994-0.996), and neither the fit nor
+the closed loop tells the two models apart on this loop: simulated with the window's
+measurement noise (0.05 %), the Kano estimate of the library's flow-he-S8-J4-ts1 (this
+loop) cycles at 114 s as the loop does; only without noise does it let the loop settle.
 
 Run with ``.venv/bin/python benchmarks/demo_sizes.py [hours] [--offsets=0,3,7]`` (default
 2 hours; ``--offsets`` adds the combined sizes of live runs whose windows start that many

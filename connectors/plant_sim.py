@@ -222,11 +222,14 @@ class TagAddress:
 
 @dataclass(frozen=True)
 class _LoopModel:
-    """What the configuration needs of a simulated loop: sampling, process type, controller."""
+    """What the configuration needs of a simulated loop: sampling, process type, controller
+    and, for a single loop, the process it simulates (a column loop's is its unit's
+    matrix)."""
 
     ts: float
     process_type: str
     controller: PIDController
+    process: TransferFunction | None = None
 
 
 def _case(name: str, samples: int) -> SyntheticCase:
@@ -242,7 +245,7 @@ def _models() -> dict[str, _LoopModel]:
     models = {}
     for loop in SINGLE_LOOPS:
         case = _case(loop.source, 100)
-        models[loop.id] = _LoopModel(case.ts, case.process_type, case.controller)
+        models[loop.id] = _LoopModel(case.ts, case.process_type, case.controller, case.process)
     column = column3x3(sticky=(2,))
     for loop in COLUMN_LOOPS:
         controller = column.loops[_column_index(loop)].controller
@@ -412,7 +415,11 @@ class PlantSimulator:
         Loops with ids in ``modbus_loops`` are read over Modbus (when this
         plant serves Modbus), the others over OPC UA; every loop's
         :data:`WATCHED_SIGNALS` are watched.  Sampling intervals and integral
-        times are divided by ``speed``.
+        times are divided by ``speed``.  Every single loop's configuration gives the
+        process it is simulated with (``process_model``, % of span per % of OP, in the
+        accelerated time, as a step test of the loop would give it): the Harris index
+        has its dead time and a sticky valve is sized with its gain; a column loop's
+        process is its unit's matrix (``units[].process``).
         """
         known = {loop.id for loop in self.loops}
         unknown = sorted(set(modbus_loops) - known)
@@ -432,6 +439,8 @@ class PlantSimulator:
                 "valve_asset": loop.valve_asset,
                 "importance": loop.importance,
                 "controller": _controller_config(model.controller, self.speed, loop),
+                **({} if model.process is None else {"process_model": _matrix_entry(
+                    model.process, _span(loop, "op") / _span(loop, "pv"), self.speed)}),
             })
         addresses = {a.tag: a for a in self.address_map()}
         over_opcua = [loop.id for loop in self.loops if loop.id not in over_modbus]

@@ -23,11 +23,17 @@ from analytics.types import INTEGRATING, SELF_REGULATING
 from analytics.valves import ValveModel
 from service.stored import StoredDiagnosis
 
-__all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop"]
+__all__ = ["IdentifiedLoop", "ModelUnavailableError", "identified_loop", "valve_kind"]
 
 
 _VALVE_KINDS: dict[str, ValveKind] = {"he": "he", "kano": "kano"}
 """The valve models of the Hammerstein search (:data:`analytics.quantification.VALVE_MODELS`)."""
+
+
+def valve_kind(valve_model: str | None) -> ValveKind:
+    """The valve model an estimate's ``valve_model`` names; Choudhury's for an estimate
+    stored without one."""
+    return _VALVE_KINDS.get(valve_model or "", "choudhury")
 
 
 class ModelUnavailableError(LookupError):
@@ -96,12 +102,11 @@ def identified_loop(config: dict[str, Any], diagnosis: StoredDiagnosis | None) -
     # for the Nyquist count (a PI controller on a pure gain and delay is not).
     tau = process.tau if process.tau > 0 else float(config["ts"])
     kind = INTEGRATING if process.integrating else SELF_REGULATING
-    kind_of_valve = _VALVE_KINDS.get(estimate.valve_model or "", "choudhury")
     return IdentifiedLoop(
         process=FirstOrderProcess(kind, gain, tau, process.theta).transfer_function(),
         controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
                                        controller.get("Td", 0.0)),
-        valve=valve_of(kind_of_valve, estimate.S, estimate.J or 0.0),
+        valve=valve_of(valve_kind(estimate.valve_model), estimate.S, estimate.J or 0.0),
         ts=float(config["ts"]),
         S_interval=estimate.S_interval,
         J_interval=estimate.J_interval,

@@ -31,6 +31,7 @@ from analytics.limit_cycle import (
     _minor_coefficients,
     _predictor,
     compare,
+    equivalent_loop_phase,
     nyquist_curves,
     nyquist_model,
     predict_limit_cycles,
@@ -488,6 +489,35 @@ def test_column_valves_1_and_2_stick_slip_is_invisible_to_the_df() -> None:
     simulated = simulate_limit_cycle(column_model("2.11", (1, 2)))
     assert simulated.period_s == pytest.approx(128.0, rel=0.02)
     assert known(simulated.amplitudes[1]) < 2.0  # S2 / 2
+
+
+def test_equivalent_loop_phase_is_eq_3_20_computed_directly() -> None:
+    """L_eq of valve 2 of the column (tuning 2.11, valves 1 and 3 healthy) from the 3 x 3
+    determinants of Eq. 3.20 written out here, with the 0.25 s hold of 0.5 s sampling."""
+    model = column3x3(sticky=(2,))
+    omega = 2 * math.pi / 200.0
+    s = 1j * omega
+    controllers = [loop.controller for loop in model.loops]
+    p = np.array([[(c.kp + c.ki / s) * np.exp(-0.25 * s) * complex(g.frequency_response(omega))
+                   for g in row] for c, row in zip(controllers, COLUMN_PROCESS, strict=True)])
+    closed = np.eye(3) + p
+    without = closed.copy()
+    without[:, 1] = np.eye(3)[1]
+    with_p = closed.copy()
+    with_p[:, 1] = p[:, 1]
+    direct = np.linalg.det(with_p) / np.linalg.det(without)
+    phase = equivalent_loop_phase(model, 1, 200.0)
+    assert phase == pytest.approx(math.degrees(np.angle(direct)), abs=1e-9)
+    # above -90 degrees: no valve size puts -1/N there, and the DF finds no cycle
+    # although the demo plant (this column) cycles at 200 s
+    assert -90.0 < phase < 0.0
+    process, controllers_, valves = column_parts("2.11", (2,))
+    assert predict_limit_cycles(process, controllers_, valves, hold_delay=0.25
+                                ).limit_cycles == ()
+    with pytest.raises(ModelSpecError, match="period_s must be a positive"):
+        equivalent_loop_phase(model, 1, 0.0)
+    with pytest.raises(ModelSpecError, match="loop must be 0 to 2"):
+        equivalent_loop_phase(model, 3, 200.0)
 
 
 @pytest.mark.parametrize(("ti", "thesis_omega"), [(40.0, 0.0265), (30.0, 0.0315)])

@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from analytics.lti import TransferFunction
+from analytics.lti import TransferFunction, process_gain
 from analytics.scenarios import COLUMN_PROCESS
-from connectors.plant_sim import COLUMN_LOOPS, PlantSimulator
+from analytics.synthetic_cases import synthetic_library
+from connectors.plant_sim import COLUMN_LOOPS, SINGLE_LOOPS, PlantSimulator
 from service.analysis import analyse_window, independent_gains, sizing_pv, to_percent_of_span
 from service.config import PlantConfig
 from service.demo import demo_plant_config
@@ -25,10 +26,18 @@ def plant(loop: dict[str, Any], units: list[dict[str, Any]] | None = None) -> Pl
         {"id": "FIC-1", "tags": {"op": "FIC1.OP", "pv": "FIC1.PV"}, "ts": 1.0, **loop}]})
 
 
-def test_the_demo_column_loops_take_their_own_matrix_entry_and_the_single_loops_none():
+def test_the_demo_column_loops_take_their_own_matrix_entry_and_the_single_loops_theirs():
     config = demo_plant_config()
     gains = independent_gains(config)
-    assert sorted(gains) == ["AIC-501", "AIC-502", "TIC-503"]  # no process_model configured
+    assert sorted(gains) == sorted(loop.id for loop in config.loops)
+    # the single loops configure the process they are simulated with (% per % of span)
+    for loop in SINGLE_LOOPS:
+        case = next(c for c in synthetic_library(100) if c.name == loop.source)
+        kind, gain = process_gain(case.process)
+        assert gains[loop.id]["K"] == pytest.approx(gain)
+        assert gains[loop.id]["process_type"] == kind == case.process_type
+        assert gains[loop.id]["source"] == "the loop's process_model"
+        assert config.loop(loop.id).process_model["theta"] == case.process.delay
     fv502 = gains["AIC-502"]
     assert fv502["process_type"] == "self-regulating" and sorted(fv502["couplings"]) == [
         "AIC-501", "TIC-503"]

@@ -8,7 +8,13 @@ the amplitude consistency of ERRATA item 9) and simulates it beside.  Both are
 checked against the cycle the unit's latest diagnosis measured
 (:class:`analytics.tuning.CycleAgreement`, issue 19): a model that does not
 reproduce the measured period does not ``agree``, whatever prediction and
-simulation say to each other.
+simulation say to each other.  As for a single loop's advice, the sticky
+valve's estimate (its He or Kano model, the size combined over its windows) is
+first simulated in the unit's model and, where it does not cycle as the unit
+does, fitted to the measured cycle within its intervals
+(:func:`analytics.cycle_fit.fit_valve_to_cycle`, ``valve_fit``); the model is
+predicted with the valve that reproduces it, or the closest, with the error
+stated.
 """
 
 from __future__ import annotations
@@ -19,8 +25,10 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 from sqlalchemy.orm import Session
 
+from analytics.cycle_fit import CYCLES, fit_valve_to_cycle, valve_of
 from analytics.errors import AnalyticsError
-from analytics.limit_cycle import LimitCycleReport
+from analytics.limit_cycle import LimitCycleReport, equivalent_loop_phase
+from analytics.simulation import ClosedLoopModel
 from analytics.tuning import CycleAgreement
 from service.api.deps import (
     ERROR_RESPONSES,
@@ -30,7 +38,8 @@ from service.api.deps import (
     error_responses,
 )
 from service.api.schemas.prediction import UnitPrediction
-from service.prediction import ModelError, predict_spec
+from service.loop_model import valve_kind
+from service.prediction import ModelError, check_model, predict_spec
 from service.store.models import Loop, Unit
 from service.stored import StoredDiagnosis, StoredEstimate, StoredUnitDiagnosis, StoredValve
 from service.tickets import latest_loop_run, latest_unit_run
@@ -52,6 +61,35 @@ def _prediction_for(spec: str) -> LimitCycleReport:
     return report
 
 
+def _fitted_model(spec: str, sticky: int, period_s: float, amplitude: float | None,
+                  intervals: str) -> tuple[dict[str, Any], dict[str, Any], str | None]:
+    """The unit's model with loop ``sticky``'s valve fitted to the measured cycle
+    (:func:`analytics.cycle_fit.fit_valve_to_cycle`, within the size's intervals), the fit
+    (``valve_fit``), and why the harmonic balance cannot give the measured period, if it
+    cannot (:func:`analytics.limit_cycle.equivalent_loop_phase`).  A pure function of its
+    arguments (JSON text), cached like the prediction."""
+    model_spec = json.loads(spec)
+    model = ClosedLoopModel.from_dict(model_spec)
+    S_interval, J_interval = (None if i is None else tuple(i) for i in json.loads(intervals))
+    fit = fit_valve_to_cycle(model, period_s, amplitude, loop=sticky, S_interval=S_interval,
+                             J_interval=J_interval)
+    valves = list(model_spec["valves"])
+    valves[sticky] = fit.chosen.valve.to_dict()
+    phase = equivalent_loop_phase(model, sticky, period_s)
+    describing = None
+    if not -180.0 <= phase <= -90.0:
+        describing = (
+            f"the harmonic balance cannot give the measured {period_s:.3g} s with any size "
+            f"of valve {sticky + 1}: the loop it sees there (the others closed, thesis Eq. "
+            f"3.20) lags {-phase:.0f} degrees, and -1/N of a sticky valve lies between 90 "
+            "and 180 degrees (thesis Table 5.1); the first-harmonic approximation does not "
+            "describe this stick-slip cycle, the simulation is the model's prediction")
+    # simulated as long as the fit simulated it: a 3 x 3 unit takes tens of periods to
+    # settle into its cycle
+    duration = max(model.duration, CYCLES * period_s)
+    return {**model_spec, "valves": valves, "duration": duration}, fit.to_dict(), describing
+
+
 def _controller(loop: Loop) -> dict[str, Any]:
     """The loop's configured controller in the model-file form (ideal PI/PID)."""
     config = loop.config.get("controller")
@@ -66,41 +104,48 @@ def _controller(loop: Loop) -> dict[str, Any]:
 
 
 def _valve(session: Session, loop_id: str
-           ) -> tuple[dict[str, Any], dict[str, Any] | None, str | None]:
+           ) -> tuple[dict[str, Any], dict[str, Any] | None, str | None,
+                      tuple[tuple[float, float] | None, tuple[float, float] | None]]:
     """Where the loop's valve comes from (its entry of ``valves``), the valve in the
-    model-file form (None: healthy) and what is not known about it.
+    model-file form (None: healthy), what is not known about it, and the intervals
+    ``(S, J)`` of its size.
 
-    A stiction finding gives a Choudhury valve of the estimated S and J (or He's
-    fs, fd when only those were estimated); no finding gives a healthy valve,
-    and so does a valve the unit's diagnosis cleared (the run's final verdict,
-    :func:`service.verdicts.valve_verdict`, with ``cleared_by_unit_run``: its loop
-    cycles only with a sticky neighbour, thesis chapter 2).
+    A stiction finding gives the estimate's valve model (He or Kano, as the Hammerstein
+    fit chose it; Choudhury for an estimate stored without one) at the size combined
+    over the valve's windows (the final verdict's, :func:`service.verdicts.valve_size`;
+    the latest estimate's when it has none; He's fs, fd when only those were
+    estimated); no finding gives a healthy valve, and so does a valve the unit's
+    diagnosis cleared (the run's final verdict, :func:`service.verdicts.valve_verdict`,
+    with ``cleared_by_unit_run``: its loop cycles only with a sticky neighbour, thesis
+    chapter 2).
     """
+    unsized: tuple[None, None] = (None, None)
     run = latest_loop_run(session, loop_id)
     if run is None:
         return ({"loop": loop_id, "run_id": None, "verdict": None, "valve": None}, None,
-                f"{loop_id}: not analysed yet; its valve is taken as healthy")
+                f"{loop_id}: not analysed yet; its valve is taken as healthy", unsized)
     healthy = {"loop": loop_id, "run_id": run.id, "verdict": run.verdict, "valve": None}
     diagnosis = StoredDiagnosis.from_dict(run.result)
     final = diagnosis.valve
     if final is not None and final.by_unit and run.verdict != "stiction":
-        return {**healthy, "cleared_by_unit_run": final.unit_run_id}, None, None
+        return {**healthy, "cleared_by_unit_run": final.unit_run_id}, None, None, unsized
     if run.verdict != "stiction":
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
-        return healthy, None, unknown
+        return healthy, None, unknown, unsized
     estimate = diagnosis.quantification or StoredEstimate()
     # the final verdict's size, the unit's when the loop has none
-    size: StoredValve | StoredEstimate = final or estimate
+    size: StoredValve | StoredEstimate = final if final is not None and final.S is not None \
+        else estimate
     valve: dict[str, Any]
     if size.S is not None:
-        valve = {"model": "choudhury", "S": size.S, "J": size.J or 0.0}
+        valve = valve_of(valve_kind(estimate.valve_model), size.S, size.J or 0.0).to_dict()
     elif estimate.fs is not None and estimate.fd is not None:
         valve = {"model": "he", "fs": estimate.fs, "fd": estimate.fd}
     else:
         raise HTTPException(409, f"Prediction not available: loop {loop_id!r} has a stiction "
                                  f"finding (analysis {run.id}) without a size estimate (S, J)")
-    return {**healthy, "valve": valve}, valve, None
+    return {**healthy, "valve": valve}, valve, None, (size.S_interval, size.J_interval)
 
 
 def _measured_cycle(session: Session, unit_id: str, sticky: str
@@ -171,11 +216,12 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                                      "the store")
         loops.append(loop)
     controllers = [_controller(loop) for loop in loops]
-    sources, valves, unknown = [], [], []
+    sources, valves, unknown, sizes = [], [], [], []
     for loop in loops:
-        source, valve, note = _valve(session, loop.id)
+        source, valve, note, size = _valve(session, loop.id)
         sources.append(source)
         valves.append(valve)
+        sizes.append(size)
         if note:
             unknown.append(note)
     intervals = sorted({float(loop.config["ts"]) for loop in loops})
@@ -190,14 +236,21 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
                         "cycle to predict"}
     spec = {"dt": intervals[0], "process": {"matrix": unit.process.matrix},
             "controllers": controllers, "valves": valves, "names": unit.process.loops}
-    try:
-        report = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
-    except (ModelError, AnalyticsError) as exc:
-        raise HTTPException(422, f"Prediction not available: {exc}") from None
-    sticky = next(loop.id for loop, valve in zip(loops, valves, strict=True) if valve is not None)
+    i = next(i for i, valve in enumerate(valves) if valve is not None)
+    sticky = unit.process.loops[i]
     period_s, amplitude, note = _measured_cycle(session, unit_id, sticky)
     if note:
         unknown.append(note)
+    fit = describing = None
+    try:
+        if period_s is not None:
+            check_model(spec)
+            spec, fit, describing = state.analyse_cached(
+                _fitted_model, json.dumps(spec, sort_keys=True), i, period_s, amplitude,
+                json.dumps(sizes[i]))
+        report = state.analyse_cached(_prediction_for, json.dumps(spec, sort_keys=True))
+    except (ModelError, AnalyticsError) as exc:
+        raise HTTPException(422, f"Prediction not available: {exc}") from None
     measured = _against_measured(report, unit.process.loops, sticky, period_s, amplitude)
     agree = report.agree
     if note is None:  # a diagnosis exists: the model must reproduce what it measured
@@ -205,6 +258,9 @@ def unit_prediction(unit_id: str, session: SessionDep, state: StateDep,
             agree = agree and not (report.prediction.oscillates or report.simulated.oscillating)
         else:
             agree = agree and measured.agree
-    return {**answer, **report.to_dict(),
+    fitted: dict[str, Any] = {} if fit is None else {"valve_fit": fit}
+    if describing is not None:
+        fitted["describing_note"] = describing
+    return {**answer, **report.to_dict(), **fitted,
             "comparison": {**report.comparison_to_dict(), "agree": agree,
                            "measured_cycle": measured.to_dict()}}

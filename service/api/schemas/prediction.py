@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from service.api.schemas.advice import CycleAgreementPublic
+from service.api.schemas.advice import CycleAgreementPublic, ValveFitPublic
 from service.api.schemas.base import Schema
 
 
@@ -29,6 +29,16 @@ class HeValve(Schema):
     """Dynamic friction, % of valve span."""
 
 
+class KanoValve(Schema):
+    """A sticky valve of the estimated stick band and slip jump (Kano model)."""
+
+    model: Literal["kano"]
+    S: float
+    """Stick band plus deadband, % of valve span."""
+    J: float
+    """Slip jump, % of valve span."""
+
+
 class ValveSource(Schema):
     """Where a loop's valve in the model comes from."""
 
@@ -37,8 +47,9 @@ class ValveSource(Schema):
     """The loop's latest analysis run; null if it was not analysed yet."""
     verdict: str | None
     """That run's stiction verdict."""
-    valve: ChoudhuryValve | HeValve | None
-    """The sticky valve of the run's stiction estimate; null: a healthy valve."""
+    valve: ChoudhuryValve | HeValve | KanoValve | None
+    """The sticky valve of the run's stiction estimate (the estimate's valve model at the
+    size combined over the valve's windows); null: a healthy valve."""
     cleared_by_unit_run: int | None = None
     """Present when the unit's diagnosis cleared the valve: that unit run."""
 
@@ -133,3 +144,10 @@ class UnitPrediction(Schema):
     """Why nothing was predicted, or how the describing function was obtained."""
     simulated: SimulatedCyclePublic | None
     comparison: ComparisonPublic | None
+    valve_fit: ValveFitPublic | None = None
+    """The first sticky valve's estimate simulated in the unit's model against the measured
+    cycle, and fitted to it (:func:`analytics.cycle_fit.fit_valve_to_cycle`): the
+    prediction uses the chosen valve.  Absent without a measured cycle."""
+    describing_note: str | None = None
+    """Present when the harmonic balance cannot give the measured period with any size of
+    that valve, and why."""

@@ -120,6 +120,7 @@ def test_prediction_of_the_coupled_unit_meets_its_defining_equation_and_the_simu
     assert body["valves"][1]["valve"] is None
     assert body["unknown"] == ["unit 'u1' has no diagnosis yet: the prediction is not "
                                "checked against a measured cycle"]
+    assert "valve_fit" not in body  # nothing measured to fit the valve to
     (cycle,) = body["limit_cycles"]
     assert cycle["stable"] and cycle["amplitudes"][1] is None
 
@@ -181,20 +182,54 @@ def test_agree_needs_the_model_to_reproduce_the_measured_cycle(client: TestClien
     assert "disagrees with the measurement (200 s)" in measured["explanation"]
     assert body["comparison"]["agree"] is False
     assert body["unknown"] == []
+    # the valve was fitted to the measured cycle first: no He, Kano or Choudhury valve of
+    # the estimate's size (no intervals stored) cycles at 200 s in this unit; the model
+    # simulated is the fit's closest, and says so
+    fit = body["valve_fit"]
+    assert fit["measured"] == {"period_s": 200.0, "amplitude": 3.0}
+    assert fit["cause"] == "process" and not fit["reproduces"]
+    assert fit["chosen"]["period_s"] == pytest.approx(simulated["period_s"])
+    assert "the model keeps that error" in fit["explanation"]
+    assert (fit["chosen"]["S"], fit["chosen"]["J"]) == (4.0, 2.0)
 
-    # A later diagnosis that measured the model's own cycle: all three agree.
+    # A later diagnosis that measured the model's own cycle: all three agree.  (The
+    # simulation runs as many measured periods as the fit's, here 5 % longer, so its
+    # period may move by a fraction of a sample.)
     store_unit_run(client, T0 + 60.0, simulated["period_s"] * 1.05,
                    simulated["amplitudes"][0])
     body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
     measured = body["comparison"]["measured_cycle"]
-    assert measured["period_error"]["simulated"] == pytest.approx(1 / 1.05 - 1)
+    assert measured["period_error"]["simulated"] == pytest.approx(1 / 1.05 - 1, abs=0.005)
     assert measured["reproduces"] and measured["agree"] and body["comparison"]["agree"]
+    assert body["valve_fit"]["cause"] == "none"
+    assert "describing_note" not in body  # the harmonic balance gives this period
 
     # A diagnosis that measured no cycle of TIC-1, while the model cycles: no agreement.
     store_unit_run(client, T0 + 120.0, None, 0.0)
     body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
     assert body["comparison"]["measured_cycle"]["measured"]["period_s"] is None
     assert body["comparison"]["agree"] is False
+
+
+@pytest.mark.parametrize(("model", "valve"), [
+    ("kano", {"model": "kano", "S": 4.0, "J": 2.0}),
+    ("he", {"model": "he", "fs": 3.0, "fd": 1.0}),  # thesis Eq. 1.2
+    (None, {"model": "choudhury", "S": 4.0, "J": 2.0}),  # stored before valve_model
+])
+def test_the_valve_is_the_estimates_model_at_the_combined_size(
+    client: TestClient, model: str | None, valve: dict[str, Any],
+) -> None:
+    """Issue 19: the unit's model took a Choudhury valve of the latest window's S and J;
+    the valve is the model the Hammerstein fit chose, at the size combined over the
+    valve's windows (the final verdict's), as the single-loop advice takes it."""
+    viewer = key(client, "viewer")
+    window = {"S": 3.1, "J": 0.9, "valve_model": model}  # the latest window alone
+    combined = {"verdict": "stiction", "decided_by": "loop", "S": 4.0, "J": 2.0,
+                "S_interval": [3.5, 4.5], "J_interval": [1.5, 2.5]}
+    store_run(client, "TIC-1", "stiction", window, valve=combined)
+    store_run(client, "FIC-2", "no_stiction")
+    body = client.get("/api/v1/units/u1/prediction", headers=viewer).json()
+    assert body["valves"][0]["valve"] == pytest.approx(valve)
 
 
 def test_missing_configuration_and_estimates_are_named(client: TestClient) -> None:
