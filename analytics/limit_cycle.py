@@ -692,7 +692,7 @@ def _minor_coefficients(
     gains: ComplexArray, members: NDArray[np.bool_], loop: int
 ) -> ComplexArray:
     """``prod_{k in T, k != loop} N_k`` for every set ``T`` of loops (rows of ``members``,
-    as in :attr:`_Predictor.minor_members`) and every row of ``gains`` (batch, n)."""
+    as in :attr:`LimitCyclePredictor.minor_members`) and every row of ``gains`` (batch, n)."""
     factors = np.where(members[None], gains[:, None, :], 1.0)
     factors[:, :, loop] = 1.0
     return np.asarray(factors.prod(axis=2), dtype=np.complex128)
@@ -719,8 +719,11 @@ def _edge_solution(
     return math.exp(float(result.x))
 
 
-class _Predictor:
-    """Everything :func:`predict_limit_cycles` needs about one system."""
+class LimitCyclePredictor:
+    """Everything :func:`predict_limit_cycles` needs about one system (thesis Eqs. 3.14,
+    3.16): the linear part ``P(jw)`` on the seeding grid (``linear.matrix``), each sticky
+    valve's describing function, the frequency range searched and the closed loop's
+    right-half-plane roots for given valve gains (:meth:`unstable_roots`)."""
 
     def __init__(
         self,
@@ -968,16 +971,20 @@ def _as_matrix(
     return matrix
 
 
-def _predictor(
+def limit_cycle_predictor(
     process: TransferFunction | ProcessMatrix,
     controllers: PIDController | Sequence[PIDController],
     valves: ValveModel | Sequence[ValveModel],
     omega_range: tuple[float, float] | None,
     describing: DescribingChoice,
     hold_delay: float,
-) -> _Predictor:
-    """Validate the inputs shared by :func:`predict_limit_cycles` and
-    :func:`nyquist_curves` and set up the solver."""
+) -> LimitCyclePredictor:
+    """The solver of :func:`predict_limit_cycles` and :func:`nyquist_curves` for one system,
+    its inputs validated (same parameters and errors as :func:`predict_limit_cycles`).
+
+    Public for analyses that need the linear loops the prediction sees, such as
+    :func:`analytics.plantwide.fingerprint.linear_check`.
+    """
     controller_list = [controllers] if isinstance(controllers, PIDController) else list(controllers)
     valve_list = [valves] if isinstance(valves, ValveModel) else list(valves)
     n = len(controller_list)
@@ -997,7 +1004,7 @@ def _predictor(
     lo, hi = (float(w) for w in omega_range)
     if not (0 < lo < hi and math.isfinite(hi)):
         raise ModelSpecError(f"omega_range must be 0 < low < high, got {omega_range}")
-    return _Predictor(linear, valve_list, describing, (lo, hi), open_poles)
+    return LimitCyclePredictor(linear, valve_list, describing, (lo, hi), open_poles)
 
 
 def predict_limit_cycles(
@@ -1062,7 +1069,8 @@ def predict_limit_cycles(
     >>> predict_limit_cycles(g, PIDController.ideal(2.0, 100.0), valve).limit_cycles
     ()
     """
-    predictor = _predictor(process, controllers, valves, omega_range, describing, hold_delay)
+    predictor = limit_cycle_predictor(process, controllers, valves, omega_range, describing,
+                                      hold_delay)
     n = predictor.linear.size
     healthy_roots = predictor.unstable_roots(np.ones(n, dtype=np.complex128))
     if healthy_roots != 0:
@@ -1111,7 +1119,8 @@ def nyquist_curves(
     >>> np.round(curve[[0, -1]], 3) + 0  # A -> S/2 and A -> inf, thesis Table 5.1
     array([ 0.-1.571j, -1.+0.j   ])
     """
-    predictor = _predictor(process, controllers, valves, omega_range, describing, hold_delay)
+    predictor = limit_cycle_predictor(process, controllers, valves, omega_range, describing,
+                                      hold_delay)
     omega = np.geomspace(*predictor.omega_range, points)
     pm, _ = predictor.linear.matrix(1j * omega)
     loops = tuple(predictor.dfs)

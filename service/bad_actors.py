@@ -26,7 +26,8 @@ A loop bad in every run of the week with a strong regular oscillation
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict
 
 from service.stored import StoredKpis
 
@@ -117,9 +118,9 @@ def run_severity(health: float | None, kpis: StoredKpis | None) -> float:
     return max(run_components(health, kpis).values(), default=0.0)
 
 
-@dataclass(frozen=True)
-class LoopScore:
-    """A loop's bad-actor score over a period and why.
+class LoopScore(BaseModel):
+    """A loop's bad-actor score over a period and why: the fields the bad-actor ranking
+    adds to each loop (:class:`service.api.schemas.loops.BadActorPublic`).
 
     Attributes
     ----------
@@ -144,6 +145,8 @@ class LoopScore:
     bad_runs: int
     worst: str | None
     why: str
+
+    model_config = ConfigDict(frozen=True)
 
 
 def score_loop(runs: Iterable[tuple[float | None, StoredKpis | None]], importance: str,
@@ -170,15 +173,17 @@ def score_loop(runs: Iterable[tuple[float | None, StoredKpis | None]], importanc
             for name, value in components.items():
                 totals[name] = totals.get(name, 0.0) + value
     if n == 0:
-        return LoopScore(0.0, 0.0, 0.0, 0, 0, None, f"no analysed run over {period}")
+        return LoopScore(score=0.0, severity=0.0, bad_share=0.0, runs=0, bad_runs=0, worst=None,
+                         why=f"no analysed run over {period}")
     bad = len(severities)
     if bad == 0:
-        return LoopScore(0.0, 0.0, 0.0, n, 0, None, f"bad in none of {n} runs over {period}")
+        return LoopScore(score=0.0, severity=0.0, bad_share=0.0, runs=n, bad_runs=0, worst=None,
+                         why=f"bad in none of {n} runs over {period}")
     severity = sum(severities) / bad
     share = bad / n
     worst = max(totals, key=lambda name: totals[name])
     why = (f"bad in {bad} of {n} runs ({100 * share:.0f} %) over {period}; worst: "
            f"{COMPONENTS[worst]} {totals[worst] / bad:.2f}; "
            f"importance {importance} (x{weight:g})")
-    return LoopScore(round(100.0 * severity * weight * share, 6), severity, share, n, bad,
-                     worst, why)
+    return LoopScore(score=round(100.0 * severity * weight * share, 6), severity=severity,
+                     bad_share=share, runs=n, bad_runs=bad, worst=worst, why=why)

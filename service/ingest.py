@@ -53,7 +53,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Collection, Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from functools import lru_cache
 from typing import Any, cast
@@ -181,23 +181,35 @@ class PiStreams(BaseModel):
 _PI_STREAMS = TypeAdapter(list[PiStream])
 
 
-@dataclass(frozen=True)
-class TagReport:
+class TagReport(BaseModel):
     """What happened to the items of one tag.
 
     ``first_timestamp`` and ``last_timestamp`` bound the tag's items that are
     in the store after the call (stored or already stored); None if none are.
+    The ingest response's per-tag report
+    (:class:`service.api.schemas.ingest.TagIngest`): a field's docstring is its
+    OpenAPI description.
     """
+
+    model_config = ConfigDict(frozen=True, use_attribute_docstrings=True)
 
     tag: str
     received: int
     stored: int
+    """Samples written."""
     already_stored: int
+    """Items the store already held with the same value."""
     bad: int
+    """Bad samples written (NaN, null or ``good: false``)."""
     out_of_order: int
+    """Items that came after a later one of the same tag."""
     refused: dict[str, int]
+    """Refused items by reason: ``unknown_tag``, ``bad_timestamp``, ``future_timestamp``,
+    ``duplicate_in_batch``, ``conflict``."""
     first_timestamp: float | None
+    """First of the tag's items in the store after the call, UNIX s; null if none is."""
     last_timestamp: float | None
+    """Last of them, UNIX s."""
 
 
 @dataclass(frozen=True)
@@ -259,7 +271,7 @@ class IngestReport:
             "bad": self.bad,
             "out_of_order": self.out_of_order,
             "refused": self.refused,
-            "tags": [asdict(report) for report in self.tags],
+            "tags": [report.model_dump() for report in self.tags],
         }
 
 

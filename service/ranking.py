@@ -176,10 +176,7 @@ def bad_actor_rows(session: Session, since: float, until: float, period: str,
         scored = score_loop([(health, k) for _, health, k in runs.get(loop.id, ())],
                             loop.importance, period)
         ranked.append(BadActorPublic.model_construct(
-            **loop.__dict__, score=scored.score, severity=scored.severity,
-            bad_share=scored.bad_share, runs=scored.runs, bad_runs=scored.bad_runs,
-            worst=scored.worst, why=scored.why, kpis=kpis.get(loop.id),
-        ))
+            **loop.__dict__, **scored.__dict__, kpis=kpis.get(loop.id)))
     ranked.sort(key=lambda r: (-r.score, r.health is None,
                                r.health if r.health is not None else 0.0, r.id))
     return ranked

@@ -33,6 +33,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from analytics.plantwide import UnitDiagnosis
 from analytics.quantification import combine_windows
 from service.analysis import health_score
 from service.store.models import AnalysisRun, UnitAnalysisRun
@@ -319,21 +320,18 @@ def settle_run(run: AnalysisRun, unit: UnitDecision | None,
 def named_valves(result: Mapping[str, Any], valves: Mapping[str, str]) -> dict[str, Any]:
     """A unit diagnosis (:meth:`analytics.plantwide.UnitDiagnosis.to_dict`) as the API shows
     it: each oscillation group's ``sticky_valves`` names valve tags (its loops in
-    ``sticky_loops``), and each named valve carries its ``valve`` tag.
-
-    >>> named = named_valves({"sticky_valves": [{"loop": "AIC-502"}],
-    ...                       "groups": [{"sticky_valves": ["AIC-502"]}]}, {"AIC-502": "FV-502"})
-    >>> named["sticky_valves"]
-    [{'loop': 'AIC-502', 'valve': 'FV-502'}]
-    >>> named["groups"]
-    [{'sticky_valves': ['FV-502'], 'sticky_loops': ['AIC-502']}]
+    ``sticky_loops``), and each named valve carries its ``valve`` tag.  Read through
+    :meth:`~analytics.plantwide.UnitDiagnosis.from_dict`; the unit-wide fields it does
+    not read are shown as stored.
     """
+    diagnosis = UnitDiagnosis.from_dict(result)
     return {
         **result,
-        "sticky_valves": [{**f, "valve": valves.get(f["loop"], f["loop"])}
-                          for f in result["sticky_valves"]],
-        "groups": [{**g, "sticky_valves": [valves.get(loop, loop) for loop in g["sticky_valves"]],
-                    "sticky_loops": list(g["sticky_valves"])} for g in result["groups"]],
+        "sticky_valves": [{**finding.to_dict(), "valve": valves.get(finding.loop, finding.loop)}
+                          for finding in diagnosis.sticky_valves],
+        "groups": [{**group.to_dict(),
+                    "sticky_valves": [valves.get(loop, loop) for loop in group.sticky_valves],
+                    "sticky_loops": list(group.sticky_valves)} for group in diagnosis.groups],
     }
 
 

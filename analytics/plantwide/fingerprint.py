@@ -72,7 +72,8 @@ from numpy.typing import ArrayLike
 
 from analytics.describing import choudhury_df
 from analytics.errors import DataError, ModelSpecError
-from analytics.limit_cycle import ProcessMatrix, _predictor, predict_limit_cycles
+from analytics.limit_cycle import ProcessMatrix, predict_limit_cycles
+from analytics.limit_cycle import limit_cycle_predictor as _predictor
 from analytics.simulation import PIDController
 from analytics.types import ComplexArray, FloatArray
 from analytics.valves import ChoudhuryValve, IdealValve, ValveModel

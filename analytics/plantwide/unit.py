@@ -74,6 +74,8 @@ from analytics.errors import DataError
 from analytics.oscillation import LIMIT_CYCLE_ENVELOPE_CV, MIN_SAMPLES
 from analytics.plantwide.decomposition import ShapeDecomposition, decompose_cycles
 from analytics.plantwide.fingerprint import (
+    CandidateFit,
+    Fingerprint,
     LinearCheck,
     ModelLocalisation,
     UnitModel,
@@ -218,6 +220,10 @@ class GroupDiagnosis:
         ]
         return tuple(sorted(pairs, key=lambda pair: pair[1], reverse=True))
 
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready form (an item of :meth:`UnitDiagnosis.to_dict`'s ``groups``)."""
+        return _group_dict(self)
+
 
 @dataclass(frozen=True)
 class ValveFinding:
@@ -244,6 +250,12 @@ class ValveFinding:
     S: float | None
     J: float | None
     reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready form (an item of :meth:`UnitDiagnosis.to_dict`'s
+        ``sticky_valves``)."""
+        return {"loop": self.loop, "confidence": self.confidence, "period_s": self.period_s,
+                "S": self.S, "J": self.J, "reason": self.reason}
 
 
 @dataclass(frozen=True)
@@ -287,18 +299,127 @@ class UnitDiagnosis:
             "samples": self.samples,
             "ts": self.ts,
             "k": self.k,
-            "sticky_valves": [
-                {"loop": f.loop, "confidence": f.confidence, "period_s": f.period_s,
-                 "S": f.S, "J": f.J, "reason": f.reason}
-                for f in self.sticky_valves
-            ],
-            "groups": [_group_dict(g) for g in self.groups],
+            "sticky_valves": [f.to_dict() for f in self.sticky_valves],
+            "groups": [g.to_dict() for g in self.groups],
             "model_used": self.linear is not None,
             "linear": None if self.linear is None else {
                 "stable": self.linear.stable, "margin": self.linear.margin,
                 "margin_omega": self.linear.margin_omega, "note": self.linear.note},
             "note": (MODEL_NOTE if self.linear is None else self.linear.note),
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> UnitDiagnosis:
+        """The diagnosis of :meth:`to_dict`'s form (a stored or a ``unit-analyze --json``
+        one): ``to_dict(from_dict(d)) == d``.
+
+        ``k``, ``model_used``, ``note`` and each group's ``ranking`` are derived, so not
+        read.  What :meth:`to_dict` does not keep is left empty: each decomposition's
+        ``per_signal_error``, and of a group's model localisation the phases, third
+        harmonics and noise of the fingerprint (its phasors are the stored amplitudes,
+        phase 0), the candidates' ``harmonic_misfit`` and ``distortion`` and the
+        ``no_valve_harmonic_misfit`` (NaN and empty).  Diagnoses stored before the unit's
+        model was used have no ``linear`` and no group ``model``: None.
+
+        Raises
+        ------
+        DataError
+            A field is missing or of the wrong kind; the message names it and where
+            (``groups[0].evidence[1]``).
+        """
+        read = _Reader(d, "unit diagnosis")
+        return cls(
+            loops=tuple(read("loops")), samples=read("samples"), ts=read("ts"),
+            groups=tuple(_group_from_dict(g) for g in read.items("groups")),
+            sticky_valves=tuple(
+                ValveFinding(f("loop"), f("confidence"), f("period_s"), f("S"), f("J"),
+                             f("reason"))
+                for f in read.items("sticky_valves")),
+            linear=None if read.get("linear") is None else _linear_from_dict(read.part("linear")),
+        )
+
+
+class _Reader:
+    """The fields of one mapping of a result's JSON form, naming what is missing and where."""
+
+    def __init__(self, d: Any, where: str) -> None:
+        if not isinstance(d, Mapping):
+            raise DataError(f"{where}: expected an object, got {type(d).__name__}")
+        self.d, self.where = d, where
+
+    def __call__(self, key: str) -> Any:
+        if key not in self.d:
+            raise DataError(f"{self.where}: the field {key!r} is missing")
+        return self.d[key]
+
+    def get(self, key: str) -> Any:
+        """The field, or None where it is missing (a field later versions added)."""
+        return self.d.get(key)
+
+    def part(self, key: str) -> _Reader:
+        """The mapping under ``key``."""
+        return _Reader(self(key), f"{self.where}.{key}")
+
+    def items(self, key: str) -> list[_Reader]:
+        """The mappings of the list under ``key``."""
+        values = self(key)
+        if not isinstance(values, list | tuple):
+            raise DataError(f"{self.where}.{key}: expected a list, got {type(values).__name__}")
+        return [_Reader(v, f"{self.where}.{key}[{i}]") for i, v in enumerate(values)]
+
+
+def _linear_from_dict(read: _Reader) -> LinearCheck:
+    return LinearCheck(read("stable"), read("margin"), read("margin_omega"), read("note"))
+
+
+def _group_from_dict(read: _Reader) -> GroupDiagnosis:
+    """The inverse of :func:`_group_dict` (see :meth:`UnitDiagnosis.from_dict`)."""
+    shapes = None if read("shape_decomposition") is None else read.part("shape_decomposition")
+    return GroupDiagnosis(
+        period_s=read("period_s"), cycles=read("cycles"), loops=tuple(read("loops")),
+        members=tuple(
+            GroupMember(m("signal"), m("period_s"), m("regularity"), m("power_fraction"),
+                        m("amplitude"), m("similarity"))
+            for m in read.items("members")),
+        decomposition=None if shapes is None else ShapeDecomposition(
+            k=shapes("k"), n=shapes("n"), held_out_error=tuple(shapes("held_out_error")),
+            held_out_se=tuple(shapes("held_out_se")), per_signal_error={},
+            structures={name: tuple(s) for name, s in shapes("structures").items()},
+            cycles=dict(shapes("cycles"))),
+        evidence=tuple(
+            LoopEvidence(e("loop"), e("nonlinearity_op"), e("nonlinearity_pv"),
+                         e("own_valve_gain"), _pair(e, "half_gains"), e("S"), e("J"),
+                         e("sticky"), e("note"))
+            for e in read.items("evidence")),
+        sticky_valves=tuple(read("sticky_valves")), envelope_cv=read("envelope_cv"),
+        note=read("note"),
+        model=None if read.get("model") is None else _localisation_from_dict(read.part("model")),
+    )
+
+
+def _pair(read: _Reader, key: str) -> tuple[Any, Any]:
+    values = read(key)
+    if not isinstance(values, list | tuple) or len(values) != 2:
+        raise DataError(f"{read.where}.{key}: expected a pair, got {values!r}")
+    return values[0], values[1]
+
+
+def _localisation_from_dict(read: _Reader) -> ModelLocalisation:
+    """:meth:`ModelLocalisation.to_dict`'s form back (see :meth:`UnitDiagnosis.from_dict`
+    for what it does not keep)."""
+    return ModelLocalisation(
+        linear=_linear_from_dict(read.part("linear")),
+        fingerprint=Fingerprint(read("period_s"), tuple(complex(a) for a in read("op_amplitudes")),
+                                tuple(complex(a) for a in read("pv_amplitudes")), (), (), ()),
+        controller_residual=tuple(read("controller_residual")),
+        candidates=tuple(
+            CandidateFit(tuple(c("loops")), c("misfit"), math.nan, c("score"), tuple(c("S")),
+                         tuple(c("J")), ())
+            for c in read.items("candidates")),
+        no_valve_misfit=read("no_valve_misfit"), no_valve_harmonic_misfit=math.nan,
+        sticky_valves=tuple(read("sticky_valves")),
+        predicted_period_s=read("predicted_period_s"), note=read("note"),
+    )
 
 
 def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:

@@ -29,9 +29,9 @@ from analytics.limit_cycle import (
     LimitCycleReport,
     Prediction,
     _minor_coefficients,
-    _predictor,
     compare,
     equivalent_loop_phase,
+    limit_cycle_predictor,
     nyquist_curves,
     nyquist_model,
     predict_limit_cycles,
@@ -241,7 +241,7 @@ def test_three_sticky_valves_give_the_pinned_solution_set(case: str) -> None:
 def test_principal_minor_expansion_is_the_determinant() -> None:
     """det(I + P diag(N)) = sum_T prod_{k in T} N_k det P[T, T] on the seeding grid."""
     process, controllers, valves = column_parts("3.26", (1, 2, 3))
-    predictor = _predictor(process, controllers, valves, None, "model", 0.0)
+    predictor = limit_cycle_predictor(process, controllers, valves, None, "model", 0.0)
     gains = np.random.default_rng(1).normal(size=(4, 3)) + 1j
     for row in gains:
         direct = np.linalg.det(np.eye(3) + predictor.grid_matrix * row)

@@ -322,6 +322,49 @@ def test_unit_diagnosis_is_json_ready(column_diagnoses):
     assert all({"signal", "nonlinearity"} == set(r) for r in group["ranking"])
 
 
+def json_form(diagnosis: UnitDiagnosis) -> str:
+    return json.dumps(diagnosis.to_dict())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sticky", [(1,), (2,), (1, 2), (1, 2, 3)])
+def test_unit_diagnosis_round_trips_through_its_json_form(column_diagnoses, sticky):
+    """to_dict(from_dict(d)) == d to the byte, for the JSON as stored (json.loads of it)."""
+    stored = json_form(column_diagnoses[sticky])
+    again = UnitDiagnosis.from_dict(json.loads(stored))
+    assert json_form(again) == stored
+    assert again.sticky_valves == column_diagnoses[sticky].sticky_valves
+    assert [g.evidence for g in again.groups] == [
+        g.evidence for g in column_diagnoses[sticky].groups]
+
+
+@pytest.mark.slow
+def test_unit_diagnosis_with_the_model_and_of_tep_round_trip():
+    """The model's localisation (what to_dict keeps of it) and a real process's diagnosis."""
+    model = column3x3(sticky=(1, 2), seed=7)
+    with_model = diagnose_unit(column_unit(model), 0.5, model=column_model(model))
+    loops, others = tep_unit("d14.dat")
+    tep = diagnose_unit(loops, 180.0, measurements=others)
+    for diagnosis in (with_model, tep):
+        stored = json_form(diagnosis)
+        assert json_form(UnitDiagnosis.from_dict(json.loads(stored))) == stored
+    assert all(g.model is not None for g in with_model.groups)
+    assert tep.sticky_valves  # XMV(10): the round trip carried a finding
+
+
+def test_a_stored_unit_diagnosis_with_a_missing_field_is_refused_naming_it():
+    k = np.arange(4000)
+    unit = {"a": (np.sin(2 * np.pi * k / 80), np.sin(2 * np.pi * k / 80 - 1))}
+    stored = diagnose_unit(unit, 1.0).to_dict()
+    assert json_form(UnitDiagnosis.from_dict(stored)) == json.dumps(stored)
+    del stored["groups"][0]["evidence"][0]["sticky"]
+    with pytest.raises(DataError, match=r"^unit diagnosis\.groups\[0\]\.evidence\[0\]: "
+                                        r"the field 'sticky' is missing$"):
+        UnitDiagnosis.from_dict(stored)
+    with pytest.raises(DataError, match=r"^unit diagnosis\.groups: expected a list, got dict$"):
+        UnitDiagnosis.from_dict({**stored, "groups": {}})
+
+
 @pytest.mark.parametrize(
     ("loops", "measurements", "message"),
     [

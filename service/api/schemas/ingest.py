@@ -4,28 +4,11 @@
 from __future__ import annotations
 
 from service.api.schemas.base import Schema
+from service.ingest import TagReport
 
 
-class TagIngest(Schema):
+class TagIngest(TagReport, Schema):
     """What happened to the items of one tag (:class:`service.ingest.TagReport`)."""
-
-    tag: str
-    received: int
-    stored: int
-    """Samples written."""
-    already_stored: int
-    """Items the store already held with the same value."""
-    bad: int
-    """Bad samples written (NaN, null or ``good: false``)."""
-    out_of_order: int
-    """Items that came after a later one of the same tag."""
-    refused: dict[str, int]
-    """Refused items by reason: ``unknown_tag``, ``bad_timestamp``, ``future_timestamp``,
-    ``duplicate_in_batch``, ``conflict``."""
-    first_timestamp: float | None
-    """First of the tag's items in the store after the call, UNIX s; null if none is."""
-    last_timestamp: float | None
-    """Last of them, UNIX s."""
 
 
 class IngestAnswer(Schema):

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.bad_actors import LoopScore
 
 
 class LoopPublic(BaseModel):
@@ -27,17 +29,11 @@ class LoopPublic(BaseModel):
     active_alarms: int
 
 
-class BadActorPublic(LoopPublic):
+class BadActorPublic(LoopScore, LoopPublic):
     """A loop in the bad-actor ranking: its latest state and its KPI-based score over the
     period (:mod:`service.bad_actors`)."""
 
-    score: float
-    severity: float
-    bad_share: float
-    runs: int
-    bad_runs: int
-    worst: str | None
-    why: str
+    model_config = ConfigDict(frozen=False)
     kpis: dict[str, Any] | None = Field(
         default=None, description="the KPIs of the loop's latest analysis run (as "
         "GET /loops/{id}/kpis gives them)")
