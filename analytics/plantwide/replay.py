@@ -7,11 +7,15 @@ the time domain it does not: between its slips it holds, and the PVs of the unit
 carry every step.  :func:`replay_sticky_sets` fits, for every candidate set of
 sticky valves,
 
-1. each candidate valve's output as He's two-parameter stiction model driven by
-   its own measured OP (He et al. 2007; thesis Eq. 1.2 and Table 2.3, ``S = fs +
-   fd``, ``J = fs - fd``, ERRATA item 6), with ``fs``, ``fd`` and the valve's stick
-   state at the start of the window (its position within ``fs`` of the OP) free,
-   and a healthy valve passing its OP on unchanged;
+1. each candidate valve's output as He's stiction model driven by its own measured
+   OP (He et al. 2007; thesis Eq. 1.2 and Table 2.3, ``S = fs + fd``, ``J = fs -
+   fd``, ERRATA item 6), a healthy valve passing its OP on unchanged.  Two
+   families of replays are tried per valve (:class:`_Valve`): He's model running
+   free from a few stick states (a valve that follows a wide OP swing in small
+   slips, whose memory of its start is soon lost), and He's model slipping only
+   just before the turning points of its OP (a valve whose OP barely passes its
+   band and slips once per swing; run free, such a replay is lost for good when
+   ``fs`` is 2 % off, ``benchmarks/plantwide.py sync``);
 2. the valve outputs through the unit's sampled process matrix (exact zero-order
    hold, :func:`analytics.lti.discretise`) to every loop's PV, thesis Eq. 3.11 in
    the time domain, each matrix entry's gain free around the model's
@@ -19,13 +23,20 @@ sticky valves,
    with an offset of its own;
 3. the misfit: the squared residual of every PV in units of its noise variance
    (the sample-to-sample noise, :func:`analytics.stiction.stick_jump.robust_noise`)
-   after the start-up of the replay.
+   once the replay has settled.
 
-The grid search is exact for the piecewise-constant replay: each valve's
-parameters are searched on a grid (:data:`BAND_GRID`, :data:`JUMP_RATIOS`,
-:data:`START_GRID`) then on a finer grid around the best point, valve by valve
-(coordinate descent) with the other members of the set held.  The sets are
-ranked by ``misfit + VALVE_PENALTY * len(set)``.
+Each set's members are chosen on their grids valve by valve (coordinate descent,
+the others held); a valve that slips at turning points then has its slip jump
+fitted by least squares (its levels ``OP - fd`` must be exact: a level 0.1 % off
+in valve 1 of the column moves PV 3 by 17 noise deviations) and its slips moved,
+all together (:func:`_shift_slips`) and one by one (:func:`_refine_slips`), to
+the instants the PVs show; then each member is chosen again with the others'
+fitted replays held (:func:`_reselect`).  ``S`` of such a valve is the OP travel
+between its slips (:func:`_slip_band`), which does not depend on the gains.  The
+sets are ranked by ``m ln(misfit / m) + VALVE_PENALTY * len(set)`` (``m`` PV
+samples) and the best is named if it beats healthy valves and removes at least
+:data:`MIN_MISFIT_DROP` of their misfit.  Figures: ``benchmarks/plantwide.py
+replay`` (calibration seeds) and ``replay held-out``.
 
 References
 ----------

@@ -26,9 +26,11 @@ and the single-loop methods then blame every valve whose loop cycles.
    thesis chapter 3): with the process matrix and the configured controllers,
    the linear loops are checked and each cycle's fingerprint is held against
    the harmonic balance (thesis Eqs. 3.11-3.14, ERRATA item 9) of every set
-   of sticky valves; the set it names joins the valves of step 4.
+   of sticky valves; and the window is replayed through the model for every sticky
+   set (:mod:`analytics.plantwide.replay`), whose best set names the valves.
 
-The named valves are those of steps 4 and 5, in the order of their evidence; the
+Without a model the named valves are those of step 4; with one, those of the
+replay (or, when the window is too short for it, of steps 4 and the fingerprint); the
 shape count of step 2 and the nonlinearity ranking of step 3 are reported
 beside them.  On the simulated column (thesis section 2.4) the ranking by
 the surrogate index does not single out the sticky valves -- every signal of
