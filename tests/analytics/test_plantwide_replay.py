@@ -77,21 +77,41 @@ def test_the_simulated_valve_outputs_fit_the_pvs_to_their_noise():
     assert healthy > 100 * samples
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("sticky", [(2,), (1, 3)])
-def test_replay_names_the_simulated_sticky_set_and_its_bands(sticky):
+STICKY_SETS = ((1,), (2,), (3,), (1, 2), (1, 3), (2, 3), (1, 2, 3))
+TRUE_S = {1: 6.0, 2: 4.0, 3: 5.0}  # Table 2.3, S = fs + fd
+
+
+@pytest.fixture(scope="module")
+def replayed():
     # Seed 7: none of the calibration seeds 100-103 the penalty was chosen on.
-    model = column3x3(sticky=sticky, seed=7)
-    run, late = late_signals(model)
-    unit = {name: (run.op[i][late], run.pv[i][late]) for i, name in enumerate(run.names)}
-    found = replay_sticky_sets(unit, 0.5, model.process)
-    names = tuple(f"loop{i}" for i in sticky)
-    assert found.sticky_valves == names
-    fit = found.fit_of(names)
+    found = {}
+    for sticky in STICKY_SETS:
+        run, late = late_signals(column3x3(sticky=sticky, seed=7))
+        unit = {name: (run.op[i][late], run.pv[i][late]) for i, name in enumerate(run.names)}
+        found[sticky] = replay_sticky_sets(unit, 0.5, column3x3().process)
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sticky", STICKY_SETS)
+def test_replay_names_every_simulated_sticky_set(replayed, sticky):
+    # Issue 22 (and the fingerprint's xfails for valve 3 alone and beside valve 2).
+    assert replayed[sticky].sticky_valves == tuple(f"loop{i}" for i in sticky)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sticky", [
+    *(s for s in STICKY_SETS if s != (3,)),
+    pytest.param((3,), marks=pytest.mark.xfail(
+        strict=True, reason="valve 3 alone follows a wide OP swing in small slips (14 % "
+        "on seeds 100-101): its replay runs free, and its S (3.7 against 5) is that of "
+        "the nearest point of the coarse (fs, fd) grid, not fitted further")),
+])
+def test_replay_sizes_the_named_valves_within_25_percent(replayed, sticky):
+    fit = replayed[sticky].fit_of(tuple(f"loop{i}" for i in sticky))
     assert fit is not None
-    true_s = {1: 6.0, 2: 4.0, 3: 5.0}  # Table 2.3, S = fs + fd
     for i, s in zip(sticky, fit.S, strict=True):
-        assert abs(s - true_s[i]) <= 0.25 * true_s[i]
+        assert abs(s - TRUE_S[i]) <= 0.25 * TRUE_S[i]
 
 
 def test_a_matrix_of_the_wrong_size_is_refused():
