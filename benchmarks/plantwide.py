@@ -30,7 +30,9 @@ study of why the fingerprint confuses sets, on the calibration seeds,
 ``... plantwide.py score`` for the fingerprint's confusion per sticky set on the
 calibration seeds and ``... plantwide.py score held-out`` on the scored ones,
 ``... plantwide.py sync`` for whether a sticky valve replayed from its OP meets the
-simulated MV).
+simulated MV, ``... plantwide.py replay`` for the time-domain replay of every sticky set
+(:mod:`analytics.plantwide.replay`) with every penalty tried on the calibration seeds,
+and ``... plantwide.py replay held-out`` with the chosen one on the scored seeds).
 """
 
 from __future__ import annotations
