@@ -9,6 +9,9 @@
   (process matrix and tunings, thesis chapter 3): the linear check and every
   candidate set of sticky valves held against the harmonic balance of the
   measured cycle.
+* :mod:`~analytics.plantwide.replay` -- with the unit's model, every candidate set
+  of sticky valves replayed in the time domain from the valves' own OPs, fitted to
+  every PV.
 * :mod:`~analytics.plantwide.unit` -- :func:`diagnose_unit`, the whole
   diagnosis of a unit: groups, shapes, the surrogate ranking of step 3, the
   own-valve test and, with a model, the fingerprint, which name the sticky
@@ -39,6 +42,11 @@ from analytics.plantwide.groups import (
     envelope_variation,
     find_oscillation_groups,
 )
+from analytics.plantwide.replay import (
+    ReplayFit,
+    ReplayLocalisation,
+    replay_sticky_sets,
+)
 from analytics.plantwide.unit import (
     GroupDiagnosis,
     LoopEvidence,
@@ -59,6 +67,8 @@ __all__ = [
     "LoopEvidence",
     "ModelLocalisation",
     "OscillationGroup",
+    "ReplayFit",
+    "ReplayLocalisation",
     "ShapeDecomposition",
     "UnitDiagnosis",
     "UnitModel",
@@ -71,4 +81,5 @@ __all__ = [
     "linear_check",
     "locate_sticky_valves",
     "measure_fingerprint",
+    "replay_sticky_sets",
 ]

@@ -26,9 +26,11 @@ and the single-loop methods then blame every valve whose loop cycles.
    thesis chapter 3): with the process matrix and the configured controllers,
    the linear loops are checked and each cycle's fingerprint is held against
    the harmonic balance (thesis Eqs. 3.11-3.14, ERRATA item 9) of every set
-   of sticky valves; the set it names joins the valves of step 4.
+   of sticky valves; and the window is replayed through the model for every sticky
+   set (:mod:`analytics.plantwide.replay`), whose best set names the valves.
 
-The named valves are those of steps 4 and 5, in the order of their evidence; the
+Without a model the named valves are those of step 4; with one, those of the
+replay (or, when the window is too short for it, of steps 4 and the fingerprint); the
 shape count of step 2 and the nonlinearity ranking of step 3 are reported
 beside them.  On the simulated column (thesis section 2.4) the ranking by
 the surrogate index does not single out the sticky valves -- every signal of
@@ -88,6 +90,7 @@ from analytics.plantwide.groups import (
     envelope_variation,
     find_oscillation_groups,
 )
+from analytics.plantwide.replay import ReplayLocalisation, replay_sticky_sets
 from analytics.quantification import MIN_FIT_R2, MIN_R2_GAIN, StictionEstimate, quantify_stiction
 from analytics.stiction.evidence import margin_confidence
 from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinearity_index
@@ -195,6 +198,10 @@ class GroupDiagnosis:
         The harmonic-balance fingerprint of the cycle against the unit's model
         (:func:`~analytics.plantwide.fingerprint.locate_sticky_valves`); None
         without a model or when the cycle is too short or too fast for it.
+    replay : ReplayLocalisation or None
+        The unit's window replayed through its model for every sticky set
+        (:func:`~analytics.plantwide.replay.replay_sticky_sets`, the same for every
+        group); with it, the model's named valves are the replay's.
     """
 
     period_s: float
@@ -207,6 +214,7 @@ class GroupDiagnosis:
     envelope_cv: float | None
     note: str
     model: ModelLocalisation | None = None
+    replay: ReplayLocalisation | None = None
 
     @property
     def ranking(self) -> tuple[tuple[str, float], ...]:
@@ -454,6 +462,7 @@ def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:
         "envelope_cv": group.envelope_cv,
         "note": group.note,
         "model": None if group.model is None else group.model.to_dict(),
+        "replay": None if group.replay is None else group.replay.to_dict(),
     }
 
 
@@ -618,6 +627,7 @@ def _diagnose_group(
     max_k: int,
     surrogate_settings: Mapping[str, int],
     model: UnitModel | None,
+    replay: ReplayLocalisation | None = None,
 ) -> GroupDiagnosis:
     loops = tuple(dict.fromkeys(owner[m.signal] for m in group.members if m.signal in owner))
     samples = next(iter(signals.values())).size
@@ -661,7 +671,11 @@ def _diagnose_group(
             hold_delay=model.hold_delay,
         )
         notes.append(f"unit model: {localisation.note}")
-        named = tuple(dict.fromkeys([*named, *localisation.sticky_valves]))
+        if replay is None:
+            named = tuple(dict.fromkeys([*named, *localisation.sticky_valves]))
+        else:  # the replay decides, for the loops of this group
+            named = tuple(loop for loop in replay.sticky_valves if loop in loops)
+            notes.append(f"replayed through the unit model: {replay.note}")
     if named:
         notes.insert(0, f"sticky: {', '.join(named)} (own-valve stiction model, replicated "
                         "in both halves of the window, or the unit model's fingerprint)")
@@ -672,13 +686,23 @@ def _diagnose_group(
         notes.insert(0, "no valve of the group explains the cycle and no signal is nonlinear: "
                         "a linear oscillation (tuning or an external disturbance)")
     return GroupDiagnosis(group.period_s, cycles, group.members, loops, decomposition,
-                          tuple(evidence), named, None, "; ".join(notes), localisation)
+                          tuple(evidence), named, None, "; ".join(notes), localisation, replay)
 
 
 def _finding(group: GroupDiagnosis, loop: str) -> ValveFinding:
     """The finding of one named valve: the own-valve test's, the model's, or both."""
     evidence = next((e for e in group.evidence if e.loop == loop), None)
     found = None if evidence is None or not evidence.sticky else _data_finding(group, evidence)
+    replayed = None if group.replay is None else group.replay.fit_of(group.replay.sticky_valves)
+    if replayed is not None and loop in replayed.loops:
+        k = replayed.loops.index(loop)
+        reason = f"the unit model's replay names it: {group.replay.note}"  # type: ignore[union-attr]
+        confidence = MODEL_CONFIDENCE
+        if found is not None:
+            confidence = max(found.confidence, MODEL_CONFIDENCE)
+            reason = f"{found.reason}; {reason}"
+        return ValveFinding(loop, confidence, group.period_s, replayed.S[k], replayed.J[k],
+                            reason)
     model = group.model
     fit = None if model is None else model.fit_of(model.sticky_valves)
     if model is None or fit is None or loop not in fit.loops:
@@ -777,10 +801,18 @@ def diagnose_unit(
     missing = [] if model is None else [loop for loop in model.loops if loop not in loops]
     if missing:
         raise DataError(f"the unit model's loops {missing} have no OP and PV in the data")
+    oscillations = find_oscillation_groups(signals, ts)
+    replay = None
+    if model is not None and oscillations:
+        try:
+            replay = replay_sticky_sets({loop: (signals[f"op_{loop}"], signals[f"pv_{loop}"])
+                                         for loop in model.loops}, ts, model.process)
+        except DataError:  # too short a window for the replay: the fingerprint decides
+            replay = None
     groups = tuple(
         _diagnose_group(g, owner, signals, ts, min_cycles=min_cycles, max_k=max_k,
-                        surrogate_settings=settings, model=model)
-        for g in find_oscillation_groups(signals, ts)
+                        surrogate_settings=settings, model=model, replay=replay)
+        for g in oscillations
     )
     best: dict[str, ValveFinding] = {}
     for group in groups:

@@ -544,3 +544,22 @@ def test_a_model_loop_without_data_is_refused():
     unit = {"loop1": (np.zeros(3000), np.zeros(3000))}
     with pytest.raises(DataError, match="loop2"):
         diagnose_unit(unit, 0.5, model=column_model(model))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("loop", "at", "period"), [(0, "input", 200.0), (1, "output", 150.0)])
+def test_unit_diagnosis_with_the_model_blames_no_valve_for_an_external_sinusoid(loop, at, period):
+    # Issue 22: the replay of every sticky set through the model explains an external sine
+    # no better than healthy valves; the report says so.
+    model = column3x3(sticky=())
+    loops = list(model.loops)
+    loops[loop] = dataclasses.replace(
+        loops[loop],
+        disturbances=(*loops[loop].disturbances, Disturbance("sine", 1.0, at=at, period=period)),
+    )
+    model = dataclasses.replace(model, loops=tuple(loops))
+    result = diagnose_unit(column_unit(model), 0.5, model=column_model(model))
+    assert result.sticky_valves == ()
+    assert result.groups and all(g.replay is not None and g.replay.sticky_valves == ()
+                                 for g in result.groups)
+    assert any("external disturbance" in g.note for g in result.groups)

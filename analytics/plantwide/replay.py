@@ -1,0 +1,658 @@
+"""Which valves of a unit stick, from the unit's own model: the time-domain replay.
+
+The harmonic-balance fingerprint (:mod:`analytics.plantwide.fingerprint`) reads a
+cycle at its fundamental and third harmonic only; a sticky valve whose OP swings
+far beyond its band has a describing function close to 1 and hides there.  In
+the time domain it does not: between its slips it holds, and the PVs of the unit
+carry every step.  :func:`replay_sticky_sets` fits, for every candidate set of
+sticky valves,
+
+1. each candidate valve's output as He's stiction model driven by its own measured
+   OP (He et al. 2007; thesis Eq. 1.2 and Table 2.3, ``S = fs + fd``, ``J = fs -
+   fd``, ERRATA item 6), a healthy valve passing its OP on unchanged.  Two
+   families of replays are tried per valve (:class:`_Valve`): He's model running
+   free from a few stick states (a valve that follows a wide OP swing in small
+   slips, whose memory of its start is soon lost), and He's model slipping only
+   just before the turning points of its OP (a valve whose OP barely passes its
+   band and slips once per swing; run free, such a replay is lost for good when
+   ``fs`` is 2 % off, ``benchmarks/plantwide.py sync``);
+2. the valve outputs through the unit's sampled process matrix (exact zero-order
+   hold, :func:`analytics.lti.discretise`) to every loop's PV, thesis Eq. 3.11 in
+   the time domain, each matrix entry's gain free around the model's
+   (:data:`GAIN_SIGMA`, so a matrix with gains 20 % off is absorbed) and each PV
+   with an offset of its own;
+3. the misfit: the squared residual of every PV in units of its noise variance
+   (the sample-to-sample noise, :func:`analytics.stiction.stick_jump.robust_noise`)
+   once the replay has settled.
+
+Each set's members are chosen on their grids valve by valve (coordinate descent,
+the others held); a valve that slips at turning points then has its slip jump
+fitted by least squares (its levels ``OP - fd`` must be exact: a level 0.1 % off
+in valve 1 of the column moves PV 3 by 17 noise deviations) and its slips moved,
+all together (:func:`_shift_slips`) and one by one (:func:`_refine_slips`), to
+the instants the PVs show; then each member is chosen again with the others'
+fitted replays held (:func:`_reselect`).  ``S`` of such a valve is the OP travel
+between its slips (:func:`_slip_band`), which does not depend on the gains.  The
+sets are ranked by ``m ln(misfit / m) + VALVE_PENALTY * len(set)`` (``m`` PV
+samples) and the best is named if it beats healthy valves and removes at least
+:data:`MIN_MISFIT_DROP` of their misfit.  Figures: ``benchmarks/plantwide.py
+replay`` (calibration seeds) and ``replay held-out``.
+
+References
+----------
+.. [1] Q. P. He, J. Wang, M. Pottmann, S. J. Qin, "A curve fitting method for
+   detecting valve stiction in oscillating control loops", Ind. Eng. Chem. Res.
+   46 (2007) 4549-4560.
+.. [2] Thesis chapter 3, Eq. 3.11 (the process side of the balance); Table 2.3.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+from scipy.signal import lfilter, ss2tf
+
+from analytics.errors import DataError, ModelSpecError
+from analytics.limit_cycle import ProcessMatrix
+from analytics.lti import DiscreteEntry, discretise
+from analytics.stiction.stick_jump import moving_average, robust_noise
+from analytics.types import FloatArray
+from analytics.valves import he_update
+
+__all__ = [
+    "GAIN_SIGMA",
+    "MIN_MISFIT_DROP",
+    "VALVE_PENALTY",
+    "ReplayFit",
+    "ReplayLocalisation",
+    "replay_sticky_sets",
+]
+
+GAIN_SIGMA = 0.3
+"""Prior standard deviation of each process gain relative to the model's (ridge)."""
+
+VALVE_PENALTY = 200.0
+"""Score one more sticky valve must gain to be named (the score is ``m ln(misfit / m)``,
+``m`` PV samples).  Chosen among 0-1,600 on the calibration columns (seeds 100-103,
+every sticky set, gains exact and 20 % off, two external sines, ``benchmarks/plantwide.py
+replay``): 100 and 200 named 25 of 28 sets right either way, 50 and less named a valve
+for a sine at valve 1's input, 400 and more missed {1, 2, 3}."""
+
+FREE_BANDS = 10
+"""Stick bands ``fs`` of the free-running replays, geometric over 0.3-30 % of the OP's
+range: a valve that follows a wide OP swing in small slips."""
+
+FREE_STARTS = 3
+"""Stick states of the free-running replays (position at the start within ``fs`` of OP)."""
+
+TURN_BANDS = (0.4, 0.55, 0.7, 0.85)
+"""Stick bands ``fs`` of the replays that slip before turning points, share of the OP's
+range."""
+
+SLIP_ROUNDS = 3
+"""Rounds of slip-jump fit and slip moves per valve."""
+
+SLIP_SHIFT = 4
+"""Most samples each slip of a replay is moved on its own to fit the PVs."""
+
+GLOBAL_SHIFT = 3
+"""Most samples all slips of a replay are moved together to fit the PVs."""
+
+MAX_LAG = 10
+"""Most samples a slip may precede its OP's turning point."""
+
+TURN_HYSTERESIS = 0.3
+"""Least swing of the (5-sample smoothed) OP between two turning points, share of its range."""
+
+JUMP_RATIOS = (0.15, 0.3, 0.45, 0.6)
+"""Ratios ``fd / fs`` tried per valve."""
+
+MIN_MISFIT_DROP = 0.2
+"""Least share of the healthy valves' misfit a named set must remove.  Right sets removed
+34-66 % ({3} alone) to over 99 % on the calibration columns, the best set for an external
+sine 0.05-0.5 %."""
+
+FIT_SAMPLES = 3000
+"""About this many samples of every PV enter the misfit (the window is strided)."""
+
+
+@dataclass(frozen=True)
+class ReplayFit:
+    """One candidate set replayed through the unit's matrix.
+
+    Attributes
+    ----------
+    loops : tuple of str
+        The valves assumed sticky.
+    misfit : float
+        Squared PV residual in units of each PV's noise variance.
+    score : float
+        ``m ln(misfit / m) + VALVE_PENALTY * len(loops)`` over the ``m`` PV samples of
+        the misfit; the lowest wins.
+    S, J : tuple of float
+        Fitted stick band and slip jump of each valve (``S = fs + fd``,
+        ``J = fs - fd``, % of OP span).
+    """
+
+    loops: tuple[str, ...]
+    misfit: float
+    score: float
+    S: tuple[float, ...]
+    J: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ReplayLocalisation:
+    """Result of :func:`replay_sticky_sets`.
+
+    Attributes
+    ----------
+    candidates : tuple of ReplayFit
+        Every non-empty set of valves, best first.
+    no_valve_misfit : float
+        Misfit with every valve healthy.
+    no_valve_score : float
+        Its score (:func:`_score` with no valve).
+    samples : int
+        PV samples in the misfit (all loops together).
+    """
+
+    candidates: tuple[ReplayFit, ...]
+    no_valve_misfit: float
+    no_valve_score: float
+    samples: int
+
+    @property
+    def sticky_valves(self) -> tuple[str, ...]:
+        """The best-scoring set; empty when healthy valves score best or when it removes
+        less than :data:`MIN_MISFIT_DROP` of their misfit (the model does not describe
+        the cycle, or something outside the valves drives it)."""
+        best = self.candidates[0] if self.candidates else None
+        if best is None or best.score >= self.no_valve_score:
+            return ()
+        return best.loops if best.misfit <= (1 - MIN_MISFIT_DROP) * self.no_valve_misfit else ()
+
+    @property
+    def note(self) -> str:
+        """The finding in words."""
+        named = self.sticky_valves
+        if named:
+            fit = self.fit_of(named)
+            assert fit is not None
+            return (f"sticky: {', '.join(named)} (replay misfit {fit.misfit:.3g} against "
+                    f"{self.no_valve_misfit:.3g} with healthy valves, over {self.samples} "
+                    "PV samples)")
+        best = self.candidates[0] if self.candidates else None
+        tried = "" if best is None else (
+            f"; the best, {', '.join(best.loops)}, leaves {best.misfit:.3g} against "
+            f"{self.no_valve_misfit:.3g}")
+        return ("no sticky set replayed through the unit model explains the PVs better than "
+                f"healthy valves{tried}: the cycle comes from an external disturbance or a "
+                "nonlinearity the model does not hold")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready form."""
+        return {
+            "samples": self.samples,
+            "no_valve_misfit": self.no_valve_misfit,
+            "candidates": [{"loops": list(c.loops), "misfit": c.misfit, "score": c.score,
+                            "S": list(c.S), "J": list(c.J)} for c in self.candidates],
+            "sticky_valves": list(self.sticky_valves),
+            "note": self.note,
+        }
+
+    def fit_of(self, loops: Sequence[str]) -> ReplayFit | None:
+        """The fit of one candidate set (None for the empty set)."""
+        wanted = set(loops)
+        return next((c for c in self.candidates if set(c.loops) == wanted), None)
+
+
+@njit(cache=True)
+def _he_replays(op: FloatArray, fs: FloatArray, fd: FloatArray, start: FloatArray
+                ) -> FloatArray:
+    """He's valve driven by ``op``, one replay per row of parameters (``fs, fd`` and the
+    position before the first sample)."""
+    out = np.empty((fs.size, op.size))
+    for p in range(fs.size):
+        y = start[p]
+        for k in range(op.size):
+            y = he_update(fs[p], fd[p], y, op[k])
+            out[p, k] = y
+    return out
+
+
+def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
+    """``(b, a)`` in powers of ``z^-1`` of the sampled entry ``H(z)`` (see
+    :meth:`analytics.lti.DiscreteEntry.frequency_response`), for :func:`scipy.signal.lfilter`."""
+    m = entry.Ad.shape[0]
+    num0, den = ss2tf(entry.Ad, entry.B0[:, None], entry.C[None, :], np.zeros((1, 1)))
+    num1, _ = ss2tf(entry.Ad, entry.B1[:, None], entry.C[None, :], np.zeros((1, 1)))
+    b = np.zeros(m + 2)
+    b[:m + 1] += num0[0]
+    b[1:m + 2] += num1[0] + entry.D * den
+    return np.concatenate([np.zeros(entry.delay_samples), b]), np.asarray(den, dtype=float)
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One PV's data for the ridge fits: weighted target and the healthy regressors."""
+
+    target: FloatArray  # w (y - mean y) on the fit samples
+    healthy: FloatArray  # (n, samples): w G_ik x_k
+    present: tuple[bool, ...]
+
+
+class _Problem:
+    """The weighted least-squares problem of one unit: PV rows, filters, fit samples."""
+
+    def __init__(self, ops: list[FloatArray], pvs: list[FloatArray],
+                 process: ProcessMatrix, ts: float) -> None:
+        n = len(ops)
+        self.n, self.ops = n, ops
+        self.filters: list[list[tuple[FloatArray, FloatArray] | None]] = [
+            [None if g is None else _polynomials(discretise(g, ts)) for g in row]
+            for row in process]
+        settle = max(_settling_samples(discretise(g, ts)) for row in process for g in row
+                     if g is not None)
+        samples = pvs[0].size
+        self.spans = [max(float(np.percentile(x, 99) - np.percentile(x, 1)), 1e-9) for x in ops]
+        self.turns = [_turning_points(moving_average(x, 5), TURN_HYSTERESIS * span)
+                      for x, span in zip(ops, self.spans, strict=True)]
+        # the replays that slip at turning points know their level from the first one on
+        self.settle = settle
+        settle += max((int(t[0][0]) for t in self.turns if t[0].size), default=0)
+        if samples - settle < 200:
+            raise DataError(f"{samples} samples leave too few after the {settle} samples the "
+                            "replay needs to settle")
+        stride = max(1, (samples - settle) // FIT_SAMPLES)
+        self.fit = slice(settle, samples, stride)
+        self.weights = [1.0 / max(robust_noise(y), 1e-9 * max(np.ptp(y), 1.0)) for y in pvs]
+        self.rows = []
+        for i in range(n):
+            healthy = np.zeros((n, self._fit_count(samples)))
+            for k in range(n):
+                if self.filters[i][k] is not None:
+                    healthy[k] = self.response(i, k, ops[k][None, :])[0]
+            y = pvs[i][self.fit]
+            self.rows.append(_Row(self.weights[i] * (y - y.mean()), healthy,
+                                  tuple(f is not None for f in self.filters[i])))
+
+    def _fit_count(self, samples: int) -> int:
+        return len(range(*self.fit.indices(samples)))
+
+    def response(self, i: int, k: int, u: FloatArray) -> FloatArray:
+        """``w_i G_ik u`` on the fit samples, centred, one row per row of ``u``."""
+        filt = self.filters[i][k]
+        assert filt is not None
+        z = lfilter(filt[0], filt[1], u - u[:, :1], axis=1)[:, self.fit]
+        return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
+
+    def row_misfits(self, i: int, regressors: FloatArray, variable: int,
+                    candidates: FloatArray, extra: FloatArray | None = None) -> FloatArray:
+        """Ridge misfit of row ``i`` for every candidate regressor of valve ``variable``
+        (rows of ``candidates``), the other valves' regressors held (``regressors``, and
+        the columns ``extra`` with free coefficients: other valves' slip jumps)."""
+        present = self.rows[i].present
+        fixed = [k for k in range(self.n) if present[k] and k != variable]
+        target = self.rows[i].target
+        prior = 1.0 / GAIN_SIGMA
+        free = np.zeros((0, target.size)) if extra is None else extra
+        # fixed part: data columns plus one prior row per gain (target = prior for gain 1)
+        a_data = np.vstack([regressors[fixed], free]).T
+        a = np.vstack([a_data, np.hstack([prior * np.eye(len(fixed)),
+                                          np.zeros((len(fixed), free.shape[0]))])])
+        t = np.concatenate([target, prior * np.ones(len(fixed))])
+        gram_inv = np.linalg.inv(a.T @ a)
+        theta = gram_inv @ (a.T @ t)
+        residual = t - a @ theta
+        base = float(residual @ residual)
+        if not present[variable]:
+            return np.full(candidates.shape[0], base)
+        cross = candidates @ a_data  # (P, fixed)
+        z_r = candidates @ residual[:target.size] + prior**2
+        z_norm = np.einsum("ps,ps->p", candidates, candidates) + prior**2
+        z_norm -= np.einsum("pf,fg,pg->p", cross, gram_inv, cross)
+        # the candidate's own prior row: the fixed fit leaves its target, ``prior``, there
+        return np.asarray(base + prior**2 - z_r**2 / np.maximum(z_norm, 1e-12))
+
+
+def _settling_samples(entry: DiscreteEntry) -> int:
+    """Samples until the slowest mode of a sampled entry has decayed to 0.1 %."""
+    radius = float(np.max(np.abs(np.linalg.eigvals(entry.Ad)))) if entry.Ad.size else 0.0
+    decay = 0 if radius < 1e-12 or radius >= 1.0 else math.ceil(math.log(1e-3) / math.log(radius))
+    return decay + entry.delay_samples + 2
+
+
+@njit(cache=True)
+def _turn_replays(op: FloatArray, turns: NDArray[np.int64], directions: FloatArray,
+                  lag: NDArray[np.int64], fs: FloatArray, fd: FloatArray) -> FloatArray:
+    """He's valve whose slips may happen only ``lag`` samples before a turning point of its
+    OP: at such a candidate it slips, to ``OP -/+ fd``, when the OP has left its position
+    by more than ``fs`` in the direction of the turn; one replay per row of parameters."""
+    out = np.empty((fs.size, op.size))
+    for p in range(fs.size):
+        first = max(turns[0] - lag[p], 0)
+        y = op[first] - 2.0 * directions[0] * fs[p]  # the first candidate slips
+        k = 0
+        for j in range(turns.size):
+            slip = max(turns[j] - lag[p], 0)
+            if slip < k:
+                continue
+            out[p, k:slip] = y
+            k = slip
+            if directions[j] * (op[slip] - y) > fs[p]:
+                y = op[slip] - directions[j] * fd[p]
+        out[p, k:] = y
+    return out
+
+
+def _turning_points(x: FloatArray, hysteresis: float) -> tuple[NDArray[np.int64], FloatArray]:
+    """Extremes of ``x`` between which it moves by more than ``hysteresis`` (the zig-zag
+    of its swings): indices and +1 for a maximum, -1 for a minimum."""
+    index, direction = [], []
+    ext, heading = 0, 0
+    for k in range(1, x.size):
+        if heading == 0:
+            if abs(x[k] - x[0]) > hysteresis:
+                heading, ext = (1 if x[k] > x[0] else -1), k
+        elif heading * (x[k] - x[ext]) > 0:
+            ext = k
+        elif heading * (x[ext] - x[k]) > hysteresis:
+            index.append(ext)
+            direction.append(float(heading))
+            heading, ext = -heading, k
+    return np.array(index, dtype=np.int64), np.array(direction)
+
+
+class _Valve:
+    """A candidate valve's grid of replays: He's model running free from its OP (a valve
+    that follows a wide swing in small slips), and He's model slipping only before its
+    OP's turning points (a valve that slips once per swing, its OP barely past the band);
+    each replay's ``fs`` and ``fd`` and its response in every PV."""
+
+    def __init__(self, problem: _Problem, k: int) -> None:
+        op, span = problem.ops[k], problem.spans[k]
+        fs, ratio, share = (a.reshape(-1) for a in np.meshgrid(
+            np.geomspace(0.003, 0.3, FREE_BANDS) * span, np.asarray(JUMP_RATIOS),
+            np.linspace(-1.0, 1.0, FREE_STARTS), indexing="ij"))
+        replays, bands, jumps = [_he_replays(op, fs, fs * ratio, op[0] + share * fs)], [fs], [
+            fs * ratio]
+        turns, directions = problem.turns[k]
+        if turns.size >= 4:
+            lag, band, ratio = (a.reshape(-1) for a in np.meshgrid(
+                np.arange(MAX_LAG + 1), np.asarray(TURN_BANDS) * span,
+                np.asarray(JUMP_RATIOS), indexing="ij"))
+            replays.append(_turn_replays(op, turns, directions, lag, band, band * ratio))
+            bands.append(band)
+            jumps.append(band * ratio)
+        self.free = replays[0].shape[0]
+        self.replays = np.vstack(replays)
+        self.fs, self.fd = np.concatenate(bands), np.concatenate(jumps)
+        self.size = self.fs.size
+        self.responses = [problem.response(i, k, self.replays) if problem.filters[i][k]
+                          is not None else None for i in range(problem.n)]
+
+    def replay(self, p: int) -> FloatArray:
+        return np.asarray(self.replays[p])
+
+    def slips_at_turns(self, p: int) -> bool:
+        """Whether replay ``p`` slips only before turning points (its slips can be moved)."""
+        return p >= self.free
+
+
+def _row_fit(problem: _Problem, i: int, replays: Mapping[int, FloatArray],
+             jumps: Mapping[int, FloatArray]) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    """Ridge fit of PV ``i``: each valve's response (its replay or its OP) with its gain
+    drawn to the model's, and for each valve in ``jumps`` the response of its slip
+    directions with a free coefficient (its slip jump ``fd`` times the gain, so that the
+    jump is fitted as exactly as the levels need).  Returns the misfit, the gains of the
+    valves (0 where the matrix has no entry), the residual and the jumps' coefficients."""
+    row = problem.rows[i]
+    present = [k for k in range(problem.n) if row.present[k]]
+    columns = [problem.response(i, k, replays[k][None, :])[0] if k in replays
+               else row.healthy[k] for k in present]
+    extra = [problem.response(i, k, jumps[k][None, :])[0] for k in jumps if row.present[k]]
+    prior = 1.0 / GAIN_SIGMA
+    penalty = np.hstack([prior * np.eye(len(present)), np.zeros((len(present), len(extra)))])
+    a = np.vstack([np.array(columns + extra).T, penalty])
+    t = np.concatenate([row.target, prior * np.ones(len(present))])
+    theta = np.linalg.lstsq(a, t, rcond=None)[0]
+    residual = t - a @ theta
+    gains = np.zeros(problem.n)
+    gains[present] = theta[:len(present)]
+    return float(residual @ residual), gains, residual[:row.target.size], theta[len(present):]
+
+
+def _slip_directions(u: FloatArray) -> FloatArray:
+    """+1 after an upward slip of a replay, -1 after a downward one (0 before the first)."""
+    steps = np.sign(np.diff(u, prepend=u[0]))
+    index = np.where(steps != 0, np.arange(u.size), 0)
+    return np.asarray(steps[np.maximum.accumulate(index)])
+
+
+def _set_misfit(problem: _Problem, replays: Mapping[int, FloatArray],
+                jumps: Mapping[int, FloatArray] | None = None) -> float:
+    return sum(_row_fit(problem, i, replays, jumps or {})[0] for i in range(problem.n))
+
+
+def _descend(problem: _Problem, members: tuple[int, ...], valves: Mapping[int, _Valve],
+             passes: int = 2) -> dict[int, int]:
+    """Coordinate descent: each member's replay chosen over its grid, the others held."""
+    chosen: dict[int, int] = {}
+    for _ in range(passes):
+        for k in members:
+            valve = valves[k]
+            total = np.zeros(valve.size)
+            for i, row in enumerate(problem.rows):
+                regressors = row.healthy.copy()
+                for other, p in chosen.items():
+                    response = valves[other].responses[i]
+                    if other != k and response is not None:
+                        regressors[other] = response[p]
+                response = valve.responses[i]
+                total += problem.row_misfits(i, regressors, k, response if response is not None
+                                             else regressors[k:k + 1])
+            chosen[k] = int(np.argmin(total))
+    return chosen
+
+
+def _reselect(problem: _Problem, k: int, valve: _Valve, replays: Mapping[int, FloatArray],
+              jumps: Mapping[int, FloatArray]) -> int:
+    """Valve ``k``'s best grid replay with the other members' fitted replays held."""
+    others = {j: u for j, u in replays.items() if j != k}
+    other_jumps = {j: d for j, d in jumps.items() if j != k}
+    total = np.zeros(valve.size)
+    for i, row in enumerate(problem.rows):
+        regressors = row.healthy.copy()
+        for j, u in others.items():
+            if row.present[j]:
+                regressors[j] = problem.response(i, j, u[None, :])[0]
+        extra = [problem.response(i, j, d[None, :])[0] for j, d in other_jumps.items()
+                 if row.present[j]]
+        response = valve.responses[i]
+        total += problem.row_misfits(i, regressors, k, response if response is not None
+                                     else regressors[k:k + 1],
+                                     np.array(extra) if extra else None)
+    return int(np.argmin(total))
+
+
+def _jump_index(problem: _Problem, i: int, k: int, jumps: Mapping[int, FloatArray]) -> int:
+    """Position of valve ``k``'s jump column among row ``i``'s (see :func:`_row_fit`)."""
+    return [j for j in jumps if problem.rows[i].present[j]].index(k)
+
+
+def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
+                  jumps: dict[int, FloatArray]) -> None:
+    """Move each slip of valve ``k`` by up to :data:`SLIP_SHIFT` samples where that lowers
+    the misfit (gains and jump coefficients held), its level the OP at the new instant;
+    ``replays[k]`` (the levels before the jump) and ``jumps[k]`` are updated in place."""
+    base, jump = replays[k].copy(), jumps[k].copy()
+    op = problem.ops[k]
+    rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
+    residual, scale = {}, {}
+    for i in rows:
+        _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
+        residual[i] = res.copy()
+        scale[i] = (gains[k] * problem.weights[i],
+                    coefficients[_jump_index(problem, i, k, jumps)] * problem.weights[i])
+    start, stop, stride = problem.fit.start, base.size, problem.fit.step
+    tail = problem.settle
+    slips = np.flatnonzero(np.diff(jump) != 0) + 1
+    for j, t in enumerate(slips):
+        before = slips[j - 1] if j > 0 else 0
+        after = slips[j + 1] if j + 1 < slips.size else stop
+        shifts = np.arange(max(-SLIP_SHIFT, before + 1 - t), min(SLIP_SHIFT, after - 1 - t) + 1)
+        low, high = t + shifts[0], min(after + tail, stop)
+        q0 = max(0, -(-(low - start) // stride))
+        q1 = max(q0, -(-(high - start) // stride))
+        if shifts.size < 2 or q1 == q0:
+            continue
+        picks = start + stride * np.arange(q0, q1) - low
+        trial_base = np.empty((shifts.size, after - low))
+        trial_jump = np.empty((shifts.size, after - low))
+        for m, shift in enumerate(shifts):
+            moved = t + shift - low
+            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + shift]
+            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
+        delta_base = np.zeros((shifts.size, high - low))
+        delta_jump = np.zeros((shifts.size, high - low))
+        delta_base[:, :after - low] = trial_base - base[low:after]
+        delta_jump[:, :after - low] = trial_jump - jump[low:after]
+        change = np.zeros(shifts.size)
+        responses = {}
+        for i in rows:
+            b, a = problem.filters[i][k]  # type: ignore[misc]
+            dz = lfilter(b, a, scale[i][0] * delta_base + scale[i][1] * delta_jump,
+                         axis=1)[:, picks]
+            r = residual[i][q0:q1]
+            change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
+            responses[i] = dz
+        best = int(np.argmin(change))
+        if change[best] < 0 and shifts[best] != 0:
+            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
+            for i in rows:
+                residual[i][q0:q1] -= responses[i][best]
+    replays[k], jumps[k] = base, jump
+
+
+def _shifted(op: FloatArray, jump: FloatArray, shift: int) -> tuple[FloatArray, FloatArray]:
+    """A replay's levels and jumps with every slip ``shift`` samples later (earlier if
+    negative), each level the OP at its new instant."""
+    slips = np.flatnonzero(np.diff(jump) != 0) + 1
+    moved = np.clip(slips + shift, 1, op.size - 1)
+    index = np.zeros(op.size, dtype=np.int64)
+    index[moved] = moved
+    index = np.maximum.accumulate(index)
+    new_jump = np.where(index > 0, jump[np.minimum(index - shift, op.size - 1)], jump[0])
+    new_base = np.where(index > 0, op[index], op[0] - jump[0])
+    return np.asarray(new_base, dtype=np.float64), np.asarray(new_jump, dtype=np.float64)
+
+
+def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
+                 jumps: dict[int, FloatArray]) -> None:
+    """Move every slip of valve ``k`` by the same number of samples (up to
+    :data:`GLOBAL_SHIFT`) where the misfit is least: slips all placed early or late hold
+    the fitted gains where they are, and one slip moved alone cannot undo that."""
+    trials = [_shifted(problem.ops[k], jumps[k], shift)
+              for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
+    misfits = [_set_misfit(problem, {**replays, k: base}, {**jumps, k: jump})
+               for base, jump in trials]
+    replays[k], jumps[k] = trials[int(np.argmin(misfits))]
+
+
+def _slip_band(op: FloatArray, jump: FloatArray) -> float:
+    """He's ``S = fs + fd`` from a replay's slips: the OP travel between a slip and the next
+    one, which goes the other way (the median over the window)."""
+    slips = np.flatnonzero(np.diff(jump) != 0) + 1
+    travel = np.abs(np.diff(op[slips]))
+    return float(np.median(travel)) if travel.size else 0.0
+
+
+def replay_sticky_sets(
+    loops: Mapping[str, tuple[ArrayLike, ArrayLike]],
+    ts: float,
+    process: ProcessMatrix,
+) -> ReplayLocalisation:
+    """Fit every candidate set of sticky valves by replaying it through the unit's matrix.
+
+    Parameters
+    ----------
+    loops : mapping of str to (array_like, array_like)
+        ``loop id -> (OP, PV)`` in the row and column order of ``process``.
+    ts : float
+        Sampling interval, s.
+    process : n x n nested sequence of TransferFunction or None
+        ``G[i][j]`` from valve ``j`` to PV ``i``.
+
+    Returns
+    -------
+    ReplayLocalisation
+    """
+    names = tuple(loops)
+    n = len(names)
+    if len(process) != n or any(len(row) != n for row in process):
+        raise ModelSpecError(f"the process matrix must be {n} x {n}, one row per loop")
+    ops = [np.asarray(loops[k][0], dtype=np.float64) for k in names]
+    pvs = [np.asarray(loops[k][1], dtype=np.float64) for k in names]
+    problem = _Problem(ops, pvs, process, ts)
+    healthy = _set_misfit(problem, {})
+    samples = n * problem.rows[0].target.size
+    valves = {k: _Valve(problem, k) for k in range(n)}
+    fits = []
+    for size in range(1, n + 1):
+        for members in itertools.combinations(range(n), size):
+            chosen = _descend(problem, members, valves)
+            replays = {k: valves[k].replay(chosen[k]) for k in members}
+            jumps = {}
+            for k in members:
+                if valves[k].slips_at_turns(chosen[k]):
+                    jumps[k] = _slip_directions(replays[k])
+                    replays[k] = replays[k] + valves[k].fd[chosen[k]] * jumps[k]
+            for _ in range(SLIP_ROUNDS):
+                for k in jumps:
+                    _shift_slips(problem, k, replays, jumps)
+                    _refine_slips(problem, k, replays, jumps)
+            misfit = _set_misfit(problem, replays, jumps)
+            for k in members if size > 1 else ():
+                p = _reselect(problem, k, valves[k], replays, jumps)
+                trial, trial_jumps = dict(replays), {j: d for j, d in jumps.items() if j != k}
+                trial[k] = valves[k].replay(p)
+                if valves[k].slips_at_turns(p):
+                    trial_jumps[k] = _slip_directions(trial[k])
+                    trial[k] = trial[k] + valves[k].fd[p] * trial_jumps[k]
+                    for _ in range(SLIP_ROUNDS):
+                        _refine_slips(problem, k, trial, trial_jumps)
+                trial_misfit = _set_misfit(problem, trial, trial_jumps)
+                if trial_misfit < misfit:
+                    replays, jumps, misfit = trial, trial_jumps, trial_misfit
+                    chosen[k] = p
+            bands, steps = [], []
+            for k in members:
+                if k in jumps:
+                    _, gains, _, coefficients = _row_fit(problem, k, replays, jumps)
+                    band = _slip_band(ops[k], jumps[k])
+                    fd = -coefficients[_jump_index(problem, k, k, jumps)] / gains[k]
+                    bands.append(band)
+                    steps.append(band - 2.0 * float(np.clip(fd, 0.0, band / 2)))
+                else:
+                    fs, fd = valves[k].fs[chosen[k]], valves[k].fd[chosen[k]]
+                    bands.append(float(fs + fd))
+                    steps.append(float(fs - fd))
+            fits.append(ReplayFit(tuple(names[k] for k in members), misfit,
+                                  _score(misfit, samples, size), tuple(bands), tuple(steps)))
+    fits.sort(key=lambda f: f.score)
+    return ReplayLocalisation(tuple(fits), healthy, _score(healthy, samples, 0), samples)
+
+
+def _score(misfit: float, samples: int, valves: int) -> float:
+    """``m ln(misfit / m) + VALVE_PENALTY * valves`` over ``m`` PV samples: the Gaussian
+    log-likelihood of the residual with its variance unknown (the model's error as well
+    as the noise), plus the penalty."""
+    return samples * math.log(max(misfit, 1e-300) / samples) + VALVE_PENALTY * valves
