@@ -208,6 +208,14 @@ class ReplayLocalisation:
             "note": self.note,
         }
 
+    @classmethod
+    def of(cls, candidates: Sequence[ReplayFit], no_valve_misfit: float,
+           samples: int) -> ReplayLocalisation:
+        """The localisation of ``candidates`` (best first) against healthy valves'
+        misfit, the healthy valves scored by :func:`_score`."""
+        return cls(tuple(candidates), no_valve_misfit, _score(no_valve_misfit, samples, 0),
+                   samples)
+
     def fit_of(self, loops: Sequence[str]) -> ReplayFit | None:
         """The fit of one candidate set (None for the empty set)."""
         wanted = set(loops)
@@ -648,7 +656,7 @@ def replay_sticky_sets(
             fits.append(ReplayFit(tuple(names[k] for k in members), misfit,
                                   _score(misfit, samples, size), tuple(bands), tuple(steps)))
     fits.sort(key=lambda f: f.score)
-    return ReplayLocalisation(tuple(fits), healthy, _score(healthy, samples, 0), samples)
+    return ReplayLocalisation.of(fits, healthy, samples)
 
 
 def _score(misfit: float, samples: int, valves: int) -> float:

@@ -90,7 +90,7 @@ from analytics.plantwide.groups import (
     envelope_variation,
     find_oscillation_groups,
 )
-from analytics.plantwide.replay import ReplayLocalisation, replay_sticky_sets
+from analytics.plantwide.replay import ReplayFit, ReplayLocalisation, replay_sticky_sets
 from analytics.quantification import MIN_FIT_R2, MIN_R2_GAIN, StictionEstimate, quantify_stiction
 from analytics.stiction.evidence import margin_confidence
 from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinearity_index
@@ -327,7 +327,8 @@ class UnitDiagnosis:
         harmonics and noise of the fingerprint (its phasors are the stored amplitudes,
         phase 0), the candidates' ``harmonic_misfit`` and ``distortion`` and the
         ``no_valve_harmonic_misfit`` (NaN and empty).  Diagnoses stored before the unit's
-        model was used have no ``linear`` and no group ``model``: None.
+        model was used have no ``linear`` and no group ``model``, and those stored before
+        the replay no group ``replay``: None.
 
         Raises
         ------
@@ -402,6 +403,7 @@ def _group_from_dict(read: _Reader) -> GroupDiagnosis:
         sticky_valves=tuple(read("sticky_valves")), envelope_cv=read("envelope_cv"),
         note=read("note"),
         model=None if read.get("model") is None else _localisation_from_dict(read.part("model")),
+        replay=None if read.get("replay") is None else _replay_from_dict(read.part("replay")),
     )
 
 
@@ -410,6 +412,15 @@ def _pair(read: _Reader, key: str) -> tuple[Any, Any]:
     if not isinstance(values, list | tuple) or len(values) != 2:
         raise DataError(f"{read.where}.{key}: expected a pair, got {values!r}")
     return values[0], values[1]
+
+
+def _replay_from_dict(read: _Reader) -> ReplayLocalisation:
+    """:meth:`ReplayLocalisation.to_dict`'s form back (``sticky_valves`` and ``note``
+    are derived, so not read)."""
+    return ReplayLocalisation.of(
+        [ReplayFit(tuple(c("loops")), c("misfit"), c("score"), tuple(c("S")), tuple(c("J")))
+         for c in read.items("candidates")],
+        read("no_valve_misfit"), read("samples"))
 
 
 def _localisation_from_dict(read: _Reader) -> ModelLocalisation:

@@ -340,7 +340,8 @@ def test_unit_diagnosis_round_trips_through_its_json_form(column_diagnoses, stic
 
 @pytest.mark.slow
 def test_unit_diagnosis_with_the_model_and_of_tep_round_trip():
-    """The model's localisation (what to_dict keeps of it) and a real process's diagnosis."""
+    """The model's localisation (what to_dict keeps of it), its replay and a real process's
+    diagnosis."""
     model = column3x3(sticky=(1, 2), seed=7)
     with_model = diagnose_unit(column_unit(model), 0.5, model=column_model(model))
     loops, others = tep_unit("d14.dat")
@@ -348,7 +349,7 @@ def test_unit_diagnosis_with_the_model_and_of_tep_round_trip():
     for diagnosis in (with_model, tep):
         stored = json_form(diagnosis)
         assert json_form(UnitDiagnosis.from_dict(json.loads(stored))) == stored
-    assert all(g.model is not None for g in with_model.groups)
+    assert all(g.model is not None and g.replay is not None for g in with_model.groups)
     assert tep.sticky_valves  # XMV(10): the round trip carried a finding
 
 
