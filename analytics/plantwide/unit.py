@@ -176,7 +176,8 @@ class GroupDiagnosis:
         The signals that share the oscillation (strongest first).
     loops : tuple of str
         Loops with their OP or PV among the members: the valves that could be
-        the source.
+        the source; with a model, also a loop whose valve it names for the cycle
+        and whose OP moves at it as much as the OP of one of those.
     decomposition : ShapeDecomposition or None
         Thesis step 2 on the PVs of ``loops`` (None when it could not run;
         see ``note``).
@@ -539,8 +540,13 @@ def _diagnose_group(
             ts, model.process, model.controllers, period_s=group.period_s,
             hold_delay=model.hold_delay,
         )
-        notes.append(f"unit model: {localisation.note}")
-        named = tuple(dict.fromkeys([*named, *localisation.sticky_valves]))
+        joined, refused = _model_valves_outside(localisation, model.loops, loops)
+        loops = (*loops, *joined)
+        notes.append(f"unit model: {localisation.note}" + (
+            f" ({', '.join(refused)} not named here: its OP hardly moves at this cycle, "
+            "less than the OP of every loop that shares it)" if refused else ""))
+        named = tuple(dict.fromkeys(
+            [*named, *(loop for loop in localisation.sticky_valves if loop in loops)]))
     if named:
         notes.insert(0, f"sticky: {', '.join(named)} (own-valve stiction model, replicated "
                         "in both halves of the window, or the unit model's fingerprint)")
@@ -552,6 +558,27 @@ def _diagnose_group(
                         "a linear oscillation (tuning or an external disturbance)")
     return GroupDiagnosis(group.period_s, cycles, group.members, loops, decomposition,
                           tuple(evidence), named, None, "; ".join(notes), localisation)
+
+
+def _model_valves_outside(
+    localisation: ModelLocalisation, model_loops: tuple[str, ...], loops: tuple[str, ...]
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The valves the unit model names for a cycle outside the loops of its group: those
+    whose OP moves at the cycle at least as much as the OP of a loop of the group (the
+    group missed them, their signals carrying a stronger cycle), and the rest.
+
+    The harmonic balance runs over every loop of the model: it may blame a valve whose
+    OP hardly moves at the cycle (the demo column's FV-502 at TIC-503's 25 s cycle, 3 %
+    of TIC-503's OP), while a loop of a second cycle can miss the group of the cycle it
+    drives (the column with three sticky valves: valve 3 drives the 325 s cycle with the
+    largest OP amplitude, its signals grouped at 129 s).
+    """
+    amplitude = dict(zip(model_loops, (abs(v) for v in localisation.fingerprint.op),
+                         strict=True))
+    floor = min((amplitude[loop] for loop in loops if loop in amplitude), default=math.inf)
+    outside = [loop for loop in localisation.sticky_valves if loop not in loops]
+    return (tuple(loop for loop in outside if amplitude[loop] >= floor),
+            tuple(loop for loop in outside if amplitude[loop] < floor))
 
 
 def _finding(group: GroupDiagnosis, loop: str) -> ValveFinding:
