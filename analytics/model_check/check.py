@@ -1147,9 +1147,14 @@ def check_model(
     synchronised = valve_synchronisation(base, op_a)
     warm_up = min(n // 5, max(20, settle + 1, synchronised))
     if synchronised > n // 5:
+        until = (f"until sample {synchronised}" if synchronised < n
+                 else "throughout the window (OP never pushes it through its band)")
+        scored_uncertain = (f"samples {n // 5} to {synchronised - 1}" if synchronised < n
+                            else f"every sample from {n // 5} on")
         notes.append(
-            f"the model valve's position depends on its unknown initial state until sample "
-            f"{synchronised}; only the first {n // 5} samples are left unscored"
+            f"the model valve's position depends on its unknown initial state {until}; at "
+            f"most a fifth of the window is left unscored (the first {n // 5} samples), so "
+            f"{scored_uncertain} are scored with that position uncertain"
         )
     reach = float(np.max(np.abs(base.replay(op_a)[1])))
     if not reach <= REPLAY_LIMIT * float(np.max(np.abs(pv_a)) + np.ptp(pv_a)):
