@@ -9,6 +9,7 @@ and inspected through the API with keys of every role.
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import pytest
 
 from analytics.synthetic_cases import synthetic_library
 from service.buffer import LoopBuffers
@@ -214,6 +215,25 @@ def test_restart_rebuilds_the_rolling_window_from_the_store(service, client, sto
     assert np.isfinite(after.pv).all()
     restarted.executor.shutdown()
     restarted.state.store.close()
+
+
+@pytest.mark.parametrize(("process_model", "message"), [
+    ({"type": "fopdt", "tau": 5.0, "theta": 1.0}, "missing key 'K' for model type 'fopdt'"),
+    ({"type": "fopdt", "K": "big", "tau": 5.0}, "K must be a number, got 'big'"),
+    ({"theta": -2.0}, "theta (the dead time, s) must be a finite number >= 0, got -2.0"),
+])
+def test_a_loops_process_model_must_be_whole(client, process_model, message):
+    """QA: a fopdt without its gain K was stored silently (no gain to size J with, and
+    nothing said so).  It is a 422 naming process_model; the dead time alone stays."""
+    body = {"ts": 1.0, "tags": {"pv": "PM.PV"}, "process_model": process_model}
+    answer = client.put("/api/v1/loops/PM-1", json=body, headers={"X-API-Key": ADMIN})
+    assert answer.status_code == 422, answer.text
+    (error,) = answer.json()["detail"]
+    assert error["loc"] == ["process_model"] and message in error["msg"]
+    assert client.get("/api/v1/loops/PM-1", headers={"X-API-Key": ADMIN}).status_code == 404
+    dead_time = {**body, "process_model": {"theta": 2.0}}
+    assert client.put("/api/v1/loops/PM-1", json=dead_time,
+                      headers={"X-API-Key": ADMIN}).status_code == 200
 
 
 def test_loops_can_be_added_by_an_admin(client):
