@@ -97,6 +97,15 @@ def test_ingest_is_idempotent_and_reports_refusals(client):
     assert partial.status_code == 207
     assert partial.json()["refused"] == {"unknown_tag": 1}
     assert partial.json()["stored"] == 1
+    # QA: a value sent as text ("NaN") is refused alone, with its tag and time stamp
+    text = [{"tag": "FIC-1.OP", "items": [{"timestamp": T0 + 2, "value": 51.0},
+                                          {"timestamp": T0 + 3, "value": "NaN"}]}]
+    partial = client.post("/api/v1/ingest", json=text, headers=historian)
+    assert partial.status_code == 207, partial.text
+    answer = partial.json()
+    assert (answer["stored"], answer["refused"]) == (1, {"bad_value": 1})
+    assert answer["tags"][0]["tag"] == "FIC-1.OP"
+    assert answer["tags"][0]["refused_items"] == [{"timestamp": T0 + 3, "reason": "bad_value"}]
     bad = client.post("/api/v1/ingest", json=[{"items": []}], headers=historian)
     assert bad.status_code == 422
 

@@ -3,6 +3,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+from pydantic import Field
+
 from service.api.schemas.base import Schema
 
 
@@ -21,11 +25,13 @@ class TagIngest(Schema):
     """Items that came after a later one of the same tag."""
     refused: dict[str, int]
     """Refused items by reason: ``unknown_tag``, ``bad_timestamp``, ``future_timestamp``,
-    ``duplicate_in_batch``, ``conflict``."""
+    ``bad_value`` (a value sent as text), ``duplicate_in_batch``, ``conflict``."""
     first_timestamp: float | None
     """First of the tag's items in the store after the call, UNIX s; null if none is."""
     last_timestamp: float | None
     """Last of them, UNIX s."""
+    refused_items: list[dict[str, Any]] = Field(default_factory=list)
+    """The first 10 refused items: ``timestamp`` as sent and ``reason``."""
 
 
 class IngestAnswer(Schema):
