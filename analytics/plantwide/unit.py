@@ -143,6 +143,12 @@ class LoopEvidence:
         window and in each half.
     note : str
         One sentence on the outcome.
+    J_product_only : bool
+        The window pins only the PV step of a slip, ``K J``, not J: fitted
+        without a known process gain, J fits about as well with the gain
+        halved or doubled
+        (:attr:`analytics.quantification.StictionEstimate.J_product_only`),
+        and J often ends at a bound of its search (0 or S).
     """
 
     loop: str
@@ -154,6 +160,7 @@ class LoopEvidence:
     J: float | None
     sticky: bool
     note: str
+    J_product_only: bool = False
 
     @property
     def nonlinearity(self) -> float | None:
@@ -237,6 +244,9 @@ class ValveFinding:
         cycle.
     reason : str
         The evidence in one sentence.
+    J_product_only : bool
+        J is not resolved: the window pins only ``K J`` (see
+        :attr:`LoopEvidence.J_product_only`).
     """
 
     loop: str
@@ -245,6 +255,7 @@ class ValveFinding:
     S: float | None
     J: float | None
     reason: str
+    J_product_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -290,7 +301,7 @@ class UnitDiagnosis:
             "k": self.k,
             "sticky_valves": [
                 {"loop": f.loop, "confidence": f.confidence, "period_s": f.period_s,
-                 "S": f.S, "J": f.J, "reason": f.reason}
+                 "S": f.S, "J": f.J, "J_product_only": f.J_product_only, "reason": f.reason}
                 for f in self.sticky_valves
             ],
             "groups": [_group_dict(g) for g in self.groups],
@@ -326,8 +337,8 @@ def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:
         "evidence": [
             {"loop": e.loop, "nonlinearity_op": e.nonlinearity_op,
              "nonlinearity_pv": e.nonlinearity_pv, "own_valve_gain": e.own_valve_gain,
-             "half_gains": list(e.half_gains), "S": e.S, "J": e.J, "sticky": e.sticky,
-             "note": e.note}
+             "half_gains": list(e.half_gains), "S": e.S, "J": e.J,
+             "J_product_only": e.J_product_only, "sticky": e.sticky, "note": e.note}
             for e in group.evidence
         ],
         "sticky_valves": list(group.sticky_valves),
@@ -429,8 +440,11 @@ def _loop_evidence(
     gain = _gain(whole)
     half_gains = tuple(None if h is None else _gain(h) for h in halves)
     if sticky:
-        note = (f"a stiction model of its own valve (S = {whole.S:.2f}, J = {whole.J:.2f}) "
-                f"raises the fit of its PV by {gain:.2f} in R2, in each half of the window too")
+        size = (f"S = {whole.S:.2f}; J not resolved without the process gain, only "
+                f"K J = {whole.slip_step:.2f}" if whole.J_product_only
+                else f"S = {whole.S:.2f}, J = {whole.J:.2f}")
+        note = (f"a stiction model of its own valve ({size}) raises the fit of its PV by "
+                f"{gain:.2f} in R2, in each half of the window too")
     elif _estimate_holds(whole):
         note = "stiction of its own valve fits the whole window but not both halves of it"
     elif whole.S is None:
@@ -453,6 +467,7 @@ def _loop_evidence(
         J=whole.J if sticky else None,
         sticky=sticky,
         note=note,
+        J_product_only=sticky and whole.J_product_only,
     )
 
 
@@ -609,7 +624,8 @@ def _data_finding(group: GroupDiagnosis, evidence: LoopEvidence) -> ValveFinding
         return ValveFinding(loop, confidence, group.period_s, None, None, evidence.note)
     gains = [g for g in (evidence.own_valve_gain, *evidence.half_gains) if g is not None]
     confidence = margin_confidence(min(gains), MIN_R2_GAIN, HAMMERSTEIN_GAIN_SCALE)
-    return ValveFinding(loop, confidence, group.period_s, evidence.S, evidence.J, evidence.note)
+    return ValveFinding(loop, confidence, group.period_s, evidence.S, evidence.J, evidence.note,
+                        evidence.J_product_only)
 
 
 def diagnose_unit(

@@ -9,6 +9,7 @@ motivation of thesis chapter 2); the unit diagnosis clears their valves, so
 only FV-502 gets a ticket.
 """
 
+import functools
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -295,6 +296,7 @@ def test_completing_a_finished_round_again_opens_no_ticket_maintenance_closed(ma
     assert tickets(svc) == [("FV-1", "FIC-1")]
 
 
+@functools.cache
 def demo_column_diagnosis(start_s: float, end_s: float) -> dict[str, Any]:
     """The unit diagnosis, with the demo's process matrix and controllers, of the demo
     column's window from ``start_s`` to ``end_s`` of its simulation."""
@@ -346,6 +348,17 @@ def test_a_cycle_names_only_valves_of_the_loops_that_share_it():
         assert set(group["sticky_valves"]) <= set(group["loops"]), group["period_s"]
     assert "AIC-502 not named here" in fast[0]["note"]
     assert [v["loop"] for v in diagnosis["sticky_valves"]] == ["AIC-502"]
+
+
+def test_a_slip_the_window_does_not_resolve_is_not_shown_as_one():
+    """QA: the unit page showed FV-502's window estimate as S = J = 4.18 beside its
+    combined S 4.18, J 2.03.  The unit's own-valve test fits the process gain, and a
+    limit cycle pins only K J (-3.01 here; K -0.72 with J 4.18 and K -1.44 with J 2.09
+    fit alike): J sat at its bound S.  The finding says J is not resolved."""
+    (finding,) = demo_column_diagnosis(3600, 7200)["sticky_valves"]
+    assert finding["J_product_only"] is True
+    assert "J not resolved without the process gain, only K J = -3.01" in finding["reason"]
+    assert f"J = {finding['J']:.2f}" not in finding["reason"]
 
 
 def test_the_sticky_valve_is_sized_with_the_units_matrix(make_service, batch):
