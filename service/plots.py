@@ -249,7 +249,7 @@ def _signature_panel(
             Series("apparent_stiction", "apparent stiction", np.array([cx - half, cx + half]),
                    np.array([cy, cy]), COLOURS["sp"], width=2.5),
         ]
-        notes = [f"apparent stiction {fit.apparent_stiction:.2f} (width ratio "
+        notes = [f"apparent stiction {fit.apparent_stiction:.2f} % of OP span (width ratio "
                  f"{fit.width_ratio:.2f}, fit residual {fit.residual:.2f})"]
     if model is not None:
         drawn += _model_series(op, model, valve_name)

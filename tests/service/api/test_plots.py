@@ -145,7 +145,7 @@ def test_signature_and_spectrum_show_what_the_analysis_measured(analysed):
     diagnosis = analysed.get("/api/v1/loops/FIC-1/health", headers=HEADERS).json()["diagnosis"]
     signature = get_plot(analysed, "FIC-1", "signature").text
     apparent = diagnosis["apparent_stiction"]
-    assert (f"apparent stiction {apparent['apparent_stiction']:.2f} "
+    assert (f"apparent stiction {apparent['apparent_stiction']:.2f} % of OP span "
             f"(width ratio {apparent['width_ratio']:.2f}") in signature
     spectrum_panel, acf_panel = panels(parse(get_plot(analysed, "FIC-1", "spectrum").text))
     period = diagnosis["oscillation"]["analysed_period_s"]
