@@ -271,6 +271,22 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     assert shot.stat().st_size > 10_000
 
 
+def test_the_overview_fits_a_1400_px_window(running: RunningService, browser: Browser) -> None:
+    """QA: at 1400 px the overview's table of sixteen columns scrolled sideways."""
+    page = browser.page
+    page.set_viewport_size({"width": 1400, "height": 900})
+    try:
+        page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+        page.locator("#loops tbody tr").first.wait_for()
+        page.locator("#loops td[data-score]").first.wait_for()
+        widths = page.evaluate("""() => [document.documentElement, document.querySelector(
+            '#loops .table-scroll')].map(e => [e.scrollWidth, e.clientWidth])""")
+        for scroll_width, client_width in widths:
+            assert scroll_width <= client_width, widths
+    finally:
+        page.set_viewport_size({"width": 1600, "height": 1000})
+
+
 def test_a_key_link_signs_a_viewer_in_without_operator_controls(
     running: RunningService, browser: Browser
 ) -> None:
