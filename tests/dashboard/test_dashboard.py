@@ -710,6 +710,25 @@ def check_kpi_views(running: RunningService, browser: Browser,
     print(f"KPI trend screenshot: {shot}")
 
 
+def test_api_docs_opened_from_the_dashboard_are_signed_in(running: RunningService,
+                                                          browser: Browser) -> None:
+    """QA: /docs asked for the key again although the dashboard was signed in: in the
+    same tab the page takes the dashboard's key, and Swagger UI's Authorize shows it set
+    (its padlock locked), so Try it out and the copied curl commands carry it."""
+    page = browser.page
+    page.goto(f"{running.base_url}/#key={running.keys['viewer']}")
+    page.locator("#loops tbody tr").first.wait_for()
+    page.get_by_role("link", name="API docs").click()
+    page.wait_for_url(f"{running.base_url}/docs")
+    page.locator("#operations-loops-list_loops_api_v1_loops_get").wait_for()
+    assert page.locator("#docs-key").is_hidden()
+    page.locator("button.authorize.locked").wait_for()
+    page.locator("button.authorize").click()
+    dialog = page.locator(".modal-ux")
+    dialog.get_by_text("Authorized", exact=True).wait_for()
+    assert "APIKeyHeader\u00a0(apiKey)" in dialog.inner_text()
+
+
 @pytest.mark.parametrize("path", ["/docs", "/redoc"])
 def test_api_docs_load_from_loopwatch_under_the_csp(running: RunningService, browser: Browser,
                                                     path: str, tmp_path: Path) -> None:
