@@ -303,7 +303,7 @@ def hammerstein_evidence(estimate: StictionEstimate) -> MethodEvidence:
     if estimate.stiction_found and estimate.fit_r2 >= MIN_FIT_R2:
         return MethodEvidence(
             name, STICTION, gain, margin_confidence(gain, threshold, HAMMERSTEIN_GAIN_SCALE),
-            f"a stiction model (S = {estimate.S:.2f}) raises the fit R2 from "
+            f"a stiction model (S = {estimate.S:.2f} % of OP span) raises the fit R2 from "
             f"{search.r2_ideal_valve:.2f} to {estimate.fit_r2:.2f}", details,
         )
     if estimate.fit_r2 < MIN_FIT_R2:

@@ -29,7 +29,6 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -118,15 +117,19 @@ def _time_columns(
     return date_index, column_index(header, time_column, path, error)
 
 
+def _time_text(row: list[str], date_index: int | None, time_index: int) -> str:
+    """A row's time as the file writes it (``DATE`` ``T`` ``TIME`` for two columns)."""
+    text = row[time_index].strip()
+    return text if date_index is None else f"{row[date_index].strip()}T{text}"
+
+
 def _read_times(path: Path, header: list[str], body: list[tuple[int, list[str]]],
                 date_index: int | None, time_index: int, zone: ZoneInfo,
                 error: type[ValueError]) -> NDArray[np.float64]:
     """The UNIX time of every row, from a time column or a date and a time column."""
     times = np.empty(len(body))
     for k, (number, row) in enumerate(body):
-        text = row[time_index].strip()
-        if date_index is not None:
-            text = f"{row[date_index].strip()}T{text}"
+        text = _time_text(row, date_index, time_index)
         try:
             times[k] = parse_time(text, zone)
         except ValueError:
@@ -209,10 +212,13 @@ def read_historian_export(
     rows = numbers[order]
     same = np.flatnonzero(np.diff(times) == 0)
     if same.size:
+        # the time as the file gives it (seconds since start are no 1970 date)
         k = int(same[0])
+        texts = list(dict.fromkeys(_time_text(body[i][1], date_index, time_index)
+                                   for i in order[k:k + 2]))
         raise error(
             f"{path}, rows {rows[k]} and {rows[k + 1]}: the same time "
-            f"{datetime.fromtimestamp(times[k], zone).isoformat()}; remove the duplicate"
+            f"{' and '.join(map(repr, texts))}; remove the duplicate"
         )
     used = tuple(header[i] for i in (date_index, time_index) if i is not None)
     return HistorianExport(times=times, values={name: v[order] for name, v in values.items()},

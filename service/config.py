@@ -58,7 +58,9 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
+from analytics.errors import AnalyticsError
 from analytics.kpi import Mode
+from analytics.lti import TransferFunction
 from analytics.types import ProcessType
 from service.prediction import ModelError, check_matrix
 
@@ -274,6 +276,28 @@ class LoopConfig(_Strict):
             if not high > low:
                 raise ValueError(f"range of {signal} must have high > low, got [{low}, {high}]")
         return ranges
+
+    @field_validator("process_model")
+    @classmethod
+    def _transfer_function(cls, model: dict[str, Any] | None) -> dict[str, Any] | None:
+        """A process model is a whole transfer function, as in the ``loopwatch predict``
+        model file (a fopdt without its gain K gives no gain to size J with), or the
+        dead time alone, ``{theta}`` (s), for the Harris index."""
+        if model is None:
+            return None
+        if set(model) == {"theta"}:
+            theta = model["theta"]
+            number = isinstance(theta, int | float) and not isinstance(theta, bool)
+            if not (number and 0 <= theta < float("inf")):
+                raise ValueError("theta (the dead time, s) must be a finite number >= 0, "
+                                 f"got {theta!r}")
+            return model
+        try:
+            TransferFunction.from_dict(model)
+        except AnalyticsError as exc:
+            raise ValueError(f"{exc} (a transfer function as in the loopwatch predict model "
+                             "file, or {theta} alone for the dead time)") from None
+        return model
 
     @field_validator("pv_limits")
     @classmethod

@@ -19,9 +19,13 @@ already_stored + sum(refused)``:
     ``unknown_tag`` (the tag is not configured), ``bad_timestamp`` (neither
     UNIX seconds nor ISO 8601, not finite, or before 1970),
     ``future_timestamp`` (later than ``now + max_future_s``: a clock error or
-    milliseconds sent as seconds), ``duplicate_in_batch`` (the first item of a
+    milliseconds sent as seconds), ``bad_value`` (a value sent as text, such
+    as ``"NaN"`` or ``"12.5"``: the rest of the batch is stored all the same),
+    ``duplicate_in_batch`` (the first item of a
     time stamp is kept) and ``conflict`` (the store holds a different value or
-    quality for that time; stored samples are never changed).
+    quality for that time; stored samples are never changed).  The first
+    refused items of a tag are listed with their time stamp as sent and the
+    reason (``refused_items``).
 
 Items of a tag that arrive out of time order are stored all the same and
 counted in ``out_of_order``.  ISO time stamps without an offset are UTC.
@@ -90,6 +94,7 @@ REFUSAL_REASONS = (
     "unknown_tag",
     "bad_timestamp",
     "future_timestamp",
+    "bad_value",
     "duplicate_in_batch",
     "conflict",
 )
@@ -119,7 +124,9 @@ class IngestItem(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
 
     timestamp: str | float = Field(description="ISO 8601 (UTC without offset) or UNIX seconds")
-    value: float | None = Field(description="null, NaN or infinite: stored as a bad sample")
+    value: float | str | None = Field(
+        description="null, NaN or infinite: stored as a bad sample; text (\"NaN\", \"12\") "
+        "is refused, the item alone (bad_value)")
     good: bool = True
 
 
@@ -205,11 +212,14 @@ class TagReport(BaseModel):
     """Items that came after a later one of the same tag."""
     refused: dict[str, int]
     """Refused items by reason: ``unknown_tag``, ``bad_timestamp``, ``future_timestamp``,
-    ``duplicate_in_batch``, ``conflict``."""
+    ``bad_value`` (a value sent as text), ``duplicate_in_batch``, ``conflict``."""
     first_timestamp: float | None
     """First of the tag's items in the store after the call, UNIX s; null if none is."""
     last_timestamp: float | None
     """Last of them, UNIX s."""
+    refused_items: list[dict[str, Any]] = Field(default_factory=list)
+    """The first :data:`MAX_REPORTED_ERRORS` refused items: ``timestamp`` as sent and
+    ``reason``."""
 
 
 @dataclass(frozen=True)
@@ -310,6 +320,7 @@ class _TagIngest:
         self.out_of_order = 0
         self.newest = -math.inf  # latest valid time stamp so far, to count out-of-order items
         self.refused: Counter[str] = Counter()
+        self.refused_items: list[dict[str, Any]] = []
         self.in_store: list[float] = []  # times stored or already stored
         self.new: dict[float, tuple[float | None, bool]] = {}  # time -> (value, good) to write
         self.written: list[NewSample] = []
@@ -322,18 +333,26 @@ class _TagIngest:
             return
         for item in items:
             time = parse_timestamp(item.timestamp)
-            if time is None:
-                self.refused["bad_timestamp"] += 1
+            value = item.value
+            if isinstance(value, str):  # strict: text is no number, "NaN" and "12" alike
+                self._refuse(item, "bad_value")
+            elif time is None:
+                self._refuse(item, "bad_timestamp")
             elif time > latest:
-                self.refused["future_timestamp"] += 1
+                self._refuse(item, "future_timestamp")
             elif time in self.new:
-                self.refused["duplicate_in_batch"] += 1
+                self._refuse(item, "duplicate_in_batch")
             else:
                 if time < self.newest:
                     self.out_of_order += 1
                 self.newest = max(self.newest, time)
-                good = item.good and item.value is not None and math.isfinite(item.value)
-                self.new[time] = (item.value if good else None, good)
+                good = item.good and value is not None and math.isfinite(value)
+                self.new[time] = (value if good else None, good)
+
+    def _refuse(self, item: IngestItem, reason: str) -> None:
+        self.refused[reason] += 1
+        if len(self.refused_items) < MAX_REPORTED_ERRORS:
+            self.refused_items.append({"timestamp": item.timestamp, "reason": reason})
 
     def compare_with_store(self, session: Session, times: Collection[float]) -> None:
         """Move ``times`` the store already holds out of ``new``: same sample or conflict."""
@@ -348,6 +367,8 @@ class _TagIngest:
                 self.in_store.append(time)
             else:
                 self.refused["conflict"] += 1
+                if len(self.refused_items) < MAX_REPORTED_ERRORS:
+                    self.refused_items.append({"timestamp": time, "reason": "conflict"})
 
     def rows(self) -> list[dict[str, Any]]:
         """The rows to insert."""
@@ -380,6 +401,7 @@ class _TagIngest:
             refused={reason: n for reason in REFUSAL_REASONS if (n := self.refused[reason])},
             first_timestamp=min(self.in_store, default=None),
             last_timestamp=max(self.in_store, default=None),
+            refused_items=self.refused_items,
         )
 
 

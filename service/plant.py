@@ -9,15 +9,19 @@ tag belongs to one loop: taking the tag of another loop is refused with
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Mapping
 from types import MappingProxyType
 
+from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.config import ConfigError, LoopConfig, PlantConfig, UnitConfig
 from service.store.models import Loop, Tag, Unit
+
+log = logging.getLogger(__name__)
 
 __all__ = ["PlantRegistry", "TagConflictError", "sync_plant"]
 
@@ -67,6 +71,20 @@ def _claimed_tags(session: Session, loop: LoopConfig) -> None:
         raise TagConflictError(f"Tag {name!r} belongs to loop {owner!r}")
 
 
+def _stored_api_loop(row: Loop) -> LoopConfig | None:
+    """A loop added through the API as stored; None, with a warning, when its configuration
+    no longer validates (stored before a check was added, e.g. a process_model without K):
+    the loop is then not run, as one that left the plant file, and the service starts."""
+    try:
+        return LoopConfig.model_validate(row.config)
+    except ValidationError as exc:
+        log.warning("loop %s, added through the API, is not run: its stored configuration no "
+                    "longer validates (%s); send it again with PUT /api/v1/loops/%s",
+                    row.id, "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                                      for e in exc.errors(include_url=False)), row.id)
+        return None
+
+
 def sync_plant(session: Session, plant: PlantConfig, now: float) -> PlantConfig:
     """Write the plant file's units, loops and tags to the store; the plant to run: the
     file's and the loops added through the API (the file wins for a loop in both).
@@ -80,8 +98,9 @@ def sync_plant(session: Session, plant: PlantConfig, now: float) -> PlantConfig:
         A loop of the file names a tag of a loop added through the API.
     """
     in_file = {loop.id for loop in plant.loops}
-    added = [LoopConfig.model_validate(row.config) for row in session.scalars(
-        select(Loop).where(Loop.origin == API).order_by(Loop.id)) if row.id not in in_file]
+    added = [loop for row in session.scalars(select(Loop).where(Loop.origin == API)
+                                            .order_by(Loop.id))
+             if row.id not in in_file and (loop := _stored_api_loop(row)) is not None]
     owner = {tag: loop.id for loop in added for _, tag in loop.tags.items()}
     for loop in plant.loops:
         for _, tag in loop.tags.items():

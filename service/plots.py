@@ -249,7 +249,7 @@ def _signature_panel(
             Series("apparent_stiction", "apparent stiction", np.array([cx - half, cx + half]),
                    np.array([cy, cy]), COLOURS["sp"], width=2.5),
         ]
-        notes = [f"apparent stiction {fit.apparent_stiction:.2f} (width ratio "
+        notes = [f"apparent stiction {fit.apparent_stiction:.2f} % of OP span (width ratio "
                  f"{fit.width_ratio:.2f}, fit residual {fit.residual:.2f})"]
     if model is not None:
         drawn += _model_series(op, model, valve_name)
@@ -591,6 +591,39 @@ def _text(x: float, y: float, content: str, *, size: int = 12, anchor: str = "st
             f'font-weight="{weight}" fill="{colour}"{transform}>{escape(content)}</text>')
 
 
+def _label_place(panel: Panel, axes: _Axes, label: str, x: float, y: float,
+                 box: tuple[float, float, float, float]) -> tuple[float, float, str]:
+    """Where a point marker's label goes: of the four corners around the point, the one
+    whose text crosses the fewest drawn samples (the lines sampled 8 times a segment),
+    the upper ones first on a tie; ``(x, baseline y, text-anchor)`` in pixels."""
+    left, top, width, height = box
+    px, py = [], []
+    for s in panel.series:
+        xs, ys = np.asarray(axes.x(s.x), float), np.asarray(axes.y(s.y), float)
+        if s.style != "points" and xs.size > 1:
+            fine = np.linspace(0.0, xs.size - 1.0, 8 * (xs.size - 1) + 1)
+            xs, ys = (np.interp(fine, np.arange(xs.size), v) for v in (xs, ys))
+        px.append(xs)
+        py.append(ys)
+    xs_all, ys_all = np.concatenate(px or [np.empty(0)]), np.concatenate(py or [np.empty(0)])
+    text_width = len(label) * 11 * CHAR_WIDTH["normal"] + 4
+    best: tuple[int, float, float, str] | None = None
+    for dy in (-8.0, 19.0):  # baseline above the point, or below it
+        for anchor in ("start", "end") if x <= left + width * 0.7 else ("end", "start"):
+            x0 = x if anchor == "start" else x - text_width
+            baseline = float(np.clip(y + dy, top + 11, top + height))
+            if x0 < left or x0 + text_width > left + width:
+                continue
+            inside = ((xs_all >= x0) & (xs_all <= x0 + text_width)
+                      & (ys_all >= baseline - 11) & (ys_all <= baseline + 2))
+            hits = int(np.count_nonzero(inside))
+            if best is None or hits < best[0]:
+                best = (hits, x, baseline, anchor)
+    if best is None:
+        return x, y - 8, "end" if x > left + width * 0.7 else "start"
+    return best[1], best[2], best[3]
+
+
 def _panel_svg(panel: Panel, top: float) -> str:
     left, width = MARGIN_LEFT, PLOT_WIDTH - MARGIN_LEFT - MARGIN_RIGHT
     box_top, height = top + MARGIN_TOP, PANEL_HEIGHT - MARGIN_TOP - MARGIN_BOTTOM
@@ -650,9 +683,13 @@ def _panel_svg(panel: Panel, top: float) -> str:
     out.append("</svg>")
     for m in panel.markers:  # labels outside the clip so they are never cut
         x = float(np.clip(axes.x(m.x), left + 4, left + width - 4))
-        y = box_top + 14 if m.y is None else float(np.clip(axes.y(m.y), box_top, box_top
-                                                                      + height)) - 8
-        anchor = "end" if x > left + width * 0.7 else "start"
+        if m.y is None:
+            anchor = "end" if x > left + width * 0.7 else "start"
+            y = box_top + 14
+        else:
+            y_point = float(np.clip(axes.y(m.y), box_top, box_top + height))
+            x, y, anchor = _label_place(panel, axes, m.label, x, y_point,
+                                        (left, box_top, width, height))
         out.append(_text(x + (-4 if anchor == "end" else 4), y, m.label, size=11,
                          anchor=anchor, colour=COLOURS["marker"]))
     legend_x = left + width

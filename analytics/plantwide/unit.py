@@ -148,6 +148,12 @@ class LoopEvidence:
         window and in each half.
     note : str
         One sentence on the outcome.
+    J_product_only : bool
+        The window pins only the PV step of a slip, ``K J``, not J: fitted
+        without a known process gain, J fits about as well with the gain
+        halved or doubled
+        (:attr:`analytics.quantification.StictionEstimate.J_product_only`),
+        and J often ends at a bound of its search (0 or S).
     """
 
     loop: str
@@ -159,6 +165,7 @@ class LoopEvidence:
     J: float | None
     sticky: bool
     note: str
+    J_product_only: bool = False
 
     @property
     def nonlinearity(self) -> float | None:
@@ -181,7 +188,8 @@ class GroupDiagnosis:
         The signals that share the oscillation (strongest first).
     loops : tuple of str
         Loops with their OP or PV among the members: the valves that could be
-        the source.
+        the source; with a model, also a loop whose valve it names for the cycle
+        and whose OP moves at it as much as the OP of one of those.
     decomposition : ShapeDecomposition or None
         Thesis step 2 on the PVs of ``loops`` (None when it could not run;
         see ``note``).
@@ -250,6 +258,9 @@ class ValveFinding:
         cycle.
     reason : str
         The evidence in one sentence.
+    J_product_only : bool
+        J is not resolved: the window pins only ``K J`` (see
+        :attr:`LoopEvidence.J_product_only`).
     """
 
     loop: str
@@ -258,12 +269,14 @@ class ValveFinding:
     S: float | None
     J: float | None
     reason: str
+    J_product_only: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (an item of :meth:`UnitDiagnosis.to_dict`'s
         ``sticky_valves``)."""
         return {"loop": self.loop, "confidence": self.confidence, "period_s": self.period_s,
-                "S": self.S, "J": self.J, "reason": self.reason}
+                "S": self.S, "J": self.J, "J_product_only": self.J_product_only,
+                "reason": self.reason}
 
 
 @dataclass(frozen=True)
@@ -328,7 +341,8 @@ class UnitDiagnosis:
         phase 0), the candidates' ``harmonic_misfit`` and ``distortion`` and the
         ``no_valve_harmonic_misfit`` (NaN and empty).  Diagnoses stored before the unit's
         model was used have no ``linear`` and no group ``model``, and those stored before
-        the replay no group ``replay``: None.
+        the replay no group ``replay``: None; findings stored before
+        ``J_product_only`` read False.
 
         Raises
         ------
@@ -342,7 +356,7 @@ class UnitDiagnosis:
             groups=tuple(_group_from_dict(g) for g in read.items("groups")),
             sticky_valves=tuple(
                 ValveFinding(f("loop"), f("confidence"), f("period_s"), f("S"), f("J"),
-                             f("reason"))
+                             f("reason"), bool(f.get("J_product_only")))
                 for f in read.items("sticky_valves")),
             linear=None if read.get("linear") is None else _linear_from_dict(read.part("linear")),
         )
@@ -465,8 +479,8 @@ def _group_dict(group: GroupDiagnosis) -> dict[str, Any]:
         "evidence": [
             {"loop": e.loop, "nonlinearity_op": e.nonlinearity_op,
              "nonlinearity_pv": e.nonlinearity_pv, "own_valve_gain": e.own_valve_gain,
-             "half_gains": list(e.half_gains), "S": e.S, "J": e.J, "sticky": e.sticky,
-             "note": e.note}
+             "half_gains": list(e.half_gains), "S": e.S, "J": e.J,
+             "J_product_only": e.J_product_only, "sticky": e.sticky, "note": e.note}
             for e in group.evidence
         ],
         "sticky_valves": list(group.sticky_valves),
@@ -569,8 +583,11 @@ def _loop_evidence(
     gain = _gain(whole)
     half_gains = tuple(None if h is None else _gain(h) for h in halves)
     if sticky:
-        note = (f"a stiction model of its own valve (S = {whole.S:.2f}, J = {whole.J:.2f}) "
-                f"raises the fit of its PV by {gain:.2f} in R2, in each half of the window too")
+        size = (f"S = {whole.S:.2f}; J not resolved without the process gain, only "
+                f"K J = {whole.slip_step:.2f}" if whole.J_product_only
+                else f"S = {whole.S:.2f}, J = {whole.J:.2f}")
+        note = (f"a stiction model of its own valve ({size}) raises the fit of its PV by "
+                f"{gain:.2f} in R2, in each half of the window too")
     elif _estimate_holds(whole):
         note = "stiction of its own valve fits the whole window but not both halves of it"
     elif whole.S is None:
@@ -593,6 +610,7 @@ def _loop_evidence(
         J=whole.J if sticky else None,
         sticky=sticky,
         note=note,
+        J_product_only=sticky and whole.J_product_only,
     )
 
 
@@ -681,9 +699,14 @@ def _diagnose_group(
             ts, model.process, model.controllers, period_s=group.period_s,
             hold_delay=model.hold_delay,
         )
-        notes.append(f"unit model: {localisation.note}")
+        joined, refused = _model_valves_outside(localisation, model.loops, loops)
+        loops = (*loops, *joined)
+        notes.append(f"unit model: {localisation.note}" + (
+            f" ({', '.join(refused)} not named here: its OP hardly moves at this cycle, "
+            "less than the OP of every loop that shares it)" if refused else ""))
         if replay is None:
-            named = tuple(dict.fromkeys([*named, *localisation.sticky_valves]))
+            named = tuple(dict.fromkeys(
+                [*named, *(loop for loop in localisation.sticky_valves if loop in loops)]))
         else:  # the replay decides, for the loops of this group
             named = tuple(loop for loop in replay.sticky_valves if loop in loops)
             notes.append(f"replayed through the unit model: {replay.note}")
@@ -698,6 +721,27 @@ def _diagnose_group(
                         "a linear oscillation (tuning or an external disturbance)")
     return GroupDiagnosis(group.period_s, cycles, group.members, loops, decomposition,
                           tuple(evidence), named, None, "; ".join(notes), localisation, replay)
+
+
+def _model_valves_outside(
+    localisation: ModelLocalisation, model_loops: tuple[str, ...], loops: tuple[str, ...]
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The valves the unit model names for a cycle outside the loops of its group: those
+    whose OP moves at the cycle at least as much as the OP of a loop of the group (the
+    group missed them, their signals carrying a stronger cycle), and the rest.
+
+    The harmonic balance runs over every loop of the model: it may blame a valve whose
+    OP hardly moves at the cycle (the demo column's FV-502 at TIC-503's 25 s cycle, 3 %
+    of TIC-503's OP), while a loop of a second cycle can miss the group of the cycle it
+    drives (the column with three sticky valves: valve 3 drives the 325 s cycle with the
+    largest OP amplitude, its signals grouped at 129 s).
+    """
+    amplitude = dict(zip(model_loops, (abs(v) for v in localisation.fingerprint.op),
+                         strict=True))
+    floor = min((amplitude[loop] for loop in loops if loop in amplitude), default=math.inf)
+    outside = [loop for loop in localisation.sticky_valves if loop not in loops]
+    return (tuple(loop for loop in outside if amplitude[loop] >= floor),
+            tuple(loop for loop in outside if amplitude[loop] < floor))
 
 
 def _finding(group: GroupDiagnosis, loop: str) -> ValveFinding:
@@ -738,7 +782,8 @@ def _data_finding(group: GroupDiagnosis, evidence: LoopEvidence) -> ValveFinding
         return ValveFinding(loop, confidence, group.period_s, None, None, evidence.note)
     gains = [g for g in (evidence.own_valve_gain, *evidence.half_gains) if g is not None]
     confidence = margin_confidence(min(gains), MIN_R2_GAIN, HAMMERSTEIN_GAIN_SCALE)
-    return ValveFinding(loop, confidence, group.period_s, evidence.S, evidence.J, evidence.note)
+    return ValveFinding(loop, confidence, group.period_s, evidence.S, evidence.J, evidence.note,
+                        evidence.J_product_only)
 
 
 def diagnose_unit(

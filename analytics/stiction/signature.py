@@ -426,7 +426,7 @@ class EllipseDetector:
             )
         confidence = margin_confidence(ratio, self.width_ratio_threshold, self.confidence_scale)
         width = (
-            f"apparent stiction {fit.apparent_stiction:.3g} (OP units) is {ratio:.2f} "
+            f"apparent stiction {fit.apparent_stiction:.3g} % of OP span is {ratio:.2f} "
             f"of the OP peak-to-peak in the {plot} ellipse"
         )
         if ratio >= self.width_ratio_threshold:

@@ -677,8 +677,8 @@ class StickJumpDetector:
             return MethodEvidence(
                 self.name, STICTION, float(n),
                 margin_confidence(n, 0.0, self.confidence_scale),
-                f"{n} stick-jump episodes: PV held while OP travelled about {travel:.3g}, "
-                f"then jumped the way OP pushed ({n_contrary} contrary)", details,
+                f"{n} stick-jump episodes: PV held while OP travelled about {travel:.3g} % "
+                f"of span, then jumped the way OP pushed ({n_contrary} contrary)", details,
             )
         if n + n_contrary >= self.min_episodes + 1 and share >= self.min_random_share:
             return MethodEvidence(
@@ -760,8 +760,8 @@ class StuckSectionsDetector:
             return MethodEvidence.undecided(
                 self.name, "PV never left its noise band: the process shows no response "
                 "to judge the valve by", share, details)
-        note = (f"PV held while OP went {analysis.hold_reversal:.3g} one way and back "
-                f"({share:.0%} of its range)")
+        note = (f"PV held while OP went {analysis.hold_reversal:.3g} % of span one way and "
+                f"back ({share:.0%} of its range)")
         if share >= self.min_reversal_share and analysis.hold_reversal >= 10 * analysis.op_noise:
             return MethodEvidence(self.name, STICTION, share,
                                   margin_confidence(share, self.min_reversal_share - 0.1, 0.2),

@@ -934,7 +934,9 @@ function stickyValvesList(diagnosis, valves, loopsById) {
   return h("ol", { id: "sticky-valves" }, diagnosis.sticky_valves.map((v) => {
     const loop = loopsById.get(v.loop);
     const combined = loop && loop.S !== null && loop.S !== undefined;
-    const windowSize = v.S === null ? "" : `S ${num(v.S)} %, J ${num(v.J)} %`;
+    // Without the process gain one window pins only K·J: its J is no estimate (QA).
+    const windowSize = v.S === null ? "" : `S ${num(v.S)} %, ${v.J_product_only
+      ? "J not resolved (only K·J)" : `J ${num(v.J)} %`}`;
     return h("li", { "data-loop-id": v.loop },
       h("strong", {}, valves.get(v.loop) || v.loop), " (", loopLink(v.loop), "): ",
       `confidence ${num(v.confidence)}, cycle ${num(v.period_s, 0)} s`,

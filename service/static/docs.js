@@ -3,7 +3,8 @@
  * vendored bundles under /static/vendor, so they work offline and under the service's
  * Content-Security-Policy (no inline script).  /openapi.json needs a key: the page uses
  * the one the dashboard keeps in this tab's sessionStorage, or asks for one.  Swagger UI
- * sends it with every "Try it out" request too.
+ * sends it with every "Try it out" request too, and shows it in its Authorize dialog.
+ * A tab of its own (a new window) has no dashboard key: sessionStorage is per tab.
  */
 "use strict";
 
@@ -27,9 +28,16 @@ function show(schema, key) {
     const nonce = document.querySelector("meta[name=loopwatch-style-nonce]").content;
     window.Redoc.init(schema, { nonce, disableSearch: true }, target);
   } else {
-    window.SwaggerUIBundle({
+    // The key fills Swagger UI's own authorization too (QA: its Authorize dialog asked
+    // for the key the page already had): the padlocks show locked, copied curl commands
+    // carry the header.
+    const [scheme] = Object.entries((schema.components || {}).securitySchemes || {})
+      .find(([, s]) => s.type === "apiKey" && s.in === "header" && s.name === "X-API-Key")
+      || [null];
+    const ui = window.SwaggerUIBundle({
       spec: schema,
       domNode: target,
+      onComplete: () => { if (scheme) ui.preauthorizeApiKey(scheme, key); },
       requestInterceptor: (request) => {
         request.headers["X-API-Key"] = key;
         return request;

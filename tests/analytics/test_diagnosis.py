@@ -6,6 +6,7 @@ synthetic library has ground truth by construction (analytics.synthetic_cases);
 the ISDB loops were not used to tune the combination.
 """
 
+import re
 import statistics
 
 import numpy as np
@@ -35,6 +36,20 @@ def test_sticky_valve_is_found_sized_and_explained():
     assert d.ellipse is not None and 0.5 * case.S < d.ellipse.apparent_stiction < 1.2 * case.S
     assert d.stiction.methods["hammerstein"].decision == "stiction"
     assert "for:" in d.stiction.reason
+
+
+def test_method_notes_give_their_sizes_units():
+    """QA: the loop page's method notes gave S, the apparent stiction and OP's travel as
+    bare numbers; each now says % of (OP) span."""
+    _, d = run("flow-kano-S4-J2-ts1", process_type="self-regulating")
+    methods = d.stiction.methods
+    assert f"(S = {d.quantification.S:.2f} % of OP span)" in methods["hammerstein"].note
+    assert (f"apparent stiction {d.ellipse.apparent_stiction:.3g} % of OP span"
+            in methods["ellipse"].note)
+    for name in ("stick_jump", "stuck_sections"):
+        note = methods[name].note
+        assert re.search(r"OP (travelled about|went) [-\d.e]+ % of span", note) or (
+            "travelled" not in note and "went" not in note), note
 
 
 def test_an_external_disturbance_is_not_blamed_on_the_valve():

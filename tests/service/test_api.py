@@ -9,6 +9,7 @@ and inspected through the API with keys of every role.
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import pytest
 
 from analytics.synthetic_cases import synthetic_library
 from service.buffer import LoopBuffers
@@ -96,6 +97,15 @@ def test_ingest_is_idempotent_and_reports_refusals(client):
     assert partial.status_code == 207
     assert partial.json()["refused"] == {"unknown_tag": 1}
     assert partial.json()["stored"] == 1
+    # QA: a value sent as text ("NaN") is refused alone, with its tag and time stamp
+    text = [{"tag": "FIC-1.OP", "items": [{"timestamp": T0 + 2, "value": 51.0},
+                                          {"timestamp": T0 + 3, "value": "NaN"}]}]
+    partial = client.post("/api/v1/ingest", json=text, headers=historian)
+    assert partial.status_code == 207, partial.text
+    answer = partial.json()
+    assert (answer["stored"], answer["refused"]) == (1, {"bad_value": 1})
+    assert answer["tags"][0]["tag"] == "FIC-1.OP"
+    assert answer["tags"][0]["refused_items"] == [{"timestamp": T0 + 3, "reason": "bad_value"}]
     bad = client.post("/api/v1/ingest", json=[{"items": []}], headers=historian)
     assert bad.status_code == 422
 
@@ -214,6 +224,45 @@ def test_restart_rebuilds_the_rolling_window_from_the_store(service, client, sto
     assert np.isfinite(after.pv).all()
     restarted.executor.shutdown()
     restarted.state.store.close()
+
+
+@pytest.mark.parametrize(("process_model", "message"), [
+    ({"type": "fopdt", "tau": 5.0, "theta": 1.0}, "missing key 'K' for model type 'fopdt'"),
+    ({"type": "fopdt", "K": "big", "tau": 5.0}, "K must be a number, got 'big'"),
+    ({"theta": -2.0}, "theta (the dead time, s) must be a finite number >= 0, got -2.0"),
+])
+def test_a_loops_process_model_must_be_whole(client, process_model, message):
+    """QA: a fopdt without its gain K was stored silently (no gain to size J with, and
+    nothing said so).  It is a 422 naming process_model; the dead time alone stays."""
+    body = {"ts": 1.0, "tags": {"pv": "PM.PV"}, "process_model": process_model}
+    answer = client.put("/api/v1/loops/PM-1", json=body, headers={"X-API-Key": ADMIN})
+    assert answer.status_code == 422, answer.text
+    (error,) = answer.json()["detail"]
+    assert error["loc"] == ["process_model"] and message in error["msg"]
+    assert client.get("/api/v1/loops/PM-1", headers={"X-API-Key": ADMIN}).status_code == 404
+    dead_time = {**body, "process_model": {"theta": 2.0}}
+    assert client.put("/api/v1/loops/PM-1", json=dead_time,
+                      headers={"X-API-Key": ADMIN}).status_code == 200
+
+
+def test_a_stored_loop_that_no_longer_validates_is_not_run_and_the_service_starts(
+        store, caplog):
+    """A loop added through the API before its process_model was checked (a fopdt without
+    K) must not stop the next start: it is left out with a warning naming the field."""
+    from service.plant import sync_plant
+    from service.store.models import Loop
+
+    old = {"id": "OLD-1", "ts": 1.0, "tags": {"pv": "OLD.PV"},
+           "process_model": {"type": "fopdt", "tau": 5.0}}
+    with store.session() as session:
+        session.add(Loop(id="OLD-1", name="", config=old, created_at=T0, updated_at=T0,
+                         origin="api"))
+    with store.session() as session:
+        running = sync_plant(session, plant(), T0)
+    assert "OLD-1" not in {loop.id for loop in running.loops}
+    assert "FIC-1" in {loop.id for loop in running.loops}
+    assert "loop OLD-1, added through the API, is not run" in caplog.text
+    assert "process_model: Value error, missing key 'K'" in caplog.text
 
 
 def test_loops_can_be_added_by_an_admin(client):

@@ -130,7 +130,10 @@ def test_analyze_readable_report_of_a_healthy_loop(tmp_path, capsys):
         ("t,op,pv\n0,1,2\n1,x,3\n", [], "row 3, column 'op': 'x' is not a number"),
         ("t,flow\n0,1\n1,2\n", [], "needs an 'op' or a 'pv' column"),
         ("op,pv\n1,2\n2,3\n", [], "no time column"),
-        ("t,op,pv\n0,1,2\n5,1,2\n5,1,2\n", [], "rows 3 and 4: the same time"),
+        # the time as the file writes it: seconds since start are no 1970 date (QA)
+        ("t,op,pv\n0,1,2\n5,1,2\n5,1,2\n", [], "rows 3 and 4: the same time '5'; remove"),
+        ("t,op,pv\n2026-03-01T10:00:00Z,1,2\n2026-03-01T11:00:00+01:00,1,2\n", [],
+         "rows 2 and 3: the same time '2026-03-01T10:00:00Z' and '2026-03-01T11:00:00+01:00'"),
         ("t,op,pv\n" + "".join(f"{k},{k % 7},{k % 5}\n" for k in range(20)), [],
          "20 data rows, at least 100 are needed"),
     ],

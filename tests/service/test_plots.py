@@ -250,6 +250,46 @@ def test_nyquist_plot_draws_table_5_1_limits_and_the_cycle_on_both_curves():
         assert np.min(np.hypot(xs - cx, ys - cy)) < 0.01 * span
 
 
+def pixel_points(path: str) -> np.ndarray:
+    """The vertices of an SVG path of M/L commands, each segment sampled 20 times."""
+    points: list[np.ndarray] = []
+    last = None
+    for command, x, y in re.findall(r"([ML])(-?[\d.]+) (-?[\d.]+)", path):
+        here = np.array([float(x), float(y)])
+        if command == "L" and last is not None:
+            points.extend(last + (here - last) * f for f in np.linspace(0, 1, 20))
+        points.append(here)
+        last = here
+    return np.array(points)
+
+
+@pytest.mark.parametrize(("process", "controller", "valve"), [
+    (TransferFunction.fopdt(0.4346, 27.58, 6.0), PIDController.ideal(10.0, 10.0),
+     ChoudhuryValve(4.0, 2.0)),  # thesis Table 5.1
+    # the demo's FIC-101 as identified (QA: its cycle's label sat under G Gc)
+    (TransferFunction.fopdt(1.074, 6.4, 3.0), PIDController.ideal(0.5, 8.0),
+     KanoValve(4.0, 2.38)),
+])
+def test_the_limit_cycle_label_crosses_no_curve(process, controller, valve):
+    prediction = predict_limit_cycles(process, controller, valve)
+    assert prediction.limit_cycles
+    curves = nyquist_curves(process, controller, valve, limit_cycle=prediction.stable_cycles[0])
+    svg = plots.render_svg(plots.nyquist_figure(curves, prediction=prediction, title="nyquist"))
+    root = parse(svg)
+    (panel,) = panels(root)
+    drawn_points = np.concatenate([pixel_points(p.get("d")) for p in panel.iter(f"{SVG}path")
+                                   if p.get("class") == "series"])
+    for text in panel.iter(f"{SVG}text"):
+        if "cycle" not in (text.text or ""):
+            continue
+        x, baseline = float(text.get("x")), float(text.get("y"))
+        width = len(text.text) * 11 * plots.CHAR_WIDTH["normal"]
+        x0 = x if text.get("text-anchor") == "start" else x - width
+        inside = ((drawn_points[:, 0] >= x0) & (drawn_points[:, 0] <= x0 + width)
+                  & (drawn_points[:, 1] >= baseline - 9) & (drawn_points[:, 1] <= baseline))
+        assert not inside.any(), (text.text, drawn_points[inside][:3])
+
+
 def test_history_draws_only_the_runs_that_have_an_estimate():
     t = T0 + 60.0 * np.arange(6)
     s = np.array([np.nan, np.nan, 3.8, 4.1, 4.0, np.nan])

@@ -249,8 +249,9 @@ def _nyquist(loop: Loop, run: AnalysisRun) -> plots.Figure:
         raise HTTPException(404, str(exc)) from None
     return plots.nyquist_figure(
         curves, prediction=prediction,
-        title=f"{_name(loop)}: Nyquist plot, identified model, "
-              f"S = {model.size[0]:.2f} %, J = {model.size[1]:.2f} %",
+        # the analysed window's own estimate, not the valve's combined size (QA)
+        title=f"{_name(loop)}: Nyquist plot, identified model; this window: "
+              f"S {model.size[0]:.2f} %, J {model.size[1]:.2f} %",
     )
 
 

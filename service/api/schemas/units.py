@@ -28,6 +28,9 @@ class UnitValveFinding(OpenSchema):
     """Identified stick band, % of OP span; null for a fast cycle."""
     J: float | None = None
     """Identified slip jump, % of OP span; null for a fast cycle."""
+    J_product_only: bool = False
+    """J is not resolved by this window: fitted without the process gain it pins only
+    ``K J``, and J may sit at a bound of its search (0 or S)."""
     reason: str | None = None
     """The evidence in one sentence."""
 

@@ -150,6 +150,20 @@ class TestCheckResult:
         assert valve_synchronisation(model_with(), op) == 50  # the jump to 60 at sample 50
 
 
+def test_a_valve_unsynchronised_past_the_warm_up_is_said_to_be_scored_uncertain(
+        quiet_case) -> None:
+    """QA (FIC-105): "until sample 1173 ... only the first 720 left unscored" read as a
+    contradiction; the note says which samples are scored with the valve's start unknown."""
+    op = quiet_case.op.copy()
+    op[:400] = op[400] + 0.05 * np.sin(np.arange(400) / 7.0)  # inside the stick band
+    op[400:] += np.where(np.arange(600) % 200 < 100, 10.0, -10.0)
+    assert valve_synchronisation(quiet_case.base_model, op) == 400
+    result = check_model(op, quiet_case.pv, 1.0, sp=quiet_case.sp, model=quiet_case.base_model)
+    (note,) = [n for n in result.notes if "initial state" in n]
+    assert "until sample 400" in note
+    assert "the first 200 samples" in note and "samples 200 to 399 are scored" in note
+
+
 @pytest.fixture(scope="module")
 def quiet_case():
     return hidden_effect_case("none", 0, samples=1000)

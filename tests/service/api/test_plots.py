@@ -66,6 +66,17 @@ def test_every_kind_renders_as_svg_and_png(analysed):
         assert width == round(plots.PLOT_WIDTH * plots.PNG_ZOOM)
 
 
+def test_the_nyquist_title_says_its_size_is_this_windows(analysed):
+    """QA: the title showed the analysed window's S and J unlabelled, beside the valve's
+    combined size on the same page."""
+    q = analysed.get("/api/v1/loops/FIC-1/health",
+                     headers=HEADERS).json()["diagnosis"]["quantification"]
+    title = parse(get_plot(analysed, "FIC-1", "nyquist").text).find(
+        "{http://www.w3.org/2000/svg}text").text
+    assert title.endswith(f"Nyquist plot, identified model; this window: S {q['S']:.2f} %, "
+                          f"J {q['J']:.2f} %"), title
+
+
 def test_signature_draws_the_latest_estimate_replayed_on_the_window(analysed, service):
     diagnosis = analysed.get("/api/v1/loops/FIC-1/health", headers=HEADERS).json()["diagnosis"]
     estimate = diagnosis["quantification"]
@@ -134,7 +145,7 @@ def test_signature_and_spectrum_show_what_the_analysis_measured(analysed):
     diagnosis = analysed.get("/api/v1/loops/FIC-1/health", headers=HEADERS).json()["diagnosis"]
     signature = get_plot(analysed, "FIC-1", "signature").text
     apparent = diagnosis["apparent_stiction"]
-    assert (f"apparent stiction {apparent['apparent_stiction']:.2f} "
+    assert (f"apparent stiction {apparent['apparent_stiction']:.2f} % of OP span "
             f"(width ratio {apparent['width_ratio']:.2f}") in signature
     spectrum_panel, acf_panel = panels(parse(get_plot(analysed, "FIC-1", "spectrum").text))
     period = diagnosis["oscillation"]["analysed_period_s"]
