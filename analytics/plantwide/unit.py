@@ -412,7 +412,7 @@ def _group_from_dict(read: _Reader) -> GroupDiagnosis:
         evidence=tuple(
             LoopEvidence(e("loop"), e("nonlinearity_op"), e("nonlinearity_pv"),
                          e("own_valve_gain"), _pair(e, "half_gains"), e("S"), e("J"),
-                         e("sticky"), e("note"))
+                         e("sticky"), e("note"), bool(e.get("J_product_only")))
             for e in read.items("evidence")),
         sticky_valves=tuple(read("sticky_valves")), envelope_cv=read("envelope_cv"),
         note=read("note"),

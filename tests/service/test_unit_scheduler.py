@@ -354,11 +354,20 @@ def test_a_slip_the_window_does_not_resolve_is_not_shown_as_one():
     """QA: the unit page showed FV-502's window estimate as S = J = 4.18 beside its
     combined S 4.18, J 2.03.  The unit's own-valve test fits the process gain, and a
     limit cycle pins only K J (-3.01 here; K -0.72 with J 4.18 and K -1.44 with J 2.09
-    fit alike): J sat at its bound S.  The finding says J is not resolved."""
-    (finding,) = demo_column_diagnosis(3600, 7200)["sticky_valves"]
-    assert finding["J_product_only"] is True
-    assert "J not resolved without the process gain, only K J = -3.01" in finding["reason"]
-    assert f"J = {finding['J']:.2f}" not in finding["reason"]
+    fit alike): J sat at its bound S.  The own-valve evidence says J is not resolved;
+    the finding's size is the replay's through the unit's matrix, whose gains resolve J
+    (the demo simulates FV-502 as a He valve S 4, J 2)."""
+    diagnosis = demo_column_diagnosis(3600, 7200)
+    (evidence,) = [e for g in diagnosis["groups"] for e in g["evidence"]
+                   if e["loop"] == "AIC-502" and e["sticky"]]
+    assert evidence["J_product_only"] is True
+    assert "J not resolved without the process gain, only K J = -3.01" in evidence["note"]
+    assert f"J = {evidence['J']:.2f}" not in evidence["note"]
+    (finding,) = diagnosis["sticky_valves"]
+    assert "the unit model's replay names it" in finding["reason"]
+    assert finding["J_product_only"] is False
+    assert finding["S"] == pytest.approx(4.0, rel=0.1)
+    assert finding["J"] == pytest.approx(2.0, rel=0.15)
 
 
 def test_the_sticky_valve_is_sized_with_the_units_matrix(make_service, batch):
