@@ -48,7 +48,7 @@ for variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
+from collections.abc import Callable, Iterator  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -126,6 +126,19 @@ def with_sine(loop: int, at: str, period: float) -> ClosedLoopModel:
         loops[loop], disturbances=(*loops[loop].disturbances, Disturbance("sine", 1.0, at=at,
                                                                           period=period)))
     return dataclasses.replace(model, loops=tuple(loops))
+
+
+def healthy_columns() -> Iterator[tuple[str, dict[str, tuple[np.ndarray, np.ndarray]],
+                                          UnitModel]]:
+    """The healthy column with an external sine (at input 1, at output 2) and with noise
+    only, each with the unit's model exact and with its gains 20 % off: ``(label, the
+    unit's OP and PV per loop, the model)``."""
+    for label, model in (("healthy, sine at input 1", with_sine(0, "input", 200.0)),
+                         ("healthy, sine at output 2", with_sine(1, "output", 150.0)),
+                         ("healthy, noise only", column3x3(sticky=()))):
+        unit = column_unit(model)
+        for error in (0.0, 0.2):
+            yield f"{label}, gains {error:.0%} off", unit, unit_model(model, gain_error=error)
 
 
 def thesis_tables(sticky: tuple[int, ...], result: UnitDiagnosis) -> None:
@@ -335,15 +348,9 @@ def model_localisation() -> None:
             e = np.abs(errors)
             print(f"S of the truly sticky named valves ({label}): median error {np.median(e):.0%}, "
                   f"{np.mean(e <= 0.25):.0%} within 25 % ({len(e)} valves)")
-    for label, model in (("healthy, sine at input 1", with_sine(0, "input", 200.0)),
-                         ("healthy, sine at output 2", with_sine(1, "output", 150.0)),
-                         ("healthy, noise only", column3x3(sticky=()))):
-        unit = column_unit(model)
-        for error in (0.0, 0.2):
-            um = unit_model(model, gain_error=error)
-            found = locate_sticky_valves(unit, 0.5, um.process, um.controllers)
-            print(f"  {label}, gains {error:.0%} off: named {','.join(found.sticky_valves) or '-'}"
-                  f" -- {found.note[:150]}")
+    for label, unit, um in healthy_columns():
+        found = locate_sticky_valves(unit, 0.5, um.process, um.controllers)
+        print(f"  {label}: named {','.join(found.sticky_valves) or '-'} -- {found.note[:150]}")
     model = column3x3(sticky=(1, 2))
     unit, spec = column_unit(model), unit_model(model)
     locate = lambda: locate_sticky_valves(unit, 0.5, spec.process, spec.controllers)  # noqa: E731
@@ -601,18 +608,13 @@ def replay_study(seeds: tuple[int, ...], calibration: bool) -> None:
               f"{np.mean(e <= 0.25):.0%} within 25 % ({len(e)} valves)")
     print(f"localisation time: median {statistics.median(times):.2f} s, "
           f"max {max(times):.2f} s")
-    for label, model in (("healthy, sine at input 1", with_sine(0, "input", 200.0)),
-                         ("healthy, sine at output 2", with_sine(1, "output", 150.0)),
-                         ("healthy, noise only", column3x3(sticky=()))):
-        unit = column_unit(model)
-        for error in (0.0, 0.2):
-            um = unit_model(model, gain_error=error)
-            found = replay_sticky_sets(unit, 0.5, um.process)
-            print(f"  {label}, gains {error:.0%} off: named "
-                  + "; ".join(f"penalty {p:g} {','.join(named(found, p)) or '-'}"
-                              for p in penalties)
-                  + f" (healthy misfit {found.no_valve_misfit:.0f} over {found.samples}, "
-                  f"best {found.candidates[0].misfit:.0f})")
+    for label, unit, um in healthy_columns():
+        found = replay_sticky_sets(unit, 0.5, um.process)
+        print(f"  {label}: named "
+              + "; ".join(f"penalty {p:g} {','.join(named(found, p)) or '-'}"
+                          for p in penalties)
+              + f" (healthy misfit {found.no_valve_misfit:.0f} over {found.samples}, "
+              f"best {found.candidates[0].misfit:.0f})")
     print()
 
 
