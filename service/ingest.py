@@ -352,7 +352,10 @@ class _TagIngest:
     def _refuse(self, item: IngestItem, reason: str) -> None:
         self.refused[reason] += 1
         if len(self.refused_items) < MAX_REPORTED_ERRORS:
-            self.refused_items.append({"timestamp": item.timestamp, "reason": reason})
+            sent = item.timestamp  # as sent; JSON has no inf or NaN, so those as text
+            if isinstance(sent, float) and not math.isfinite(sent):
+                sent = str(sent)
+            self.refused_items.append({"timestamp": sent, "reason": reason})
 
     def compare_with_store(self, session: Session, times: Collection[float]) -> None:
         """Move ``times`` the store already holds out of ``new``: same sample or conflict."""

@@ -1,5 +1,6 @@
 """Historian ingest on SQLite and PostgreSQL: accounting, idempotency, CSV uploads, retention."""
 
+import json
 import math
 from typing import Any
 
@@ -127,6 +128,10 @@ def test_unparseable_and_future_timestamps_are_refused(plant_store: Store) -> No
         (NOW + 299, 1.0),  # within it: stored
     )}])
     assert report.tags[0].refused == {"bad_timestamp": 5, "future_timestamp": 2}
+    # each named as sent; an infinite one as text (JSON has no inf: the fuzz test's 500)
+    assert [i["timestamp"] for i in report.tags[0].refused_items] == [
+        "yesterday", "2024-13-01T00:00:00Z", "nan", -5.0, "inf", NOW * 1000, NOW + 301]
+    json.dumps(report.as_dict(), allow_nan=False)
     assert stored(plant_store) == [("FIC101.PV", NOW + 299, 1.0, True)]
     assert balanced(report)
 
