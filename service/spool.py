@@ -70,7 +70,8 @@ class SpooledBatch:
     with one sample each), where the validated models take about 0.5 kB a
     sample.  Time stamps are parsed on entry with
     the ingest's own :func:`~service.ingest.parse_timestamp` (one that cannot
-    be read becomes :data:`BAD_TIME`) and a null value becomes NaN, so the
+    be read becomes :data:`BAD_TIME`), a null value becomes NaN and a value
+    sent as text is kept as text (refused as ``bad_value`` on flush), so the
     store sees the same samples and the same refusals as if the batch had
     been written at once.
     """
@@ -82,6 +83,8 @@ class SpooledBatch:
     times: FloatArray
     values: FloatArray
     good: NDArray[np.bool_]
+    texts: dict[int, str]
+    """Values sent as text, by item index (NaN in ``values``)."""
 
     @property
     def samples(self) -> int:
@@ -93,13 +96,15 @@ class SpooledBatch:
         """The packed form of a validated batch."""
         items = [item for entry in batch for item in entry.items]
         times = [parse_timestamp(item.timestamp) for item in items]
+        texts = {k: item.value for k, item in enumerate(items) if isinstance(item.value, str)}
         return cls(
             tags=tuple(entry.tag for entry in batch),
             lengths=np.array([len(entry.items) for entry in batch], dtype=np.int64),
             times=np.array([BAD_TIME if t is None else t for t in times], dtype=np.float64),
-            values=np.array([np.nan if item.value is None else item.value for item in items],
-                            dtype=np.float64),
+            values=np.array([np.nan if item.value is None or k in texts else item.value
+                             for k, item in enumerate(items)], dtype=np.float64),
             good=np.array([item.good for item in items], dtype=np.bool_),
+            texts=texts,
         )
 
     def as_batch(self) -> list[dict[str, Any]]:
@@ -108,7 +113,8 @@ class SpooledBatch:
         times, values, good = self.times.tolist(), self.values.tolist(), self.good.tolist()
         return [
             {"tag": tag, "items": [
-                {"timestamp": times[k], "value": None if math.isnan(values[k]) else values[k],
+                {"timestamp": times[k],
+                 "value": self.texts.get(k, None if math.isnan(values[k]) else values[k]),
                  "good": good[k]}
                 for k in range(lo, hi)
             ]}

@@ -192,8 +192,9 @@ def test_a_malformed_batch_is_refused_during_an_outage_too(make_service, store, 
         held = client.post("/api/v1/ingest", json=batch(T0 - 100, 3), headers=historian)
         assert held.json()["spooled"] == 9
         bad = svc.state.ingest
-        with pytest.raises(ValueError, match=r"batch\[0\]\.items\[0\]\.value: Input should be"):
-            bad([{"tag": "FIC-1.PV", "items": [{"timestamp": T0, "value": "high"}]}])
+        with pytest.raises(ValueError, match=r"batch\[0\]\.items\[0\]\.value\.float: "
+                                             r"Input should be a valid number"):
+            bad([{"tag": "FIC-1.PV", "items": [{"timestamp": T0, "value": [1.0]}]}])
     assert svc.state.accounting().spooled == 9
     assert svc.state.flush_spool() == 9
     assert_books_balance(svc, store)
@@ -212,15 +213,16 @@ def test_a_spooled_batch_is_stored_and_refused_as_if_written_at_once(make_servic
             {"timestamp": T0 + 3600, "value": 5.0},  # future_timestamp
             {"timestamp": T0 - 199, "value": 6.0},  # duplicate_in_batch
             {"timestamp": "-0", "value": 7.0},  # the epoch
+            {"timestamp": T0 - 197, "value": "high"},  # bad_value: text, refused alone
         ]},
         {"tag": "NOPE", "items": [{"timestamp": T0, "value": 1.0}]},  # unknown_tag
     ]
     with store_outage(store, request):
-        assert svc.state.ingest(mixed).as_dict()["spooled"] == 8
-    assert svc.state.flush_spool() == 8
+        assert svc.state.ingest(mixed).as_dict()["spooled"] == 9
+    assert svc.state.flush_spool() == 9
     books = svc.state.accounting()
     assert books.refused == {"unknown_tag": 1, "bad_timestamp": 1, "future_timestamp": 1,
-                             "duplicate_in_batch": 1}
+                             "bad_value": 1, "duplicate_in_batch": 1}
     assert stored_samples(store) == {("FIC-1.PV", T0 - 200): 1.0, ("FIC-1.PV", T0 - 199): None,
                                      ("FIC-1.PV", T0 - 198): None, ("FIC-1.PV", 0.0): 7.0}
     assert_books_balance(svc, store)
