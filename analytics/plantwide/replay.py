@@ -534,6 +534,24 @@ def _jump_index(problem: _Problem, i: int, k: int, jumps: Mapping[int, FloatArra
     return [j for j in jumps if problem.rows[i].present[j]].index(k)
 
 
+@njit(cache=True)
+def _superpose(u: FloatArray, step: FloatArray, picks: NDArray[np.int64]) -> FloatArray:
+    """A filter's response to each row of ``u`` (from zero state) at the samples ``picks``,
+    as the sum of its step response ``step`` shifted to every change of the row: a slip
+    moved changes ``u`` in a few steps only."""
+    out = np.zeros((u.shape[0], picks.size))
+    for m in range(u.shape[0]):
+        previous = 0.0
+        for tau in range(u.shape[1]):
+            change = u[m, tau] - previous
+            previous = u[m, tau]
+            if change != 0.0:
+                for q in range(picks.size):
+                    if picks[q] >= tau:
+                        out[m, q] += change * step[picks[q] - tau]
+    return out
+
+
 def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
                   jumps: dict[int, FloatArray]) -> None:
     """Move each slip of valve ``k`` by up to :data:`SLIP_SHIFT` samples where that lowers
@@ -542,8 +560,11 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     base, jump = replays[k].copy(), jumps[k].copy()
     op = problem.ops[k]
     rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
-    residual, scale = {}, {}
+    residual, scale, steps = {}, {}, {}
     for i in rows:
+        filt = problem.filters[i][k]
+        assert filt is not None
+        steps[i] = filt(np.ones(base.size))
         _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
         residual[i] = res.copy()
         scale[i] = (gains[k] * problem.weights[i],
@@ -574,9 +595,8 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
         change = np.zeros(shifts.size)
         responses = {}
         for i in rows:
-            filt = problem.filters[i][k]
-            assert filt is not None
-            dz = filt(scale[i][0] * delta_base + scale[i][1] * delta_jump)[:, picks]
+            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, steps[i],
+                            picks)
             r = residual[i][q0:q1]
             change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
             responses[i] = dz
