@@ -454,17 +454,26 @@ class _Valve:
 
 
 def _row_fit(problem: _Problem, i: int, replays: Mapping[int, FloatArray],
-             jumps: Mapping[int, FloatArray]) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+             jumps: Mapping[int, FloatArray],
+             held: Mapping[tuple[int, bool], FloatArray] | None = None
+             ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
     """Ridge fit of PV ``i``: each valve's response (its replay or its OP) with its gain
     drawn to the model's, and for each valve in ``jumps`` the response of its slip
     directions with a free coefficient (its slip jump ``fd`` times the gain, so that the
     jump is fitted as exactly as the levels need).  Returns the misfit, the gains of the
-    valves (0 where the matrix has no entry), the residual and the jumps' coefficients."""
+    valves (0 where the matrix has no entry), the residual and the jumps' coefficients.
+    ``held`` gives responses already computed, by valve and whether of its jumps."""
     row = problem.rows[i]
     present = [k for k in range(problem.n) if row.present[k]]
-    columns = [problem.response(i, k, replays[k][None, :])[0] if k in replays
-               else row.healthy[k] for k in present]
-    extra = [problem.response(i, k, jumps[k][None, :])[0] for k in jumps if row.present[k]]
+    known = held or {}
+
+    def column(k: int, signal: FloatArray, jump: bool) -> FloatArray:
+        response = known.get((k, jump))
+        return problem.response(i, k, signal[None, :])[0] if response is None else response
+
+    columns = [column(k, replays[k], False) if k in replays else row.healthy[k]
+               for k in present]
+    extra = [column(k, jumps[k], True) for k in jumps if row.present[k]]
     prior = 1.0 / GAIN_SIGMA
     penalty = np.hstack([prior * np.eye(len(present)), np.zeros((len(present), len(extra)))])
     a = np.vstack([np.array(columns + extra).T, penalty])
@@ -628,8 +637,13 @@ def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     the fitted gains where they are, and one slip moved alone cannot undo that."""
     trials = [_shifted(problem.ops[k], jumps[k], shift)
               for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
-    misfits = [_set_misfit(problem, {**replays, k: base}, {**jumps, k: jump})
-               for base, jump in trials]
+    # the other members' responses are the same in every trial
+    held = [{(j, jump): problem.response(i, j, u[None, :])[0]
+             for jump, signals in ((False, replays), (True, jumps))
+             for j, u in signals.items() if j != k and problem.rows[i].present[j]}
+            for i in range(problem.n)]
+    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump}, held[i])[0]
+                   for i in range(problem.n)) for base, jump in trials]
     replays[k], jumps[k] = trials[int(np.argmin(misfits))]
 
 
