@@ -249,6 +249,32 @@ def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
 
 
 @dataclass(frozen=True)
+class _Filter:
+    """A sampled entry as :func:`scipy.signal.lfilter` polynomials without the leading zeros
+    of ``b`` (its dead time), which become a shift of the output: the filter's order, and
+    its cost, is that of the lag alone."""
+
+    b: FloatArray
+    a: FloatArray
+    delay: int
+
+    @classmethod
+    def of(cls, entry: DiscreteEntry) -> _Filter:
+        b, a = _polynomials(entry)
+        nonzero = np.flatnonzero(b)
+        delay = int(nonzero[0]) if nonzero.size else 0
+        return cls(np.trim_zeros(b[delay:], "b") if nonzero.size else b[:1], a, delay)
+
+    def __call__(self, u: FloatArray) -> FloatArray:
+        """``H(z) u`` along the last axis, from zero initial state."""
+        out = np.zeros(u.shape)
+        if self.delay < u.shape[-1]:
+            out[..., self.delay:] = lfilter(self.b, self.a, u[..., :u.shape[-1] - self.delay],
+                                            axis=-1)
+        return out
+
+
+@dataclass(frozen=True)
 class _Row:
     """One PV's data for the ridge fits: weighted target and the healthy regressors."""
 
@@ -264,8 +290,8 @@ class _Problem:
                  process: ProcessMatrix, ts: float) -> None:
         n = len(ops)
         self.n, self.ops = n, ops
-        self.filters: list[list[tuple[FloatArray, FloatArray] | None]] = [
-            [None if g is None else _polynomials(discretise(g, ts)) for g in row]
+        self.filters: list[list[_Filter | None]] = [
+            [None if g is None else _Filter.of(discretise(g, ts)) for g in row]
             for row in process]
         settle = max(_settling_samples(discretise(g, ts)) for row in process for g in row
                      if g is not None)
@@ -299,7 +325,7 @@ class _Problem:
         """``w_i G_ik u`` on the fit samples, centred, one row per row of ``u``."""
         filt = self.filters[i][k]
         assert filt is not None
-        z = lfilter(filt[0], filt[1], u - u[:, :1], axis=1)[:, self.fit]
+        z = filt(u - u[:, :1])[:, self.fit]
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
 
     def row_misfits(self, i: int, regressors: FloatArray, variable: int,
@@ -390,25 +416,37 @@ class _Valve:
         fs, ratio, share = (a.reshape(-1) for a in np.meshgrid(
             np.geomspace(0.003, 0.3, FREE_BANDS) * span, np.asarray(JUMP_RATIOS),
             np.linspace(-1.0, 1.0, FREE_STARTS), indexing="ij"))
-        replays, bands, jumps = [_he_replays(op, fs, fs * ratio, op[0] + share * fs)], [fs], [
-            fs * ratio]
-        turns, directions = problem.turns[k]
-        if turns.size >= 4:
+        self.op, self.start, self.free = op, op[0] + share * fs, fs.size
+        bands, jumps, self.lag = [fs], [fs * ratio], np.zeros(0, dtype=np.int64)
+        self.turns, self.directions = problem.turns[k]
+        if self.turns.size >= 4:
             lag, band, ratio = (a.reshape(-1) for a in np.meshgrid(
                 np.arange(MAX_LAG + 1), np.asarray(TURN_BANDS) * span,
                 np.asarray(JUMP_RATIOS), indexing="ij"))
-            replays.append(_turn_replays(op, turns, directions, lag, band, band * ratio))
+            self.lag = lag
             bands.append(band)
             jumps.append(band * ratio)
-        self.free = replays[0].shape[0]
-        self.replays = np.vstack(replays)
         self.fs, self.fd = np.concatenate(bands), np.concatenate(jumps)
         self.size = self.fs.size
-        self.responses = [problem.response(i, k, self.replays) if problem.filters[i][k]
-                          is not None else None for i in range(problem.n)]
+        # one family at a time: only the responses are kept, not the grid of replays
+        self.responses = [None if problem.filters[i][k] is None else np.vstack(
+            [problem.response(i, k, self._replays(family)) for family in self._families()])
+            for i in range(problem.n)]
+
+    def _families(self) -> list[slice]:
+        return [slice(0, self.free)] + ([slice(self.free, self.size)] if self.lag.size else [])
+
+    def _replays(self, rows: slice) -> FloatArray:
+        """The replays of grid rows ``rows``, all of one family."""
+        fs, fd = self.fs[rows], self.fd[rows]
+        if rows.start < self.free:
+            return _he_replays(self.op, fs, fd, self.start[rows])
+        lag = self.lag[rows.start - self.free:rows.stop - self.free]
+        return _turn_replays(self.op, self.turns, self.directions, lag, fs, fd)
 
     def replay(self, p: int) -> FloatArray:
-        return np.asarray(self.replays[p])
+        """Grid replay ``p``, computed again (the grid is not kept)."""
+        return self._replays(slice(p, p + 1))[0]
 
     def slips_at_turns(self, p: int) -> bool:
         """Whether replay ``p`` slips only before turning points (its slips can be moved)."""
@@ -416,17 +454,26 @@ class _Valve:
 
 
 def _row_fit(problem: _Problem, i: int, replays: Mapping[int, FloatArray],
-             jumps: Mapping[int, FloatArray]) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+             jumps: Mapping[int, FloatArray],
+             held: Mapping[tuple[int, bool], FloatArray] | None = None
+             ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
     """Ridge fit of PV ``i``: each valve's response (its replay or its OP) with its gain
     drawn to the model's, and for each valve in ``jumps`` the response of its slip
     directions with a free coefficient (its slip jump ``fd`` times the gain, so that the
     jump is fitted as exactly as the levels need).  Returns the misfit, the gains of the
-    valves (0 where the matrix has no entry), the residual and the jumps' coefficients."""
+    valves (0 where the matrix has no entry), the residual and the jumps' coefficients.
+    ``held`` gives responses already computed, by valve and whether of its jumps."""
     row = problem.rows[i]
     present = [k for k in range(problem.n) if row.present[k]]
-    columns = [problem.response(i, k, replays[k][None, :])[0] if k in replays
-               else row.healthy[k] for k in present]
-    extra = [problem.response(i, k, jumps[k][None, :])[0] for k in jumps if row.present[k]]
+    known = held or {}
+
+    def column(k: int, signal: FloatArray, jump: bool) -> FloatArray:
+        response = known.get((k, jump))
+        return problem.response(i, k, signal[None, :])[0] if response is None else response
+
+    columns = [column(k, replays[k], False) if k in replays else row.healthy[k]
+               for k in present]
+    extra = [column(k, jumps[k], True) for k in jumps if row.present[k]]
     prior = 1.0 / GAIN_SIGMA
     penalty = np.hstack([prior * np.eye(len(present)), np.zeros((len(present), len(extra)))])
     a = np.vstack([np.array(columns + extra).T, penalty])
@@ -496,6 +543,24 @@ def _jump_index(problem: _Problem, i: int, k: int, jumps: Mapping[int, FloatArra
     return [j for j in jumps if problem.rows[i].present[j]].index(k)
 
 
+@njit(cache=True)
+def _superpose(u: FloatArray, step: FloatArray, picks: NDArray[np.int64]) -> FloatArray:
+    """A filter's response to each row of ``u`` (from zero state) at the samples ``picks``,
+    as the sum of its step response ``step`` shifted to every change of the row: a slip
+    moved changes ``u`` in a few steps only."""
+    out = np.zeros((u.shape[0], picks.size))
+    for m in range(u.shape[0]):
+        previous = 0.0
+        for tau in range(u.shape[1]):
+            change = u[m, tau] - previous
+            previous = u[m, tau]
+            if change != 0.0:
+                for q in range(picks.size):
+                    if picks[q] >= tau:
+                        out[m, q] += change * step[picks[q] - tau]
+    return out
+
+
 def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
                   jumps: dict[int, FloatArray]) -> None:
     """Move each slip of valve ``k`` by up to :data:`SLIP_SHIFT` samples where that lowers
@@ -504,8 +569,11 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     base, jump = replays[k].copy(), jumps[k].copy()
     op = problem.ops[k]
     rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
-    residual, scale = {}, {}
+    residual, scale, steps = {}, {}, {}
     for i in rows:
+        filt = problem.filters[i][k]
+        assert filt is not None
+        steps[i] = filt(np.ones(base.size))
         _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
         residual[i] = res.copy()
         scale[i] = (gains[k] * problem.weights[i],
@@ -536,9 +604,8 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
         change = np.zeros(shifts.size)
         responses = {}
         for i in rows:
-            b, a = problem.filters[i][k]  # type: ignore[misc]
-            dz = lfilter(b, a, scale[i][0] * delta_base + scale[i][1] * delta_jump,
-                         axis=1)[:, picks]
+            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, steps[i],
+                            picks)
             r = residual[i][q0:q1]
             change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
             responses[i] = dz
@@ -570,8 +637,13 @@ def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     the fitted gains where they are, and one slip moved alone cannot undo that."""
     trials = [_shifted(problem.ops[k], jumps[k], shift)
               for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
-    misfits = [_set_misfit(problem, {**replays, k: base}, {**jumps, k: jump})
-               for base, jump in trials]
+    # the other members' responses are the same in every trial
+    held = [{(j, jump): problem.response(i, j, u[None, :])[0]
+             for jump, signals in ((False, replays), (True, jumps))
+             for j, u in signals.items() if j != k and problem.rows[i].present[j]}
+            for i in range(problem.n)]
+    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump}, held[i])[0]
+                   for i in range(problem.n)) for base, jump in trials]
     replays[k], jumps[k] = trials[int(np.argmin(misfits))]
 
 
