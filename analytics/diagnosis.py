@@ -43,6 +43,7 @@ Steps, each feeding the next:
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -51,8 +52,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from analytics.errors import DataError
-from analytics.oscillation import LoopOscillation, detect_loop_oscillation, envelope_variation
-from analytics.quality import QualityReport, assess_quality
+from analytics.oscillation import (
+    LoopOscillation,
+    Oscillation,
+    OscillationReport,
+    detect_loop_oscillation,
+    envelope_variation,
+)
+from analytics.quality import QualityIssue, QualityReport, assess_quality
 from analytics.quantification import (
     MIN_FIT_R2,
     MIN_R2_GAIN,
@@ -60,6 +67,7 @@ from analytics.quantification import (
     quantify_stiction,
     quantify_with_gain,
 )
+from analytics.serial import Reader
 from analytics.stiction.battery import (
     DEFAULT_DETECTORS,
     TRANSIENT_DETECTORS,
@@ -264,6 +272,95 @@ class LoopDiagnosis:
             else self.quantification.to_dict(),
             "apparent_stiction": None if self.ellipse is None else self.ellipse.to_dict(),
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> LoopDiagnosis:
+        """The diagnosis of :meth:`to_dict`'s form (a stored or an ``analyze --json`` one):
+        ``to_dict(from_dict(d)) == d``.
+
+        What :meth:`to_dict` does not keep is left empty: of the oscillation the
+        per-signal method results (empty), ``periods_consistent`` (None), each
+        oscillation's ``power_fraction`` (NaN; its frequency is ``1 / period_s``), and a
+        signal's report only where it lists an oscillation; of the quantification see
+        :meth:`StictionEstimate.from_dict`.  The oscillation is None where the data were
+        unusable; the episodes listed are the consistent ones (``consistent`` True), their
+        times in samples ``round(t_s / ts)``.
+
+        Raises
+        ------
+        DataError
+            A field is missing or of the wrong kind; the message names it and where
+            (``loop diagnosis.stiction.methods.hammerstein``).
+        """
+        read = Reader(d, "loop diagnosis")
+        samples, ts = read("samples"), read("ts")
+        quality = read.part("quality")
+        report = QualityReport(
+            quality("usable"),
+            tuple(QualityIssue(i("code"), i("signal"), i("severity"), i("message"), i("value"))
+                  for i in quality.items("issues")),
+            ts, samples)
+        osc, stiction = read.part("oscillation"), read.part("stiction")
+        methods = stiction.part("methods")
+        size = stiction("episode_size")
+        agrees = None if size is None else stiction.part("episode_size")("agrees_with_hammerstein")
+        quantification = read("quantification")
+        return cls(
+            samples=samples, ts=ts, quality=report,
+            oscillation=_oscillation_from_dict(osc) if report.usable else None,
+            process_type=read("process_type"), process_type_source=read("process_type_source"),
+            cycle_period_s=osc("analysed_period_s"),
+            stiction=StictionVerdict(
+                stiction("verdict"), stiction("confidence"), stiction("score"),
+                {name: MethodEvidence(name, e("decision"), e("index"), e("confidence"),
+                                      e("note"), dict(e("details")))
+                 for name in methods.d for e in (methods.part(name),)},
+                stiction("reason")),
+            quantification=None if quantification is None else StictionEstimate.from_dict(
+                quantification, f"{read.where}.quantification"),
+            ellipse=_ellipse_from_dict(read),
+            pattern=stiction("pattern"),
+            episodes=tuple(
+                StickEpisode(round(e("start_s") / ts), round(e("end_s") / ts),
+                             round(e("jump_s") / ts), e("op_travel"), e("pv_jump"),
+                             e("op_during_jump"), True)
+                for e in stiction.items("episodes")),
+            op_travel=stiction("op_travel"), episode_stick_band=stiction("episode_stick_band"),
+            envelope_variation=osc("envelope_variation"),
+            episode_size=None if size is None else EpisodeSize.from_dict(
+                size, f"{stiction.where}.episode_size"),
+            size_comparison=None if agrees is None else SizeComparison(
+                agrees, stiction.part("episode_size")("note")),
+        )
+
+
+def _oscillation_from_dict(read: Reader) -> LoopOscillation:
+    """The oscillation of :meth:`LoopDiagnosis.to_dict`'s form (see
+    :meth:`LoopDiagnosis.from_dict` for what it does not keep)."""
+    found: dict[str, list[Oscillation]] = {"op": [], "pv": []}
+    for o in read.items("oscillations"):
+        signal = o("signal")
+        if signal not in found:
+            raise DataError(f"{o.where}.signal: expected 'op' or 'pv', got {signal!r}")
+        found[signal].append(Oscillation(
+            o("period_s"), 1.0 / o("period_s"), o("regularity"), o("amplitude"), math.nan,
+            o("presence"), o("present_from_s"), o("present_to_s"), o("method")))
+    op, pv = (OscillationReport(True, tuple(found[s])) if found[s] else None
+              for s in ("op", "pv"))
+    return LoopOscillation(read("detected"), read("period_s"), read("regularity"),
+                           read("amplitude_op"), read("amplitude_pv"), None, op, pv)
+
+
+def _ellipse_from_dict(read: Reader) -> EllipseFit | None:
+    """The ``apparent_stiction`` of a diagnosis's JSON form back; None where it is."""
+    stored = read("apparent_stiction")
+    if stored is None:
+        return None
+    try:
+        return EllipseFit.from_dict(Reader(stored, f"{read.where}.apparent_stiction").d)
+    except KeyError as missing:
+        raise DataError(f"{read.where}.apparent_stiction: the field {missing.args[0]!r} "
+                        "is missing") from missing
 
 
 def _fill_missing(x: FloatArray | None) -> FloatArray | None:

@@ -94,7 +94,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -107,6 +107,7 @@ from scipy.stats import chi2, norm
 from analytics.errors import DataError
 from analytics.lti import FirstOrderProcess
 from analytics.oscillation import bandpass, detect_loop_oscillation
+from analytics.serial import Reader
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
@@ -345,6 +346,38 @@ class StictionEstimate:
                 "integrating": self.model.integrating,
             },
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "quantification") -> StictionEstimate:
+        """The estimate of :meth:`to_dict`'s form: ``to_dict(from_dict(d)) == d``.
+
+        ``KJ`` and ``interval_level`` are derived, so not read.  What :meth:`to_dict`
+        does not keep is left empty: no ``trace`` and no ``period_s`` (None), and of the
+        ``search`` only the ``valve_model`` (its numbers NaN, its counts 0).  Estimates
+        stored before the intervals, ``gain_given`` and ``J_product_only`` read None and
+        False.
+
+        Raises
+        ------
+        DataError
+            A field is missing or of the wrong kind; the message names it and ``where``.
+        """
+        read = Reader(d, where)
+        process = read.part("process")
+        nan = math.nan
+        return cls(
+            S=read("S"), J=read("J"), fs=read("fs"), fd=read("fd"), fit_r2=read("fit_r2"),
+            model=FirstOrderProcess(INTEGRATING if process("integrating") else SELF_REGULATING,
+                                    process("K"), process("tau"), process("theta")),
+            search=SearchSummary(read("valve_model"), nan, 0, (nan, nan), (nan, nan), nan, nan,
+                                 0, nan, nan),
+            trace=None, period_s=None, stiction_found=read("stiction_found"),
+            trustworthy=read("trustworthy"), issues=tuple(read("issues")),
+            S_interval=None if read.get("S_interval") is None else read.pair("S_interval"),
+            J_interval=None if read.get("J_interval") is None else read.pair("J_interval"),
+            gain_given=bool(read.get("gain_given")),
+            J_product_only=bool(read.get("J_product_only")),
+        )
 
 
 @dataclass(frozen=True)

@@ -7,12 +7,15 @@ A loop's run keeps its diagnosis in ``AnalysisRun.result``: the
 (``valve``, :func:`service.verdicts.settle_run`).  A unit's run keeps
 :meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``.
 
-The analytics objects cannot be rebuilt from that JSON (the Hammerstein
-search, the oscillation reports and the process models are not kept), so the
-service reads it through the frozen views here: :meth:`StoredDiagnosis.from_dict`
-and :meth:`StoredUnitDiagnosis.from_dict` read exactly the fields the service
-uses, once.  Every field has a default, so runs stored by older versions (and
-partial results) read as well; the JSON itself is not changed.
+:meth:`analytics.diagnosis.LoopDiagnosis.from_dict` and
+:meth:`analytics.plantwide.UnitDiagnosis.from_dict` rebuild the analytics objects
+from that JSON, without what it does not keep (the Hammerstein search and fit
+trace, the oscillation methods' results), and refuse a field that is missing.
+Runs stored by older versions lack fields, so the service reads the JSON through
+the frozen views here: :meth:`StoredDiagnosis.from_dict` and
+:meth:`StoredUnitDiagnosis.from_dict` read exactly the fields the service uses,
+once.  Every field has a default, so older runs (and partial results) read as
+well; the JSON itself is not changed.
 """
 
 from __future__ import annotations

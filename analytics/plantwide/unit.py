@@ -92,6 +92,7 @@ from analytics.plantwide.groups import (
 )
 from analytics.plantwide.replay import ReplayFit, ReplayLocalisation, replay_sticky_sets
 from analytics.quantification import MIN_FIT_R2, MIN_R2_GAIN, StictionEstimate, quantify_stiction
+from analytics.serial import Reader
 from analytics.stiction.evidence import margin_confidence
 from analytics.stiction.surrogate import MIN_PERIOD_SAMPLES, surrogate_nonlinearity_index
 from analytics.types import FloatArray
@@ -350,7 +351,7 @@ class UnitDiagnosis:
             A field is missing or of the wrong kind; the message names it and where
             (``groups[0].evidence[1]``).
         """
-        read = _Reader(d, "unit diagnosis")
+        read = Reader(d, "unit diagnosis")
         return cls(
             loops=tuple(read("loops")), samples=read("samples"), ts=read("ts"),
             groups=tuple(_group_from_dict(g) for g in read.items("groups")),
@@ -362,40 +363,11 @@ class UnitDiagnosis:
         )
 
 
-class _Reader:
-    """The fields of one mapping of a result's JSON form, naming what is missing and where."""
-
-    def __init__(self, d: Any, where: str) -> None:
-        if not isinstance(d, Mapping):
-            raise DataError(f"{where}: expected an object, got {type(d).__name__}")
-        self.d, self.where = d, where
-
-    def __call__(self, key: str) -> Any:
-        if key not in self.d:
-            raise DataError(f"{self.where}: the field {key!r} is missing")
-        return self.d[key]
-
-    def get(self, key: str) -> Any:
-        """The field, or None where it is missing (a field later versions added)."""
-        return self.d.get(key)
-
-    def part(self, key: str) -> _Reader:
-        """The mapping under ``key``."""
-        return _Reader(self(key), f"{self.where}.{key}")
-
-    def items(self, key: str) -> list[_Reader]:
-        """The mappings of the list under ``key``."""
-        values = self(key)
-        if not isinstance(values, list | tuple):
-            raise DataError(f"{self.where}.{key}: expected a list, got {type(values).__name__}")
-        return [_Reader(v, f"{self.where}.{key}[{i}]") for i, v in enumerate(values)]
-
-
-def _linear_from_dict(read: _Reader) -> LinearCheck:
+def _linear_from_dict(read: Reader) -> LinearCheck:
     return LinearCheck(read("stable"), read("margin"), read("margin_omega"), read("note"))
 
 
-def _group_from_dict(read: _Reader) -> GroupDiagnosis:
+def _group_from_dict(read: Reader) -> GroupDiagnosis:
     """The inverse of :func:`_group_dict` (see :meth:`UnitDiagnosis.from_dict`)."""
     shapes = None if read("shape_decomposition") is None else read.part("shape_decomposition")
     return GroupDiagnosis(
@@ -411,7 +383,7 @@ def _group_from_dict(read: _Reader) -> GroupDiagnosis:
             cycles=dict(shapes("cycles"))),
         evidence=tuple(
             LoopEvidence(e("loop"), e("nonlinearity_op"), e("nonlinearity_pv"),
-                         e("own_valve_gain"), _pair(e, "half_gains"), e("S"), e("J"),
+                         e("own_valve_gain"), e.pair("half_gains"), e("S"), e("J"),
                          e("sticky"), e("note"), bool(e.get("J_product_only")))
             for e in read.items("evidence")),
         sticky_valves=tuple(read("sticky_valves")), envelope_cv=read("envelope_cv"),
@@ -421,14 +393,7 @@ def _group_from_dict(read: _Reader) -> GroupDiagnosis:
     )
 
 
-def _pair(read: _Reader, key: str) -> tuple[Any, Any]:
-    values = read(key)
-    if not isinstance(values, list | tuple) or len(values) != 2:
-        raise DataError(f"{read.where}.{key}: expected a pair, got {values!r}")
-    return values[0], values[1]
-
-
-def _replay_from_dict(read: _Reader) -> ReplayLocalisation:
+def _replay_from_dict(read: Reader) -> ReplayLocalisation:
     """:meth:`ReplayLocalisation.to_dict`'s form back (``sticky_valves`` and ``note``
     are derived, so not read)."""
     return ReplayLocalisation.of(
@@ -437,7 +402,7 @@ def _replay_from_dict(read: _Reader) -> ReplayLocalisation:
         read("no_valve_misfit"), read("samples"))
 
 
-def _localisation_from_dict(read: _Reader) -> ModelLocalisation:
+def _localisation_from_dict(read: Reader) -> ModelLocalisation:
     """:meth:`ModelLocalisation.to_dict`'s form back (see :meth:`UnitDiagnosis.from_dict`
     for what it does not keep)."""
     return ModelLocalisation(

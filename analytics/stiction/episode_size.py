@@ -36,12 +36,13 @@ References
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from analytics.serial import Reader
 from analytics.stiction.stick_jump import StickEpisode, moving_average, robust_noise
 from analytics.types import FloatArray
 
@@ -92,6 +93,14 @@ class EpisodeSize:
         return {"S": self.S, "S_range": None if self.S_range is None else list(self.S_range),
                 "reversals": self.reversals, "same_direction_band": self.same_direction_band,
                 "same_direction": self.same_direction}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "episode size") -> EpisodeSize:
+        """The size of :meth:`to_dict`'s form (``to_dict(from_dict(d)) == d``); a missing
+        field raises :class:`~analytics.errors.DataError` naming it and ``where``."""
+        read = Reader(d, where)
+        return cls(read("S"), None if read("S_range") is None else read.pair("S_range"),
+                   read("reversals"), read("same_direction_band"), read("same_direction"))
 
 
 @dataclass(frozen=True)

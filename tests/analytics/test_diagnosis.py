@@ -6,13 +6,14 @@ synthetic library has ground truth by construction (analytics.synthetic_cases);
 the ISDB loops were not used to tune the combination.
 """
 
+import json
 import re
 import statistics
 
 import numpy as np
 import pytest
 
-from analytics.diagnosis import diagnose_loop
+from analytics.diagnosis import LoopDiagnosis, diagnose_loop
 from analytics.errors import DataError
 from analytics.stiction.stick_jump import MIN_TRAVEL
 from analytics.synthetic_cases import synthetic_library, transient_library, transient_sweep
@@ -309,3 +310,73 @@ def test_a_given_process_gain_sizes_the_sticky_valve_and_leaves_the_verdict() ->
         diagnose_loop(ts=case.ts, op=res.op[0], pv=res.pv[0], process_gain=1.2)
     with pytest.raises(DataError, match="sizing_pv"):
         diagnose_loop(**signals, process_gain=1.2, sizing_pv=res.pv[0][:-1])
+
+
+def assert_round_trip(d):
+    """to_dict(from_dict(d)) == d to the byte, for the JSON as stored (json.loads of it)."""
+    stored = json.dumps(d.to_dict())
+    assert json.dumps(LoopDiagnosis.from_dict(json.loads(stored)).to_dict()) == stored
+
+
+def test_loop_diagnoses_of_the_library_round_trip_through_their_json_form():
+    """Issue 25: sticky with a size (and one sized with a given gain), healthy, too little
+    movement, unusable, stuck."""
+    sticky = run("flow-kano-S4-J2-ts1", process_type="self-regulating")[1]
+    assert sticky.quantification is not None and sticky.episode_size is not None
+    healthy = run("temp-sine200s-ts2")[1]
+    still = run("level-noise-ts1")[1]
+    assert still.stiction.reason.startswith("not enough valve movement")
+    gain = run("flow-he-S8-J4-ts1", process_type="self-regulating", process_gain=1.2)[1]
+    k = np.arange(2000)
+    stuck = diagnose_loop(ts=1.0, op=40.0 + 15.0 * np.sin(2 * np.pi * k / 700),
+                          pv=np.full(k.size, 63.2))
+    unusable = diagnose_loop(ts=1.0, op=np.full(500, 50.0), pv=np.full(500, 20.0))
+    for d in (sticky, healthy, still, gain, stuck, unusable):
+        assert_round_trip(d)
+    again = LoopDiagnosis.from_dict(sticky.to_dict())
+    assert again.stiction.verdict == "stiction" and again.quantification is not None
+    assert again.quantification.S == sticky.quantification.S
+    assert again.episodes == sticky.episodes  # sample indices back from the seconds
+    assert again.ellipse == sticky.ellipse
+
+
+@pytest.mark.slow
+def test_loop_diagnoses_of_real_windows_round_trip():
+    """Issue 25: three sticky and three healthy plant_dev windows, and the ISDB loops."""
+    import csv
+
+    from service.loop_csv import read_loop_csv
+
+    labels = require_file(SHARED_DATA / "plant_dev" / "labels.csv")
+    with labels.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    chosen = [r for r in rows if r["label"] == "stiction"][:3] \
+        + [r for r in rows if r["label"] == "no_stiction"][:3]
+    verdicts = []
+    for row in chosen:
+        data = read_loop_csv(labels.parent / f"{row['window']}.csv", ts=float(row["ts_s"]))
+        d = diagnose_loop(ts=data.ts, op=data.op, pv=data.pv, sp=data.sp, t=data.t)
+        assert_round_trip(d)
+        verdicts.append(d.stiction.verdict)
+    for row in isdb_labels():
+        t, op, pv = load_isdb_loop(row["loop"])
+        d = diagnose_loop(ts=float(row["ts_s"]), op=op, pv=pv, t=t)
+        assert_round_trip(d)
+        verdicts.append(d.stiction.verdict)
+    assert "stiction" in verdicts and "no_stiction" in verdicts
+
+
+def test_a_stored_loop_diagnosis_missing_a_field_is_refused_naming_it():
+    fresh = run("flow-kano-S4-J2-ts1", process_type="self-regulating")[1].to_dict()
+    stored = json.loads(json.dumps(fresh))
+    del stored["stiction"]["methods"]["hammerstein"]["decision"]
+    with pytest.raises(DataError, match=r"loop diagnosis\.stiction\.methods\.hammerstein: "
+                                        r"the field 'decision' is missing"):
+        LoopDiagnosis.from_dict(stored)
+    stored = json.loads(json.dumps(fresh))
+    del stored["quantification"]["process"]["K"]
+    with pytest.raises(DataError, match=r"loop diagnosis\.quantification\.process: "
+                                        r"the field 'K' is missing"):
+        LoopDiagnosis.from_dict(stored)
+    with pytest.raises(DataError, match=r"loop diagnosis\.stiction\.episodes\[0\]: expected"):
+        LoopDiagnosis.from_dict({**fresh, "stiction": {**fresh["stiction"], "episodes": [1]}})
