@@ -558,24 +558,38 @@ def find_stick_episodes(
     )
 
 
+@njit(cache=True)
 def _reversal(u: FloatArray, moves: FloatArray) -> float:
     """The largest OP reversal within one hold: how far OP went one way and came
     back, the shorter of the two legs around its largest turning point (0 for a
     one-way ramp).  Measured on the backlash-filtered OP (``moves``, from
     :func:`travel_increments`), so noise adds nothing; a zig-zag of small moves
-    is as large as its largest leg, not the sum of its legs."""
-    if u.size < 3:
+    is as large as its largest leg, not the sum of its legs.  Compiled: it runs
+    once per hold."""
+    n = u.size
+    if n < 3:
         return 0.0
     # The filtered position moves up only where OP rose (OP stays within the
     # backlash of it), so the signs of OP's differences give the moves' signs.
-    position = np.cumsum(moves * np.sign(np.diff(u, prepend=u[0])))
-    lowest_before = np.minimum.accumulate(position)
-    lowest_after = np.minimum.accumulate(position[::-1])[::-1]
-    highest_before = np.maximum.accumulate(position)
-    highest_after = np.maximum.accumulate(position[::-1])[::-1]
-    peak = np.minimum(position - lowest_before, position - lowest_after)
-    trough = np.minimum(highest_before - position, highest_after - position)
-    return float(max(peak.max(), trough.max()))
+    position = np.empty(n)
+    position[0] = 0.0
+    for k in range(1, n):
+        position[k] = position[k - 1] + moves[k] * np.sign(u[k] - u[k - 1])
+    lowest_after = np.empty(n)
+    highest_after = np.empty(n)
+    lowest_after[n - 1] = highest_after[n - 1] = position[n - 1]
+    for k in range(n - 2, -1, -1):
+        lowest_after[k] = min(lowest_after[k + 1], position[k])
+        highest_after[k] = max(highest_after[k + 1], position[k])
+    largest = 0.0
+    lowest_before = highest_before = position[0]
+    for k in range(n):
+        lowest_before = min(lowest_before, position[k])
+        highest_before = max(highest_before, position[k])
+        peak = min(position[k] - lowest_before, position[k] - lowest_after[k])
+        trough = min(highest_before - position[k], highest_after[k] - position[k])
+        largest = max(largest, peak, trough)
+    return float(largest)
 
 
 def valve_proxy(pv: FloatArray, ts: float, process_type: ProcessType | None,
