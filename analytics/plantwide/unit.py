@@ -674,7 +674,10 @@ def _diagnose_group(
                 [*named, *(loop for loop in localisation.sticky_valves if loop in loops)]))
         else:  # the replay decides, for the loops of this group
             named = tuple(loop for loop in replay.sticky_valves if loop in loops)
-            notes.append(f"replayed through the unit model: {replay.note}")
+            outside = [loop for loop in replay.sticky_valves if loop not in loops]
+            notes.append(f"replayed through the unit model over the whole window: {replay.note}"
+                         + (f" ({', '.join(outside)} outside this group's loops, so not "
+                            "named here)" if outside else ""))
     if named:
         notes.insert(0, f"sticky: {', '.join(named)} (own-valve stiction model, replicated "
                         "in both halves of the window, or the unit model's fingerprint)")

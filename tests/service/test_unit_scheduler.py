@@ -347,6 +347,8 @@ def test_a_cycle_names_only_valves_of_the_loops_that_share_it():
     for group in diagnosis["groups"]:
         assert set(group["sticky_valves"]) <= set(group["loops"]), group["period_s"]
     assert "AIC-502 not named here" in fast[0]["note"]
+    # the replay runs once over the unit: its finding is quoted as the unit's, not the group's
+    assert "AIC-502 outside this group's loops, so not named here" in fast[0]["note"]
     assert [v["loop"] for v in diagnosis["sticky_valves"]] == ["AIC-502"]
 
 
