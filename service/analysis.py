@@ -113,7 +113,7 @@ def dead_time_samples(loop: dict[str, Any]) -> int | None:
     ``process_model``: the whole samples of the dead time plus the one of the
     zero-order hold (:func:`analytics.kpi.harris_index`).
 
-    >>> dead_time_samples({"ts": 2.0, "process_model": {"type": "fopdt", "theta": 5.0}})
+    >>> dead_time_samples({"ts": 2.0, "process_model": {"theta": 5.0}})
     3
     >>> dead_time_samples({"ts": 1.0, "process_model": None}) is None
     True
