@@ -1287,13 +1287,14 @@ async function start() {
   await signInAndRoute();
 }
 
-/** Takes the key of a #key=KEY or #key=KEY&/PAGE link into sessionStorage and leaves
- * #/PAGE (or #/) in the address bar; whether there was one. */
+/** Takes the key of a #key=KEY or #key=KEY&/PAGE link (the slash, or the page after a
+ * trailing "&", may be missing) into sessionStorage and leaves #/PAGE (or #/) in the
+ * address bar; whether there was one. */
 function keyFromLink() {
-  const fragment = location.hash.match(/^#key=([^&]+)(?:&(\/.*))?$/);
+  const fragment = location.hash.match(/^#key=([^&]+)(?:&\/?(.*))?$/);
   if (!fragment) return false;
   sessionStorage.setItem(KEY_STORAGE, decodeURIComponent(fragment[1]));
-  history.replaceState(null, "", `${location.pathname}#${fragment[2] || "/"}`);
+  history.replaceState(null, "", `${location.pathname}#/${fragment[2] || ""}`);
   return true;
 }
 

@@ -440,6 +440,13 @@ def test_sign_in_page_has_no_sign_out_and_key_links_open_the_page_they_name(
         # storage under a running page let its next refresh go out without a key (401).
         page.get_by_role("button", name="Sign out").click()
         page.get_by_label("API key").wait_for()
+    # A link cut after its "&", or written without the page's slash, still signs in.
+    for link, heading in (("&", "Plant overview"), ("&loop/FIC-1", "FIC-1")):
+        page.goto(f"{running.base_url}/#key={viewer}{link}")
+        page.get_by_role("heading", level=1, name=heading).wait_for()
+        assert viewer not in page.url
+        page.get_by_role("button", name="Sign out").click()
+        page.get_by_label("API key").wait_for()
 
 
 def test_loop_page_shows_alarm_buttons_whole_and_plot_notes_once(
