@@ -550,7 +550,9 @@ def _loop_evidence(
     if sticky:
         size = (f"S = {whole.S:.2f}; J not resolved without the process gain, only "
                 f"K J = {whole.slip_step:.2f}" if whole.J_product_only
-                else f"S = {whole.S:.2f}, J = {whole.J:.2f}")
+                else f"S = {whole.S:.2f}, J = {whole.J:.2f}" + (
+                    "" if whole.J_interval is None else
+                    f", 95 % interval of J {whole.J_interval[0]:.2f} to {whole.J_interval[1]:.2f}"))
         note = (f"a stiction model of its own valve ({size}) raises the fit of its PV by "
                 f"{gain:.2f} in R2, in each half of the window too")
     elif _estimate_holds(whole):

@@ -10,6 +10,7 @@ only FV-502 gets a ticket.
 """
 
 import functools
+import re
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -350,6 +351,17 @@ def test_a_cycle_names_only_valves_of_the_loops_that_share_it():
     # the replay runs once over the unit: its finding is quoted as the unit's, not the group's
     assert "AIC-502 outside this group's loops, so not named here" in fast[0]["note"]
     assert [v["loop"] for v in diagnosis["sticky_valves"]] == ["AIC-502"]
+
+
+def test_an_own_valve_slip_is_shown_with_its_interval():
+    """QA: the unit page read "S = 3.90, J = 0.00" for FV-502 (simulated J 2) beside the
+    replay's J 2.05: a slip the window hardly resolves read as none.  The own-valve
+    evidence gives J with its 95 % interval."""
+    diagnosis = demo_column_diagnosis(0, 3600)
+    (evidence,) = [e for g in diagnosis["groups"] for e in g["evidence"] if e["sticky"]]
+    assert evidence["loop"] == "AIC-502" and not evidence["J_product_only"]
+    assert re.search(r"J = 0\.\d\d, 95 % interval of J 0\.\d\d to [12]\.\d\d\)",
+                     evidence["note"]), evidence["note"]
 
 
 def test_a_slip_the_window_does_not_resolve_is_not_shown_as_one():
