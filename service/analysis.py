@@ -106,19 +106,25 @@ def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None
         stiction_confidence=final.confidence if final.verdict == "stiction" else None)
 
 
-def dead_time_samples(loop: dict[str, Any]) -> int | None:
+def dead_time_samples(loop: dict[str, Any], gain: dict[str, Any] | None = None) -> int | None:
     """The loop's dead time in samples for the Harris index, None when not configured.
 
     ``floor(theta / ts) + 1`` from the ``theta`` (s) of the loop's
-    ``process_model``: the whole samples of the dead time plus the one of the
+    ``process_model``, else from the model its configured ``gain`` was taken
+    from (:func:`independent_gain`: a unit loop's diagonal entry of the unit's
+    matrix): the whole samples of the dead time plus the one of the
     zero-order hold (:func:`analytics.kpi.harris_index`).
 
     >>> dead_time_samples({"ts": 2.0, "process_model": {"theta": 5.0}})
+    3
+    >>> dead_time_samples({"ts": 2.0, "process_model": None}, {"dead_time_s": 4.0})
     3
     >>> dead_time_samples({"ts": 1.0, "process_model": None}) is None
     True
     """
     theta = (loop.get("process_model") or {}).get("theta")
+    if theta is None and gain is not None:
+        theta = gain.get("dead_time_s")
     if theta is None:
         return None
     return int(np.floor(float(theta) / float(loop["ts"]) + 1e-9)) + 1
@@ -161,8 +167,9 @@ def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any
     Returns
     -------
     dict or None
-        ``K``, ``process_type`` (of the model), ``source`` (in words) and
-        ``couplings`` (``loop id -> matrix entry``; empty for a process model);
+        ``K``, ``process_type`` (of the model), ``source`` (in words),
+        ``couplings`` (``loop id -> matrix entry``; empty for a process model)
+        and ``dead_time_s``, the model's dead time (:func:`dead_time_samples`);
         None when the configuration gives no gain, its model is not one with a
         gain, or its type contradicts the loop's ``process_type``.
 
@@ -173,13 +180,13 @@ def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any
     ...     "id": "FIC-1", "tags": {"op": "O"}, "ts": 1.0,
     ...     "process_model": {"type": "fopdt", "K": 1.2, "tau": 8.0, "theta": 2.0}}]})
     >>> gain = independent_gains(plant)["FIC-1"]
-    >>> gain["K"], gain["process_type"], gain["source"], gain["couplings"]
-    (1.2, 'self-regulating', "the loop's process_model", {})
+    >>> gain["K"], gain["process_type"], gain["source"], gain["couplings"], gain["dead_time_s"]
+    (1.2, 'self-regulating', "the loop's process_model", {}, 2.0)
     """
     couplings: dict[str, dict[str, Any]] = {}
     try:
         if loop.process_model is not None:
-            kind, gain = process_gain(TransferFunction.from_dict(loop.process_model))
+            model = TransferFunction.from_dict(loop.process_model)
             source = "the loop's process_model"
         elif unit is not None and unit.process is not None and loop.id in unit.process.loops:
             i = unit.process.loops.index(loop.id)
@@ -187,7 +194,7 @@ def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any
             entry = row[i]
             if entry is None:
                 return None
-            kind, gain = process_gain(TransferFunction.from_dict(entry))
+            model = TransferFunction.from_dict(entry)
             source = (f"unit {unit.id}'s process matrix (its valve's own entry; what the "
                       "unit's other valves do subtracted)")
             couplings = {other: coupling for other, coupling in zip(unit.process.loops, row,
@@ -195,11 +202,13 @@ def independent_gain(loop: LoopConfig, unit: UnitConfig | None) -> dict[str, Any
                          if other != loop.id and coupling is not None}
         else:
             return None
+        kind, gain = process_gain(model)
     except (ModelSpecError, TypeError, ValueError):
         return None  # e.g. a process model that gives the dead time only
     if loop.process_type not in (None, kind):
         return None
-    return {"K": gain, "process_type": kind, "source": source, "couplings": couplings}
+    return {"K": gain, "process_type": kind, "source": source, "couplings": couplings,
+            "dead_time_s": model.delay}
 
 
 MIN_FINITE_INPUT = 0.99
@@ -403,7 +412,7 @@ def analyse_window(
     cycle = diagnosis.oscillation  # None on unusable data
     kpis = loop_kpis(
         ts, op=scaled.get("op"), pv=scaled.get("pv"), sp=scaled.get("sp"),
-        dead_time=dead_time_samples({**loop, "ts": ts}), pv_limits=pv_limits,
+        dead_time=dead_time_samples({**loop, "ts": ts}, gain), pv_limits=pv_limits,
         mode=mode, mode_mapping=mode_mapping,
         oscillation=None if cycle is None else {"detected": cycle.detected,
                                                 "regularity": cycle.regularity},

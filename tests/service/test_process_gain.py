@@ -16,7 +16,13 @@ from analytics.lti import TransferFunction, process_gain
 from analytics.scenarios import COLUMN_PROCESS
 from analytics.synthetic_cases import synthetic_library
 from connectors.plant_sim import COLUMN_LOOPS, SINGLE_LOOPS, PlantSimulator
-from service.analysis import analyse_window, independent_gains, sizing_pv, to_percent_of_span
+from service.analysis import (
+    analyse_window,
+    dead_time_samples,
+    independent_gains,
+    sizing_pv,
+    to_percent_of_span,
+)
 from service.config import PlantConfig
 from service.demo import demo_plant_config
 
@@ -47,6 +53,15 @@ def test_the_demo_column_loops_take_their_own_matrix_entry_and_the_single_loops_
         assert gains[loop.id]["K"] == pytest.approx(
             COLUMN_PROCESS[i][i].dc_gain * spans["op"] / spans["pv"])
     assert fv502["K"] == pytest.approx(-2.36)
+    # their Harris index takes its dead time from that entry too (the overview said
+    # "dead time unknown" for the column's loops)
+    for i, loop in enumerate(COLUMN_LOOPS):
+        configured = config.loop(loop.id)
+        assert configured.process_model is None
+        theta = COLUMN_PROCESS[i][i].delay
+        assert gains[loop.id]["dead_time_s"] == pytest.approx(theta) and theta > 0
+        assert dead_time_samples(configured.model_dump(), gains[loop.id]) == int(
+            theta // configured.ts) + 1
 
 
 @pytest.mark.parametrize(("loop", "expected"), [
