@@ -36,10 +36,11 @@ all together (:func:`_shift_slips`) and one by one (:func:`_refine_slips`), to
 the instants the PVs show; then each member is chosen again with the others'
 fitted replays held (:func:`_reselect`).  ``S`` of such a valve is the OP travel
 between its slips that reverse (:func:`_slip_band`), which does not depend on the
-gains.  A set whose members another set replays better takes those replays
-(:func:`_borrow`).  The sets are ranked by ``m ln(misfit / m) + VALVE_PENALTY *
-len(set)`` (``m`` PV samples) and the best is named if it beats healthy valves and
-removes at least
+gains.  A set of two or more valves is also grown from each set one valve smaller, the
+added valve chosen with that set's replays held (:func:`_replace`), and a set whose
+members another set replays better takes those replays (:func:`_borrow`).  The sets
+are ranked by ``m ln(misfit / m) + VALVE_PENALTY * len(set)`` (``m`` PV samples) and
+the best is named if it beats healthy valves and removes at least
 :data:`MIN_MISFIT_DROP` of their misfit.  Figures: ``benchmarks/plantwide.py
 replay`` (calibration seeds) and ``replay held-out``.
 
@@ -712,21 +713,31 @@ def _fit_set(problem: _Problem, members: tuple[int, ...], valves: Mapping[int, _
             _shift_slips(problem, k, replays, jumps)
             _refine_slips(problem, k, replays, jumps)
     misfit = _set_misfit(problem, replays, jumps)
+    bands = {k: (float(valves[k].fs[p]), float(valves[k].fd[p])) for k, p in chosen.items()}
     for k in members if len(members) > 1 else ():
-        p = _reselect(problem, k, valves[k], replays, jumps)
-        trial, trial_jumps = dict(replays), {j: d for j, d in jumps.items() if j != k}
-        trial[k] = valves[k].replay(p)
-        if valves[k].slips_at_turns(p):
-            trial_jumps[k] = _slip_directions(trial[k])
-            trial[k] = trial[k] + valves[k].fd[p] * trial_jumps[k]
-            for _ in range(SLIP_ROUNDS):
-                _refine_slips(problem, k, trial, trial_jumps)
-        trial_misfit = _set_misfit(problem, trial, trial_jumps)
-        if trial_misfit < misfit:
-            replays, jumps, misfit = trial, trial_jumps, trial_misfit
-            chosen[k] = p
-    return misfit, replays, jumps, {k: (float(valves[k].fs[p]), float(valves[k].fd[p]))
-                                    for k, p in chosen.items()}
+        trial = _replace(problem, k, valves[k], replays, jumps)
+        if trial[0] < misfit:
+            misfit, replays, jumps, band = trial
+            bands[k] = band
+    return misfit, replays, jumps, bands
+
+
+def _replace(problem: _Problem, k: int, valve: _Valve, replays: Mapping[int, FloatArray],
+             jumps: Mapping[int, FloatArray]
+             ) -> tuple[float, dict[int, FloatArray], dict[int, FloatArray], tuple[float, float]]:
+    """Valve ``k`` chosen again on its grid with the other members' replays held (its slips
+    fitted as in :func:`_fit_set`): the misfit, replays and slip directions of the set with
+    that choice, and its grid ``fs`` and ``fd``."""
+    p = _reselect(problem, k, valve, replays, jumps)
+    trial, trial_jumps = dict(replays), {j: d for j, d in jumps.items() if j != k}
+    trial[k] = valve.replay(p)
+    if valve.slips_at_turns(p):
+        trial_jumps[k] = _slip_directions(trial[k])
+        trial[k] = trial[k] + valve.fd[p] * trial_jumps[k]
+        for _ in range(SLIP_ROUNDS):
+            _refine_slips(problem, k, trial, trial_jumps)
+    return (_set_misfit(problem, trial, trial_jumps), trial, trial_jumps,
+            (float(valve.fs[p]), float(valve.fd[p])))
 
 
 _SetFit = tuple[float, dict[int, FloatArray], dict[int, FloatArray], dict[int, tuple[float, float]]]
@@ -788,7 +799,15 @@ def replay_sticky_sets(
     valves = {k: _Valve(problem, k) for k in range(n)}
     sets = [members for size in range(1, n + 1)
             for members in itertools.combinations(range(n), size)]
-    found = {members: _fit_set(problem, members, valves) for members in sets}
+    found: dict[tuple[int, ...], _SetFit] = {}
+    for members in sets:
+        found[members] = _fit_set(problem, members, valves)
+        for k in members if len(members) > 1 else ():
+            # grown from the set without k, as fitted (or borrowed) before
+            smaller = _borrow(problem, tuple(j for j in members if j != k), found)
+            grown = _replace(problem, k, valves[k], smaller[1], smaller[2])
+            if grown[0] < found[members][0]:
+                found[members] = (*grown[:3], {**smaller[3], k: grown[3]})
     fits = []
     for members in sets:
         misfit, replays, jumps, fitted = _borrow(problem, members, found)

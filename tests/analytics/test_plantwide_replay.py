@@ -143,13 +143,7 @@ def test_replay_names_every_simulated_sticky_set(replayed, sticky):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sticky", [
-    *(s for s in STICKY_SETS if s != (3,)),
-    pytest.param((3,), marks=pytest.mark.xfail(
-        strict=True, reason="valve 3 alone follows a wide OP swing in small slips (14 % "
-        "on seeds 100-101): its replay runs free, and its S (3.7 against 5) is that of "
-        "the nearest point of the coarse (fs, fd) grid, not fitted further")),
-])
+@pytest.mark.parametrize("sticky", STICKY_SETS)
 def test_replay_sizes_the_named_valves_within_25_percent(replayed, sticky):
     fit = replayed[sticky].fit_of(tuple(f"loop{i}" for i in sticky))
     assert fit is not None
