@@ -606,8 +606,8 @@ def replay_study(seeds: tuple[int, ...], calibration: bool) -> None:
         print(f"S of the named valves (right sets, exact gains, penalty "
               f"{REPLAY_PENALTY:g}): median error {np.median(e):.0%}, "
               f"{np.mean(e <= 0.25):.0%} within 25 % ({len(e)} valves)")
-    print(f"localisation time: median {statistics.median(times):.2f} s, "
-          f"max {max(times):.2f} s")
+    print(f"localisation time over all {len(times)} localisations (one core): median "
+          f"{statistics.median(times):.2f} s, max {max(times):.2f} s")
     for label, unit, um in healthy_columns():
         found = replay_sticky_sets(unit, 0.5, um.process)
         print(f"  {label}: named "
