@@ -99,9 +99,9 @@ def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None
     """
     stored = (diagnosis if isinstance(diagnosis, StoredDiagnosis)
               else StoredDiagnosis.from_dict(diagnosis))
-    final = stored.final
+    final, quality = stored.final, stored.analysis.quality
     return loop_health(
-        usable=stored.quality.usable, quality_warnings=stored.quality.warnings,
+        usable=quality.usable, quality_warnings=len(quality.warnings()),
         oscillating=stored.oscillation.detected, regularity=stored.oscillation.regularity,
         stiction_confidence=final.confidence if final.verdict == "stiction" else None)
 

@@ -125,8 +125,8 @@ def valve_decision(loop_id: str, diagnosis: StoredDiagnosis | Mapping[str, Any],
                    unit: UnitDecision | None = None) -> StoredValve:
     """The final verdict on the valve of ``loop_id`` (:func:`valve_verdict`), typed."""
     stored = _stored(diagnosis)
-    own = stored.stiction
-    size = stored.quantification
+    own = stored.analysis.stiction
+    size = stored.analysis.quantification
     verdict = StoredValve(
         verdict=own.verdict, confidence=own.confidence,
         S=None if size is None else size.S, J=None if size is None else size.J,
@@ -205,13 +205,13 @@ def combined_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
     if verdict.verdict != "stiction":
         return size
     windows = list(previous)
-    own = diagnosis.quantification
+    own = diagnosis.analysis.quantification
     if (own is not None and own.S is not None and own.S == verdict.S and own.J is not None
             and own.S_interval and own.J_interval
             and (not windows or window[0] >= windows[-1].window_end)):
         windows.append(SizeWindow(window[0], window[1], own.S, own.S_interval, own.J,
                                   own.J_interval, gain_given=own.gain_given,
-                                  gain_source=own.gain_source,
+                                  gain_source=diagnosis.gain_source,
                                   J_product_only=own.J_product_only, fit_r2=own.fit_r2))
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:

@@ -48,18 +48,19 @@ def alarm_message(diagnosis: dict[str, Any]) -> str:
     stuck valve freezes PV, so it comes with unusable data), a valve the unit's
     diagnosis clears its reason ("cycles because FV-502 sticks")."""
     stored = StoredDiagnosis.from_dict(diagnosis)
-    stiction, final = stored.stiction, stored.final
+    analysis, final = stored.analysis, stored.final
     if stored.final_by_unit and final.verdict != "stiction":
         pattern: str | None = final.reason
     else:
-        pattern = stiction_pattern_text(stiction.pattern, stiction.op_travel)
+        pattern = stiction_pattern_text(analysis.pattern, analysis.op_travel)
     # in words, as the dashboard's verdicts read ("no stiction", not "no_stiction")
     valve = (f"valve: {str(final.verdict).replace('_', ' ')}"
              + ("" if pattern is None else f" ({pattern})"))
-    if not stored.quality.usable:
+    if not analysis.quality.usable:
         if final.verdict == "stiction":
             return f"data unusable, {valve}"
-        return stiction.reason  # "data unusable: ..." or why a loop in manual is not judged
+        # "data unusable: ..." or why a loop in manual is not judged
+        return analysis.stiction.reason
     osc = stored.oscillation
     if not osc.detected:
         return "no oscillation" + ("" if pattern is None else f"; {valve}")
@@ -143,7 +144,7 @@ class ResultWriter:
             )
             if diagnosis is not None:
                 stored = StoredDiagnosis.from_dict(diagnosis)
-                run.usable = stored.quality.usable
+                run.usable = stored.analysis.quality.usable
                 run.oscillating = stored.oscillation.detected
                 run.period_s = stored.oscillation.period_s
                 run.result = diagnosis

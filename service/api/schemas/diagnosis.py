@@ -4,7 +4,11 @@ plus what the service adds (health, first sample, KPIs, the valve's final verdic
 stretch judged when the loop was in manual).
 
 The models keep keys they do not name: stored diagnoses were written by other
-versions of the analysis.
+versions of the analysis.  They describe the JSON as stored and fill in nothing (the
+health answer leaves out what a run did not store), so their defaults are None; the
+service's own reading (:class:`service.stored.StoredDiagnosis`) fills the defaults of
+``LoopDiagnosis.from_dict(..., lenient=True)`` to compute with (``detected`` False,
+no oscillations), which an answer must not invent for an old run.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ def test_health_names_the_pattern_and_lists_the_episodes_at_utc_times(service, c
             loop_id="FIC-1", started_at=T0, finished_at=T0 + 3, window_start=T0 - 3600,
             window_end=T0, status="ok", usable=True, oscillating=False, verdict="stiction",
             confidence=0.7, health=72.0,
-            result={"first_sample_at": first_sample, "stiction": {
+            result={"ts": 1.0, "first_sample_at": first_sample, "stiction": {
                 "verdict": "stiction", "pattern": "stick_jump", "op_travel": 14.0,
                 "episode_stick_band": 2.5,
                 "episodes": [{"start_s": 120.0, "jump_s": 190.0, "end_s": 215.0,
