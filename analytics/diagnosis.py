@@ -67,6 +67,7 @@ from analytics.quantification import (
     quantify_stiction,
     quantify_with_gain,
 )
+from analytics.replay import ModelTrace, model_trace
 from analytics.serial import Reader
 from analytics.stiction.battery import (
     DEFAULT_DETECTORS,
@@ -176,6 +177,10 @@ class LoopDiagnosis:
     size_comparison : SizeComparison or None
         Whether that ``S`` agrees with the Hammerstein estimate's; None unless both
         exist.
+    model_trace : ModelTrace or None
+        The estimate's valve and process replayed on the window, its last periods
+        (:func:`analytics.replay.model_trace`), which the signature plot draws; None
+        without an estimate and a period, or with gaps in OP or PV.
     envelope_variation : float or None
         How steady the detected oscillation's amplitude is
         (:func:`analytics.oscillation.envelope_variation` of OP, else PV):
@@ -201,6 +206,7 @@ class LoopDiagnosis:
     envelope_variation: float | None = None
     episode_size: EpisodeSize | None = None
     size_comparison: SizeComparison | None = None
+    model_trace: ModelTrace | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -271,6 +277,7 @@ class LoopDiagnosis:
             "quantification": None if self.quantification is None
             else self.quantification.to_dict(),
             "apparent_stiction": None if self.ellipse is None else self.ellipse.to_dict(),
+            "model_trace": None if self.model_trace is None else self.model_trace.to_dict(),
         }
 
     @classmethod
@@ -289,14 +296,15 @@ class LoopDiagnosis:
         ``lenient`` reads a diagnosis stored by an older version (or a partial one).  Every
         version stored ``samples`` and ``ts`` (the episodes need ``ts``); later ones added
         ``oscillations``, ``envelope_variation``, the pattern, ``op_travel``, the episodes
-        and their band (26 Nov 2026), the ellipse's geometry (26 Nov) and
-        ``episode_size`` (1 Dec).  A missing field reads None, except ``quality.usable``, ``oscillation.detected``,
-        ``stiction_found`` and ``trustworthy`` (False), ``stiction.confidence`` (0),
-        ``process_type_source`` ("unknown"), the texts (empty) and the lists and
-        ``methods`` (empty); the oscillation is read also for unusable data (not
-        detected); an ``apparent_stiction`` stored before its geometry (``centre``,
-        ``semi_axes``, ``angle``) reads None, and a quantification without its
-        ``process`` has no ``model``.
+        and their band (26 Nov 2026), the ellipse's geometry (26 Nov),
+        ``episode_size`` (1 Dec) and ``model_trace`` (2 Dec; read None where missing,
+        strict or not).  A missing field reads None, except ``quality.usable``,
+        ``oscillation.detected``, ``stiction_found`` and ``trustworthy`` (False),
+        ``stiction.confidence`` (0), ``process_type_source`` ("unknown"), the texts
+        (empty) and the lists and ``methods`` (empty); the oscillation is read also for
+        unusable data (not detected); an ``apparent_stiction`` stored before its
+        geometry (``centre``, ``semi_axes``, ``angle``) reads None, and a
+        quantification without its ``process`` has no ``model``.
 
         Raises
         ------
@@ -345,6 +353,8 @@ class LoopDiagnosis:
                 size, f"{stiction.where}.episode_size"),
             size_comparison=None if agrees is None else SizeComparison(
                 agrees, stiction.part("episode_size")("note")),
+            model_trace=None if read.get("model_trace") is None else ModelTrace.from_dict(
+                read("model_trace"), f"{read.where}.model_trace"),
         )
 
 
@@ -765,4 +775,6 @@ def diagnose_loop(
         episode_stick_band(episodes) if verdict.verdict == STICTION else None,
         _envelope_variation(oscillation, op_clean if op_clean is not None else pv_clean, ts),
         sized, compared,
+        None if estimate is None or "op" not in signals or "pv" not in signals
+        else model_trace(signals["op"], signals["pv"], ts, estimate, period_s),
     )

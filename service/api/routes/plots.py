@@ -9,9 +9,13 @@ builders of :mod:`service.plots`.  Kinds:
 * ``signature``, ``spectrum``: the window of the latest analysis, in % of
   span as the analysis saw it, with the period it used; the signature shows
   the OP-PV ellipse the analysis fitted (stored with a stiction verdict; fitted
-  here for other verdicts, older analyses and the OP-MV signature) and the
-  fitted stiction model (the valve and process of the latest stiction
-  estimate replayed on the window's OP).
+  here for other verdicts, older analyses and the OP-MV signature: the analysis
+  never sees MV) and the fitted stiction model's trace the analysis stored
+  (:class:`analytics.replay.ModelTrace`; replayed here for analyses stored
+  before it was kept).  The spectrum and ACF are computed here from the window
+  (:mod:`analytics.signals`, the helpers the analysis uses), not stored: they
+  are half a window of numbers per signal (about 60 kB of JSON per run of an
+  hour at 1 s), and a coarser spectrum would not draw the same plot.
 * ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
   the latest stiction estimate, the configured controller and Choudhury's
   describing function at the estimated (S, J) (thesis Eq. 3.16).
@@ -41,8 +45,7 @@ from sqlalchemy import select
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
-from analytics.quantification import VALVE_MODELS
-from analytics.replay import StictionModelPath, stiction_model_path
+from analytics.replay import ModelTrace, model_trace
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
 from service import plots
 from service.analysis import to_percent_of_span
@@ -170,26 +173,14 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
 
 
 def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: StoredDiagnosis
-                  ) -> StictionModelPath | None:
-    """The latest stiction estimate's valve and process replayed on the window's OP.
-
-    None without an estimate (no stiction verdict), without a period, or with
-    gaps in the window (the valve model cannot run through a missing OP).
-    """
-    estimate = diagnosis.analysis.quantification
-    period = diagnosis.analysed_period
-    if estimate is None or estimate.S is None or period is None:
-        return None
-    if not (np.isfinite(op).all() and np.isfinite(pv).all()):
-        return None
-    S, J, process = estimate.S, estimate.J or 0.0, estimate.model
-    if process is None or estimate.valve_model is None:
-        return None
-    return stiction_model_path(
-        op, pv, ts, valve=VALVE_MODELS[estimate.valve_model](S, J),
-        process=process.transfer_function(), period_s=period,
-        label=f"fitted {estimate.valve_model} valve, S = {S:.2f} %, J = {J:.2f} %",
-    )
+                  ) -> ModelTrace | None:
+    """The stiction estimate's valve and process replayed on the window, as the analysis
+    stored it; replayed here for a run stored before the trace was kept
+    (:func:`analytics.replay.model_trace`).  None without an estimate."""
+    stored, estimate = diagnosis.analysis.model_trace, diagnosis.analysis.quantification
+    if stored is not None or estimate is None:
+        return stored
+    return model_trace(op, pv, ts, estimate, diagnosis.analysed_period)
 
 
 def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
