@@ -5,7 +5,8 @@ A loop's run keeps its diagnosis in ``AnalysisRun.result``: the
 :func:`service.analysis.analyse_window` adds (``health``, ``first_sample_at``,
 ``kpis``, ``manual``) and the final verdict on the valve
 (``valve``, :func:`service.verdicts.settle_run`).  A unit's run keeps
-:meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``.
+:meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``, which
+the service reads with ``UnitDiagnosis.from_dict(..., lenient=True)``.
 
 :meth:`analytics.diagnosis.LoopDiagnosis.from_dict` and
 :meth:`analytics.plantwide.UnitDiagnosis.from_dict` rebuild the analytics objects
@@ -13,9 +14,8 @@ from that JSON, without what it does not keep (the Hammerstein search and fit
 trace, the oscillation methods' results), and refuse a field that is missing.
 Runs stored by older versions lack fields: :meth:`StoredDiagnosis.from_dict` reads
 the analysis through ``LoopDiagnosis.from_dict(..., lenient=True)``, which reads a
-missing field as its default (documented there), and the service's additions here;
-:meth:`StoredUnitDiagnosis.from_dict` reads the fields of a unit's run the service
-uses, each with a default.  The JSON itself is not changed.
+missing field as its default (documented there), and the service's additions here.
+The JSON itself is not changed.
 """
 
 from __future__ import annotations
@@ -33,12 +33,7 @@ __all__ = [
     "ManualStretch",
     "SizeWindow",
     "StoredDiagnosis",
-    "StoredGroup",
-    "StoredGroupEvidence",
-    "StoredGroupMember",
     "StoredKpis",
-    "StoredStickyValve",
-    "StoredUnitDiagnosis",
     "StoredValve",
     "ValveSize",
 ]
@@ -281,95 +276,3 @@ class StoredDiagnosis:
     def final_by_unit(self) -> bool:
         """Whether the final verdict is the unit's diagnosis's."""
         return self.valve is not None and self.valve.by_unit
-
-
-@dataclass(frozen=True)
-class StoredStickyValve:
-    """A valve a unit's diagnosis names sticky (``sticky_valves[]``)."""
-
-    loop: str
-    confidence: float
-    reason: str = ""
-    S: float | None = None
-    J: float | None = None
-    period_s: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredStickyValve:
-        return cls(str(d["loop"]), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
-                   _float(d.get("S")), _float(d.get("J")), _float(d.get("period_s")))
-
-
-@dataclass(frozen=True)
-class StoredGroupMember:
-    """A signal of an oscillation group (``groups[].members[]``)."""
-
-    signal: str
-    amplitude: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupMember:
-        return cls(str(d.get("signal", "")), d.get("amplitude"))
-
-
-@dataclass(frozen=True)
-class StoredGroupEvidence:
-    """The own-valve test of a loop in a group (``groups[].evidence[]``)."""
-
-    loop: str
-    own_valve_gain: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupEvidence:
-        return cls(str(d["loop"]), d.get("own_valve_gain"))
-
-
-@dataclass(frozen=True)
-class StoredGroup:
-    """An oscillation group of a unit's diagnosis (``groups[]``)."""
-
-    period_s: float | None = None
-    loops: tuple[str, ...] = ()
-    members: tuple[StoredGroupMember, ...] = ()
-    evidence: tuple[StoredGroupEvidence, ...] = ()
-    sticky_valves: tuple[str, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroup:
-        return cls(_float(d.get("period_s")), tuple(d.get("loops") or ()),
-                   tuple(StoredGroupMember.from_dict(m) for m in d.get("members") or ()),
-                   tuple(StoredGroupEvidence.from_dict(e) for e in d.get("evidence") or ()),
-                   tuple(d.get("sticky_valves") or ()))
-
-
-@dataclass(frozen=True)
-class StoredUnitDiagnosis:
-    """A unit run's stored diagnosis (``UnitAnalysisRun.result``) as the service reads it."""
-
-    sticky_valves: tuple[StoredStickyValve, ...] = ()
-    groups: tuple[StoredGroup, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> StoredUnitDiagnosis:
-        d = d or {}
-        return cls(tuple(StoredStickyValve.from_dict(f) for f in d.get("sticky_valves") or ()),
-                   tuple(StoredGroup.from_dict(g) for g in d.get("groups") or ()))
-
-    def valve_decisions(self) -> tuple[list[str], list[str]]:
-        """The loops whose valves the diagnosis names sticky, and those it clears.
-
-        A valve is cleared when the own-valve test of its loop ran on a shared
-        oscillation (``own_valve_gain`` known) and did not name it: its loop
-        cycles because a neighbour's sticky valve drives it (thesis chapter 2,
-        section 2.3.5).  Loops in no diagnosed oscillation are neither.
-
-        >>> StoredUnitDiagnosis.from_dict({"sticky_valves": [{"loop": "b"}], "groups": [
-        ...     {"evidence": [{"loop": "a", "own_valve_gain": 0.0},
-        ...      {"loop": "b", "own_valve_gain": 0.2},
-        ...      {"loop": "c", "own_valve_gain": None}]}]}).valve_decisions()
-        (['b'], ['a'])
-        """
-        sticky = [finding.loop for finding in self.sticky_valves]
-        tested = {e.loop for group in self.groups for e in group.evidence
-                  if e.own_valve_gain is not None}
-        return sticky, sorted(tested - set(sticky))

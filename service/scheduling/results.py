@@ -13,6 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from analytics.plantwide import UnitDiagnosis
 from service.alarms import alarm_payload, update_alarms_from_analysis
 from service.analysis import UnitWindows, stiction_pattern_text
 from service.config import LoopConfig, PlantConfig, Settings
@@ -22,7 +23,7 @@ from service.plant import PlantRegistry
 from service.scheduling.jobs import JobOutcome
 from service.store.db import Store
 from service.store.models import AnalysisRun, UnitAnalysisRun
-from service.stored import StoredDiagnosis, StoredUnitDiagnosis
+from service.stored import StoredDiagnosis
 from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
 from service.verdicts import latest_unit_decision, previous_size_windows, settle_run
 
@@ -198,7 +199,7 @@ class ResultWriter:
             return
         self.metrics.inc("loopwatch_unit_analyses_total", status=outcome.status)
         sticky, cleared = ([], []) if outcome.result is None else (
-            StoredUnitDiagnosis.from_dict(outcome.result).valve_decisions())
+            UnitDiagnosis.from_dict(outcome.result, lenient=True).valve_decisions())
         try:
             with self.store.session() as session:
                 session.add(UnitAnalysisRun(

@@ -6,13 +6,13 @@ import pytest
 
 from analytics.diagnosis import LoopDiagnosis
 from analytics.errors import DataError
+from analytics.plantwide import UnitDiagnosis
 from analytics.synthetic_cases import synthetic_library
 from service.analysis import analyse_window, health_score
 from service.stored import (
     SizeWindow,
     StoredDiagnosis,
     StoredKpis,
-    StoredUnitDiagnosis,
     StoredValve,
     ValveSize,
 )
@@ -87,19 +87,22 @@ def test_the_stored_valve_reads_back_what_settling_writes(sticky_result):
     assert SizeWindow.from_dict(window.to_dict()) == window
 
 
-def test_the_unit_view_reads_findings_groups_and_valve_decisions():
-    unit = StoredUnitDiagnosis.from_dict({
+def test_a_stored_unit_diagnosis_reads_leniently_with_its_valve_decisions():
+    unit = UnitDiagnosis.from_dict({
         "sticky_valves": [{"loop": "b", "confidence": 0.9, "period_s": 200.0, "S": 4.0,
                            "J": 2.0, "reason": "own valve needed"}],
         "groups": [{"period_s": 200.0, "loops": ["a", "b"],
                     "members": [{"signal": "op_b", "amplitude": 3.0}],
                     "evidence": [{"loop": "a", "own_valve_gain": 0.0},
                                  {"loop": "b", "own_valve_gain": 0.3}],
-                    "sticky_valves": ["b"]}]})
+                    "sticky_valves": ["b"]}]}, lenient=True)
     assert unit.valve_decisions() == (["b"], ["a"])
     (finding,) = unit.sticky_valves
     assert (finding.loop, finding.confidence, finding.S, finding.reason) == (
         "b", 0.9, 4.0, "own valve needed")
     (group,) = unit.groups
     assert (group.period_s, group.loops, group.members[0].amplitude) == (200.0, ("a", "b"), 3.0)
-    assert StoredUnitDiagnosis.from_dict(None).valve_decisions() == ([], [])
+    assert group.evidence[0].half_gains == (None, None)
+    assert UnitDiagnosis.from_dict({}, lenient=True).valve_decisions() == ([], [])
+    with pytest.raises(DataError, match="unit diagnosis: the field 'loops' is missing"):
+        UnitDiagnosis.from_dict({})

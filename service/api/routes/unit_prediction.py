@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session
 from analytics.cycle_fit import CYCLES, fit_valve_to_cycle, valve_of
 from analytics.errors import AnalyticsError
 from analytics.limit_cycle import LimitCycleReport, equivalent_loop_phase
+from analytics.plantwide import UnitDiagnosis
 from analytics.quantification import StictionEstimate
 from analytics.simulation import ClosedLoopModel
 from analytics.tuning import CycleAgreement
@@ -42,7 +43,7 @@ from service.api.schemas.prediction import UnitPrediction
 from service.loop_model import valve_kind
 from service.prediction import ModelError, check_model, predict_spec
 from service.store.models import Loop, Unit
-from service.stored import StoredDiagnosis, StoredUnitDiagnosis, StoredValve
+from service.stored import StoredDiagnosis, StoredValve
 from service.tickets import latest_loop_run, latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"],
@@ -161,7 +162,7 @@ def _measured_cycle(session: Session, unit_id: str, sticky: str
     if run is None or run.result is None:
         return None, None, (f"unit {unit_id!r} has no diagnosis yet: the prediction is not "
                             "checked against a measured cycle")
-    diagnosis = StoredUnitDiagnosis.from_dict(run.result)
+    diagnosis = UnitDiagnosis.from_dict(run.result, lenient=True)
     group = next((g for g in diagnosis.groups if sticky in g.loops), None)
     if group is None or group.period_s is None:
         return None, None, None
