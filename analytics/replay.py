@@ -25,16 +25,20 @@ from analytics.serial import Reader
 from analytics.types import FloatArray
 from analytics.valves import ValveModel
 
-__all__ = ["MODEL_CYCLES_KEPT", "MODEL_POINTS", "ModelTrace", "StictionModelPath",
-           "model_trace", "stiction_model_path"]
+__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_POINTS", "ModelTrace",
+           "StictionModelPath", "model_trace", "stiction_model_path"]
 
 MODEL_CYCLES_KEPT = 3
 """Periods of the replayed model a diagnosis keeps (the last ones): the signature plot
 draws these, more would hide the samples."""
 
-MODEL_POINTS = 600
+MODEL_POINTS = 300
 """Samples kept of each of the trace's signals at most (every k-th beyond): a slow
 cycle's three periods would otherwise store thousands of numbers with every run."""
+
+MODEL_DECIMALS = 3
+"""Decimals the trace keeps (0.001 % of span: below a transmitter's resolution and a
+hundredth of a pixel of the plot), so a trace stores at most about 8 kB of JSON."""
 
 
 @dataclass(frozen=True)
@@ -42,7 +46,8 @@ class ModelTrace:
     """The fitted model's path over the window's last :data:`MODEL_CYCLES_KEPT` periods,
     as a diagnosis keeps it (:meth:`StictionModelPath.trace`): the measured OP, the
     model's MV and predicted PV at the same samples (every k-th, at most
-    :data:`MODEL_POINTS`), ``r2`` and ``label`` of the whole replay."""
+    :data:`MODEL_POINTS`, to :data:`MODEL_DECIMALS`), ``r2`` and ``label`` of the whole
+    replay."""
 
     op: tuple[float, ...]
     mv: tuple[float, ...]
@@ -95,8 +100,9 @@ class StictionModelPath:
         """The path over the last :data:`MODEL_CYCLES_KEPT` periods of the replayed ``op``."""
         kept = np.arange(max(self.start, op.size - MODEL_CYCLES_KEPT * self.period), op.size)
         kept = kept[::-(-kept.size // MODEL_POINTS)]
-        return ModelTrace(tuple(op[kept].tolist()), tuple(self.mv[kept].tolist()),
-                          tuple(self.pv[kept].tolist()), self.r2, self.label)
+        op_kept, mv_kept, pv_kept = (tuple(np.round(x[kept], MODEL_DECIMALS).tolist())
+                                     for x in (op, self.mv, self.pv))
+        return ModelTrace(op_kept, mv_kept, pv_kept, self.r2, self.label)
 
 
 def stiction_model_path(

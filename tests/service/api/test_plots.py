@@ -94,7 +94,7 @@ def test_signature_draws_the_latest_estimate_replayed_on_the_window(analysed, se
     np.testing.assert_allclose(x, window.op[last], atol=resolution(valve, "x"))
     np.testing.assert_allclose(y, path.mv[last], atol=resolution(valve, "y"))
     stored = diagnosis["model_trace"]  # the analysis's replay, which the plot draws
-    np.testing.assert_allclose(stored["mv"], path.mv[last], rtol=1e-9)
+    np.testing.assert_allclose(stored["mv"], path.mv[last], atol=5e-4)
     assert stored["r2"] == pytest.approx(path.r2, rel=1e-9)
     assert path.r2 > 0.8  # the fit explains the measured signature
     assert f"R² {path.r2:.2f}" in signature.findtext(f".//{SVG}text[last()]")
