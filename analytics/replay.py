@@ -36,9 +36,9 @@ MODEL_POINTS = 300
 """Samples kept of each of the trace's signals at most (every k-th beyond): a slow
 cycle's three periods would otherwise store thousands of numbers with every run."""
 
-MODEL_DECIMALS = 3
-"""Decimals the trace keeps (0.001 % of span: below a transmitter's resolution and a
-hundredth of a pixel of the plot), so a trace stores at most about 8 kB of JSON."""
+MODEL_DECIMALS = 4
+"""Decimals the trace keeps (0.0001 % of span: below a transmitter's resolution and the
+two decimals of a pixel the plot writes), so a trace stores at most about 8 kB of JSON."""
 
 
 @dataclass(frozen=True)

@@ -195,9 +195,9 @@ class LoopDiagnosisPublic(OpenSchema):
     """Apparent stiction from the valve signature's ellipse (Choudhury et al. 2008)."""
     model_trace: dict[str, Any] | None = None
     """The Hammerstein estimate replayed on the window, its last three periods (at most
-    300 samples each, 3 decimals): ``op``, the model's ``mv`` and predicted ``pv`` (% of span), the
-    replay's ``r2`` and ``label``; what the signature plot draws.  Null without an
-    estimate, with gaps in OP or PV, and for runs stored before 2 Dec 2026."""
+    300 samples each, 4 decimals): ``op``, the model's ``mv`` and predicted ``pv`` (% of
+    span), the replay's ``r2`` and ``label``; what the signature plot draws.  Null
+    without an estimate, with gaps in OP or PV, and for runs stored before 2 Dec 2026."""
     health: float | None = None
     """Health score, 0 (worst) to 100."""
     first_sample_at: float | None = None
