@@ -67,6 +67,7 @@ from analytics.quantification import (
     quantify_stiction,
     quantify_with_gain,
 )
+from analytics.replay import ModelTrace, model_trace
 from analytics.serial import Reader
 from analytics.stiction.battery import (
     DEFAULT_DETECTORS,
@@ -176,6 +177,10 @@ class LoopDiagnosis:
     size_comparison : SizeComparison or None
         Whether that ``S`` agrees with the Hammerstein estimate's; None unless both
         exist.
+    model_trace : ModelTrace or None
+        The estimate's valve and process replayed on the window, its last periods
+        (:func:`analytics.replay.model_trace`), which the signature plot draws; None
+        without an estimate and a period, or with gaps in OP or PV.
     envelope_variation : float or None
         How steady the detected oscillation's amplitude is
         (:func:`analytics.oscillation.envelope_variation` of OP, else PV):
@@ -201,6 +206,7 @@ class LoopDiagnosis:
     envelope_variation: float | None = None
     episode_size: EpisodeSize | None = None
     size_comparison: SizeComparison | None = None
+    model_trace: ModelTrace | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -271,10 +277,11 @@ class LoopDiagnosis:
             "quantification": None if self.quantification is None
             else self.quantification.to_dict(),
             "apparent_stiction": None if self.ellipse is None else self.ellipse.to_dict(),
+            "model_trace": None if self.model_trace is None else self.model_trace.to_dict(),
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> LoopDiagnosis:
+    def from_dict(cls, d: Mapping[str, Any], *, lenient: bool = False) -> LoopDiagnosis:
         """The diagnosis of :meth:`to_dict`'s form (a stored or an ``analyze --json`` one):
         ``to_dict(from_dict(d)) == d``.
 
@@ -286,18 +293,32 @@ class LoopDiagnosis:
         unusable; the episodes listed are the consistent ones (``consistent`` True), their
         times in samples ``round(t_s / ts)``.
 
+        ``lenient`` reads a diagnosis stored by an older version (or a partial one).  Every
+        version stored ``samples`` and ``ts`` (the episodes need ``ts``); later ones added
+        ``oscillations``, ``envelope_variation``, the pattern, ``op_travel``, the episodes
+        and their band (26 Nov 2026), the ellipse's geometry (26 Nov),
+        ``episode_size`` (1 Dec) and ``model_trace`` (2 Dec; read None where missing,
+        strict or not).  A missing field reads None, except ``quality.usable``,
+        ``oscillation.detected``, ``stiction_found`` and ``trustworthy`` (False),
+        ``stiction.confidence`` (0), ``process_type_source`` ("unknown"), the texts
+        (empty) and the lists and ``methods`` (empty); the oscillation is read also for
+        unusable data (not detected); an ``apparent_stiction`` stored before its
+        geometry (``centre``, ``semi_axes``, ``angle``) reads None, and a
+        quantification without its ``process`` has no ``model``.
+
         Raises
         ------
         DataError
             A field is missing or of the wrong kind; the message names it and where
             (``loop diagnosis.stiction.methods.hammerstein``).
         """
-        read = Reader(d, "loop diagnosis")
+        read = Reader(d, "loop diagnosis", lenient=lenient)
         samples, ts = read("samples"), read("ts")
         quality = read.part("quality")
         report = QualityReport(
-            quality("usable"),
-            tuple(QualityIssue(i("code"), i("signal"), i("severity"), i("message"), i("value"))
+            quality("usable", False),
+            tuple(QualityIssue(i("code", ""), i("signal"), i("severity", ""), i("message", ""),
+                               i("value"))
                   for i in quality.items("issues")),
             ts, samples)
         osc, stiction = read.part("oscillation"), read.part("stiction")
@@ -307,17 +328,18 @@ class LoopDiagnosis:
         quantification = read("quantification")
         return cls(
             samples=samples, ts=ts, quality=report,
-            oscillation=_oscillation_from_dict(osc) if report.usable else None,
-            process_type=read("process_type"), process_type_source=read("process_type_source"),
+            oscillation=_oscillation_from_dict(osc) if report.usable or lenient else None,
+            process_type=read("process_type"),
+            process_type_source=read("process_type_source", "unknown"),
             cycle_period_s=osc("analysed_period_s"),
             stiction=StictionVerdict(
-                stiction("verdict"), stiction("confidence"), stiction("score"),
+                stiction("verdict"), stiction("confidence", 0.0), stiction("score"),
                 {name: MethodEvidence(name, e("decision"), e("index"), e("confidence"),
-                                      e("note"), dict(e("details")))
+                                      e("note"), dict(e("details", {})))
                  for name in methods.d for e in (methods.part(name),)},
-                stiction("reason")),
+                stiction("reason", "")),
             quantification=None if quantification is None else StictionEstimate.from_dict(
-                quantification, f"{read.where}.quantification"),
+                quantification, f"{read.where}.quantification", lenient=lenient),
             ellipse=_ellipse_from_dict(read),
             pattern=stiction("pattern"),
             episodes=tuple(
@@ -331,6 +353,8 @@ class LoopDiagnosis:
                 size, f"{stiction.where}.episode_size"),
             size_comparison=None if agrees is None else SizeComparison(
                 agrees, stiction.part("episode_size")("note")),
+            model_trace=None if read.get("model_trace") is None else ModelTrace.from_dict(
+                read("model_trace"), f"{read.where}.model_trace"),
         )
 
 
@@ -347,14 +371,15 @@ def _oscillation_from_dict(read: Reader) -> LoopOscillation:
             o("presence"), o("present_from_s"), o("present_to_s"), o("method")))
     op, pv = (OscillationReport(True, tuple(found[s])) if found[s] else None
               for s in ("op", "pv"))
-    return LoopOscillation(read("detected"), read("period_s"), read("regularity"),
+    return LoopOscillation(read("detected", False), read("period_s"), read("regularity"),
                            read("amplitude_op"), read("amplitude_pv"), None, op, pv)
 
 
 def _ellipse_from_dict(read: Reader) -> EllipseFit | None:
-    """The ``apparent_stiction`` of a diagnosis's JSON form back; None where it is."""
+    """The ``apparent_stiction`` of a diagnosis's JSON form back; None where it is (and,
+    leniently, where it was stored without its geometry)."""
     stored = read("apparent_stiction")
-    if stored is None:
+    if stored is None or (read.lenient and "centre" not in stored):
         return None
     try:
         return EllipseFit.from_dict(Reader(stored, f"{read.where}.apparent_stiction").d)
@@ -750,4 +775,6 @@ def diagnose_loop(
         episode_stick_band(episodes) if verdict.verdict == STICTION else None,
         _envelope_variation(oscillation, op_clean if op_clean is not None else pv_clean, ts),
         sized, compared,
+        None if estimate is None or "op" not in signals or "pv" not in signals
+        else model_trace(signals["op"], signals["pv"], ts, estimate, period_s),
     )

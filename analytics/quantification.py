@@ -312,6 +312,11 @@ class StictionEstimate:
     J_product_only: bool = False
 
     @property
+    def valve_model(self) -> str | None:
+        """The valve model the search chose; None without a search."""
+        return None if self.search is None else self.search.valve_model
+
+    @property
     def slip_step(self) -> float | None:
         """The product of the process gain and J, which a limit cycle pins best: the PV
         step of one slip (for an integrating process, the step of PV's rate of change)."""
@@ -348,36 +353,44 @@ class StictionEstimate:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], where: str = "quantification") -> StictionEstimate:
+    def from_dict(cls, d: Mapping[str, Any], where: str = "quantification", *,
+                  lenient: bool = False) -> StictionEstimate:
         """The estimate of :meth:`to_dict`'s form: ``to_dict(from_dict(d)) == d``.
 
         ``KJ`` and ``interval_level`` are derived, so not read.  What :meth:`to_dict`
         does not keep is left empty: no ``trace`` and no ``period_s`` (None), and of the
         ``search`` only the ``valve_model`` (its numbers NaN, its counts 0).  Estimates
         stored before the intervals, ``gain_given`` and ``J_product_only`` read None and
-        False.
+        False.  ``lenient`` (see :meth:`analytics.diagnosis.LoopDiagnosis.from_dict`):
+        missing numbers read None, flags False, issues none, and without a ``process``
+        there is no ``model``.
 
         Raises
         ------
         DataError
             A field is missing or of the wrong kind; the message names it and ``where``.
         """
-        read = Reader(d, where)
-        process = read.part("process")
+        read = Reader(d, where, lenient=lenient)
+        process = read("process")
         nan = math.nan
         return cls(
             S=read("S"), J=read("J"), fs=read("fs"), fd=read("fd"), fit_r2=read("fit_r2"),
-            model=FirstOrderProcess(INTEGRATING if process("integrating") else SELF_REGULATING,
-                                    process("K"), process("tau"), process("theta")),
+            model=None if lenient and not process else _process_from_dict(read.part("process")),
             search=SearchSummary(read("valve_model"), nan, 0, (nan, nan), (nan, nan), nan, nan,
                                  0, nan, nan),
-            trace=None, period_s=None, stiction_found=read("stiction_found"),
-            trustworthy=read("trustworthy"), issues=tuple(read("issues")),
+            trace=None, period_s=None, stiction_found=read("stiction_found", False),
+            trustworthy=read("trustworthy", False), issues=tuple(read("issues", ())),
             S_interval=None if read.get("S_interval") is None else read.pair("S_interval"),
             J_interval=None if read.get("J_interval") is None else read.pair("J_interval"),
             gain_given=bool(read.get("gain_given")),
             J_product_only=bool(read.get("J_product_only")),
         )
+
+
+def _process_from_dict(process: Reader) -> FirstOrderProcess:
+    """The ``process`` of an estimate's JSON form."""
+    return FirstOrderProcess(INTEGRATING if process("integrating") else SELF_REGULATING,
+                             process("K"), process("tau"), process("theta"))
 
 
 @dataclass(frozen=True)

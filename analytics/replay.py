@@ -4,22 +4,68 @@
 first-order process to a window; :func:`stiction_model_path` runs that valve
 and process on the window's OP again, from a sample where the valve's state is
 known, so that a plot can draw the model's MV and its predicted PV over the
-measured signature (:func:`service.plots.signature_figure`).
+measured signature (:func:`service.plots.signature_figure`).  A diagnosis keeps
+the last periods of that path (:class:`ModelTrace`, :func:`model_trace`), which
+the plot draws as stored.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from analytics.lti import TransferFunction, simulate_open_loop
+from analytics.quantification import VALVE_MODELS, StictionEstimate
+from analytics.serial import Reader
 from analytics.types import FloatArray
 from analytics.valves import ValveModel
 
-__all__ = ["StictionModelPath", "stiction_model_path"]
+__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_POINTS", "ModelTrace",
+           "StictionModelPath", "model_trace", "stiction_model_path"]
+
+MODEL_CYCLES_KEPT = 3
+"""Periods of the replayed model a diagnosis keeps (the last ones): the signature plot
+draws these, more would hide the samples."""
+
+MODEL_POINTS = 300
+"""Samples kept of each of the trace's signals at most (every k-th beyond): a slow
+cycle's three periods would otherwise store thousands of numbers with every run."""
+
+MODEL_DECIMALS = 4
+"""Decimals the trace keeps (0.0001 % of span: below a transmitter's resolution and the
+two decimals of a pixel the plot writes), so a trace stores at most about 8 kB of JSON."""
+
+
+@dataclass(frozen=True)
+class ModelTrace:
+    """The fitted model's path over the window's last :data:`MODEL_CYCLES_KEPT` periods,
+    as a diagnosis keeps it (:meth:`StictionModelPath.trace`): the measured OP, the
+    model's MV and predicted PV at the same samples (every k-th, at most
+    :data:`MODEL_POINTS`, to :data:`MODEL_DECIMALS`), ``r2`` and ``label`` of the whole
+    replay."""
+
+    op: tuple[float, ...]
+    mv: tuple[float, ...]
+    pv: tuple[float, ...]
+    r2: float
+    label: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (the ``model_trace`` of a loop diagnosis)."""
+        return {"op": list(self.op), "mv": list(self.mv), "pv": list(self.pv),
+                "r2": self.r2, "label": self.label}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "model trace") -> ModelTrace:
+        """The trace of :meth:`to_dict`'s form (``to_dict(from_dict(d)) == d``)."""
+        read = Reader(d, where)
+        return cls(tuple(read("op")), tuple(read("mv")), tuple(read("pv")), read("r2"),
+                   read("label"))
 
 
 @dataclass(frozen=True)
@@ -49,6 +95,14 @@ class StictionModelPath:
     period: int
     r2: float
     label: str
+
+    def trace(self, op: FloatArray) -> ModelTrace:
+        """The path over the last :data:`MODEL_CYCLES_KEPT` periods of the replayed ``op``."""
+        kept = np.arange(max(self.start, op.size - MODEL_CYCLES_KEPT * self.period), op.size)
+        kept = kept[::-(-kept.size // MODEL_POINTS)]
+        op_kept, mv_kept, pv_kept = (tuple(np.round(x[kept], MODEL_DECIMALS).tolist())
+                                     for x in (op, self.mv, self.pv))
+        return ModelTrace(op_kept, mv_kept, pv_kept, self.r2, self.label)
 
 
 def stiction_model_path(
@@ -104,3 +158,20 @@ def stiction_model_path(
     mv[start:], pv_model[start:] = mv_run, predicted
     return StictionModelPath(mv=mv, pv=pv_model, start=start, period=period, r2=r2,
                              label=label)
+
+
+def model_trace(op: FloatArray, pv: FloatArray, ts: float, estimate: StictionEstimate,
+                period_s: float | None) -> ModelTrace | None:
+    """The estimate's valve and process replayed on the window (:func:`stiction_model_path`),
+    its last periods kept; None without a size, process, valve model or period, or with
+    gaps in OP or PV (the valve model cannot run through a missing OP)."""
+    S, J, process = estimate.S, estimate.J or 0.0, estimate.model
+    if S is None or process is None or estimate.valve_model is None or period_s is None:
+        return None
+    if not (np.isfinite(op).all() and np.isfinite(pv).all()):
+        return None
+    return stiction_model_path(
+        op, pv, ts, valve=VALVE_MODELS[estimate.valve_model](S, J),
+        process=process.transfer_function(), period_s=period_s,
+        label=f"fitted {estimate.valve_model} valve, S = {S:.2f} %, J = {J:.2f} %",
+    ).trace(op)

@@ -13,19 +13,32 @@ __all__ = ["Reader"]
 class Reader:
     """The fields of one mapping of a result's JSON form, naming what is missing and where.
 
+    A strict reader refuses a missing field; a ``lenient`` one (results stored by older
+    versions, which lack the fields added since) reads it as its ``default`` (None
+    unless given), a missing or null mapping as an empty one and a missing or null list
+    as empty.
+
     >>> Reader({"a": 1}, "diagnosis")("b")
     Traceback (most recent call last):
     ...
     analytics.errors.DataError: diagnosis: the field 'b' is missing
+    >>> old = Reader({"a": 1}, "diagnosis", lenient=True)
+    >>> old("b", 0.0), old.part("c").get("d"), old.items("e")
+    (0.0, None, [])
     """
 
-    def __init__(self, d: Any, where: str) -> None:
+    def __init__(self, d: Any, where: str, *, lenient: bool = False) -> None:
+        if lenient and d is None:
+            d = {}
         if not isinstance(d, Mapping):
             raise DataError(f"{where}: expected an object, got {type(d).__name__}")
-        self.d, self.where = d, where
+        self.d, self.where, self.lenient = d, where, lenient
 
-    def __call__(self, key: str) -> Any:
+    def __call__(self, key: str, default: Any = None) -> Any:
+        """The field; where it is missing, ``default`` for a lenient reader."""
         if key not in self.d:
+            if self.lenient:
+                return default
             raise DataError(f"{self.where}: the field {key!r} is missing")
         return self.d[key]
 
@@ -35,14 +48,17 @@ class Reader:
 
     def part(self, key: str) -> Reader:
         """The mapping under ``key``."""
-        return Reader(self(key), f"{self.where}.{key}")
+        return Reader(self(key), f"{self.where}.{key}", lenient=self.lenient)
 
     def items(self, key: str) -> list[Reader]:
         """The mappings of the list under ``key``."""
         values = self(key)
+        if values is None and self.lenient:
+            return []
         if not isinstance(values, list | tuple):
             raise DataError(f"{self.where}.{key}: expected a list, got {type(values).__name__}")
-        return [Reader(v, f"{self.where}.{key}[{i}]") for i, v in enumerate(values)]
+        return [Reader(v, f"{self.where}.{key}[{i}]", lenient=self.lenient)
+                for i, v in enumerate(values)]
 
     def pair(self, key: str) -> tuple[Any, Any]:
         """The two values of the list under ``key``."""

@@ -29,7 +29,7 @@ from analytics.lti import TransferFunction, process_gain, simulate_open_loop
 from analytics.plantwide import UnitModel, diagnose_unit
 from analytics.simulation import PIDController
 from analytics.types import FloatArray
-from service.stored import ManualStretch, StoredDiagnosis, StoredUnitDiagnosis
+from service.stored import ManualStretch, StoredDiagnosis
 
 if TYPE_CHECKING:
     from service.buffer import LoopBuffers
@@ -52,7 +52,6 @@ __all__ = [
     "to_percent_of_span",
     "unit_model_spec",
     "unit_windows",
-    "valve_decisions",
 ]
 
 
@@ -99,9 +98,9 @@ def health_score(diagnosis: StoredDiagnosis | Mapping[str, Any]) -> float | None
     """
     stored = (diagnosis if isinstance(diagnosis, StoredDiagnosis)
               else StoredDiagnosis.from_dict(diagnosis))
-    final = stored.final
+    final, quality = stored.final, stored.analysis.quality
     return loop_health(
-        usable=stored.quality.usable, quality_warnings=stored.quality.warnings,
+        usable=quality.usable, quality_warnings=len(quality.warnings()),
         oscillating=stored.oscillation.detected, regularity=stored.oscillation.regularity,
         stiction_confidence=final.confidence if final.verdict == "stiction" else None)
 
@@ -519,19 +518,3 @@ def analyse_unit(signals: dict[str, tuple[FloatArray, FloatArray]], ts: float,
         tuple(PIDController.from_dict(c) for c in model["controllers"]),
     )
     return diagnose_unit(signals, ts, model=unit_model).to_dict()
-
-
-def valve_decisions(diagnosis: dict[str, Any]) -> tuple[list[str], list[str]]:
-    """The loops whose valves a unit diagnosis names sticky, and those it clears.
-
-    A valve is cleared when the own-valve test of its loop ran on a shared
-    oscillation (``own_valve_gain`` known) and did not name it: its loop
-    cycles because a neighbour's sticky valve drives it (thesis chapter 2,
-    section 2.3.5).  Loops in no diagnosed oscillation are neither.
-
-    >>> valve_decisions({"sticky_valves": [{"loop": "b"}], "groups": [{"evidence": [
-    ...     {"loop": "a", "own_valve_gain": 0.0}, {"loop": "b", "own_valve_gain": 0.2},
-    ...     {"loop": "c", "own_valve_gain": None}]}]})
-    (['b'], ['a'])
-    """
-    return StoredUnitDiagnosis.from_dict(diagnosis).valve_decisions()

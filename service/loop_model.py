@@ -19,7 +19,6 @@ from analytics.cycle_fit import ValveKind, valve_of
 from analytics.describing import equivalent_sj
 from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.simulation import ClosedLoopModel, Loop, PIDController
-from analytics.types import INTEGRATING, SELF_REGULATING
 from analytics.valves import ValveModel
 from service.stored import StoredDiagnosis
 
@@ -80,14 +79,14 @@ def identified_loop(config: dict[str, Any], diagnosis: StoredDiagnosis | None) -
         No stiction estimate with an identified process, no controller in the
         configuration, or a gain and action that would make positive feedback.
     """
-    estimate = None if diagnosis is None else diagnosis.quantification
-    if estimate is None or estimate.S is None or estimate.process is None:
+    estimate = None if diagnosis is None else diagnosis.analysis.quantification
+    if estimate is None or estimate.S is None or estimate.model is None:
         raise ModelUnavailableError("the latest analysis has no stiction estimate (S, J) "
                                     "with an identified process model")
     controller = config.get("controller")
     if not controller:
         raise ModelUnavailableError("the loop's configuration has no controller (Kc, Ti)")
-    process = estimate.process
+    process = estimate.model
     action = controller.get("action", "reverse")
     # Reverse action closes negative feedback around a positive process gain.
     gain = process.K if action == "reverse" else -process.K
@@ -101,9 +100,8 @@ def identified_loop(config: dict[str, Any], diagnosis: StoredDiagnosis | None) -
     # sampling interval: negligible at the cycle, and the loop stays strictly proper
     # for the Nyquist count (a PI controller on a pure gain and delay is not).
     tau = process.tau if process.tau > 0 else float(config["ts"])
-    kind = INTEGRATING if process.integrating else SELF_REGULATING
     return IdentifiedLoop(
-        process=FirstOrderProcess(kind, gain, tau, process.theta).transfer_function(),
+        process=FirstOrderProcess(process.kind, gain, tau, process.theta).transfer_function(),
         controller=PIDController.ideal(controller["Kc"], controller.get("Ti") or math.inf,
                                        controller.get("Td", 0.0)),
         valve=valve_of(valve_kind(estimate.valve_model), estimate.S, estimate.J or 0.0),

@@ -20,9 +20,9 @@ Figures
   :func:`analytics.stiction.signature.fit_signature_ellipse` and its width
   along OP, the apparent stiction (Choudhury, Shah, Thornhill & Shook 2006,
   Control Eng. Practice 14:1395-1412, section 6), and the fitted stiction
-  model of :func:`analytics.replay.stiction_model_path` (the Hammerstein fit of
+  model's trace (:class:`analytics.replay.ModelTrace`: the Hammerstein fit of
   :func:`analytics.quantification.quantify_stiction` replayed on the
-  measured OP): OP against its predicted PV and against its MV.
+  measured OP, its last periods): OP against its predicted PV and against its MV.
 * :func:`spectrum_figure`: power spectrum and autocorrelation of OP and PV
   with the detected period (Thornhill, Huang & Zhang 2003, J. Process
   Control 13:91-100, read the period off the ACF).
@@ -49,14 +49,13 @@ import resvg_py
 from numpy.typing import ArrayLike
 
 from analytics.limit_cycle import NyquistCurves, Prediction
-from analytics.replay import StictionModelPath
+from analytics.replay import ModelTrace
 from analytics.signals import autocorrelation, power_spectrum
 from analytics.stiction.signature import EllipseFit
 from analytics.types import FloatArray
 
 __all__ = [
     "COLOURS",
-    "MODEL_CYCLES_DRAWN",
     "PLOT_WIDTH",
     "PNG_ZOOM",
     "Figure",
@@ -234,7 +233,7 @@ def trend_figure(
 
 def _signature_panel(
     op: FloatArray, valve: FloatArray, valve_name: str, fit: EllipseFit | None, unit: str,
-    model: StictionModelPath | None,
+    model: ModelTrace | None,
 ) -> Panel:
     label = SIGNAL_LABELS[valve_name]
     drawn = [Series(valve_name, "samples", op, valve, COLOURS[valve_name],
@@ -252,29 +251,24 @@ def _signature_panel(
         notes = [f"apparent stiction {fit.apparent_stiction:.2f} % of OP span (width ratio "
                  f"{fit.width_ratio:.2f}, fit residual {fit.residual:.2f})"]
     if model is not None:
-        drawn += _model_series(op, model, valve_name)
+        drawn += _model_series(model, valve_name)
         notes.append(f"fitted model predicts PV with R² {model.r2:.2f}" if valve_name == "pv"
                      else model.label)
     return Panel(f"Valve signature: OP against {label}", f"OP ({unit})", f"{label} ({unit})",
                  tuple(drawn), note="; ".join(notes))
 
 
-MODEL_CYCLES_DRAWN = 3
-"""Periods of the fitted model drawn (the last ones): more would hide the samples."""
-
-
-def _model_series(op: FloatArray, model: StictionModelPath, signal: str) -> list[Series]:
+def _model_series(model: ModelTrace, signal: str) -> list[Series]:
     """The fitted model's path from OP to its ``pv`` or ``mv`` over the last cycles, a line."""
-    drawn = slice(max(model.start, op.size - MODEL_CYCLES_DRAWN * model.period), None)
-    values = model.pv if signal == "pv" else model.mv
-    return [Series(f"model_{signal}", f"model {SIGNAL_LABELS[signal]}", op[drawn],
-                   values[drawn], COLOURS["model"], width=2.0)]
+    return [Series(f"model_{signal}", f"model {SIGNAL_LABELS[signal]}", _array(model.op),
+                   _array(model.pv if signal == "pv" else model.mv), COLOURS["model"],
+                   width=2.0)]
 
 
-def _model_valve_panel(op: FloatArray, model: StictionModelPath, unit: str) -> Panel:
+def _model_valve_panel(model: ModelTrace, unit: str) -> Panel:
     """OP against the model's MV when MV is not measured: the fitted valve's stick-slip."""
     return Panel("Fitted valve model: OP against the model's MV", f"OP ({unit})",
-                 f"model MV ({unit})", tuple(_model_series(op, model, "mv")),
+                 f"model MV ({unit})", tuple(_model_series(model, "mv")),
                  note=model.label)
 
 
@@ -286,7 +280,7 @@ def signature_figure(
     pv_fit: EllipseFit | None = None,
     mv: ArrayLike | None = None,
     mv_fit: EllipseFit | None = None,
-    model: StictionModelPath | None = None,
+    model: ModelTrace | None = None,
     unit: str = "% of span",
 ) -> Figure:
     """The valve signature: OP against PV (and MV), with the fitted ellipse and model.
@@ -295,18 +289,15 @@ def signature_figure(
     (:func:`analytics.stiction.signature.fit_signature_ellipse`); the black
     bar through its centre is its width along the OP axis, the apparent
     stiction of Choudhury et al. (2006, section 6).  The fitted stiction
-    ``model`` (:func:`analytics.replay.stiction_model_path`) is drawn as its path from OP to
-    the predicted PV over the OP-PV signature and from OP to its MV: over the
-    measured OP-MV signature, or in a panel of its own when MV is not
+    ``model`` (:class:`analytics.replay.ModelTrace`, as the diagnosis stored it) is drawn as
+    its path from OP to the predicted PV over the OP-PV signature and from OP to its MV:
+    over the measured OP-MV signature, or in a panel of its own when MV is not
     measured.  Only pairs where both signals are finite are drawn.
     """
     op_values, pv_values = _array(op), _array(pv)
     if op_values.shape != pv_values.shape:
         raise ValueError(f"signature_figure: op and pv differ in shape, "
                          f"{op_values.shape} and {pv_values.shape}")
-    if model is not None and model.pv.shape != op_values.shape:
-        raise ValueError(f"signature_figure: the model path has shape {model.pv.shape}, "
-                         f"op {op_values.shape}")
     panels = [_signature_panel(op_values, pv_values, "pv", pv_fit, unit, model)]
     if mv is not None:
         mv_values = _array(mv)
@@ -315,7 +306,7 @@ def signature_figure(
                              f"{op_values.shape} and {mv_values.shape}")
         panels.append(_signature_panel(op_values, mv_values, "mv", mv_fit, unit, model))
     elif model is not None:
-        panels.append(_model_valve_panel(op_values, model, unit))
+        panels.append(_model_valve_panel(model, unit))
     words = "; ".join(f"{p.title}: {p.note}" for p in panels)
     return Figure("signature", title, f"Valve signature. {words}.", tuple(panels))
 

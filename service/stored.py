@@ -5,17 +5,17 @@ A loop's run keeps its diagnosis in ``AnalysisRun.result``: the
 :func:`service.analysis.analyse_window` adds (``health``, ``first_sample_at``,
 ``kpis``, ``manual``) and the final verdict on the valve
 (``valve``, :func:`service.verdicts.settle_run`).  A unit's run keeps
-:meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``.
+:meth:`analytics.plantwide.UnitDiagnosis.to_dict` in ``UnitAnalysisRun.result``, which
+the service reads with ``UnitDiagnosis.from_dict(..., lenient=True)``.
 
 :meth:`analytics.diagnosis.LoopDiagnosis.from_dict` and
 :meth:`analytics.plantwide.UnitDiagnosis.from_dict` rebuild the analytics objects
 from that JSON, without what it does not keep (the Hammerstein search and fit
 trace, the oscillation methods' results), and refuse a field that is missing.
-Runs stored by older versions lack fields, so the service reads the JSON through
-the frozen views here: :meth:`StoredDiagnosis.from_dict` and
-:meth:`StoredUnitDiagnosis.from_dict` read exactly the fields the service uses,
-once.  Every field has a default, so older runs (and partial results) read as
-well; the JSON itself is not changed.
+Runs stored by older versions lack fields: :meth:`StoredDiagnosis.from_dict` reads
+the analysis through ``LoopDiagnosis.from_dict(..., lenient=True)``, which reads a
+missing field as its default (documented there), and the service's additions here.
+The JSON itself is not changed.
 """
 
 from __future__ import annotations
@@ -24,25 +24,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from analytics.diagnosis import LoopDiagnosis
+from analytics.oscillation import LoopOscillation
+from analytics.stiction.battery import StictionVerdict
+
 __all__ = [
     "GainFlags",
     "ManualStretch",
     "SizeWindow",
-    "StoredCycle",
     "StoredDiagnosis",
-    "StoredEpisode",
-    "StoredEstimate",
-    "StoredGroup",
-    "StoredGroupEvidence",
-    "StoredGroupMember",
-    "StoredIssue",
     "StoredKpis",
-    "StoredOscillation",
-    "StoredProcess",
-    "StoredQuality",
-    "StoredStickyValve",
-    "StoredStiction",
-    "StoredUnitDiagnosis",
     "StoredValve",
     "ValveSize",
 ]
@@ -60,178 +51,6 @@ def _float(value: Any) -> float | None:
 
 def _interval(value: Any) -> tuple[float, float] | None:
     return None if not value else (float(value[0]), float(value[1]))
-
-
-@dataclass(frozen=True)
-class StoredIssue:
-    """One data-quality issue (``quality.issues[]``)."""
-
-    code: str
-    signal: str | None
-    severity: str
-    message: str = ""
-    value: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredIssue:
-        return cls(str(d.get("code", "")), d.get("signal"), str(d.get("severity", "")),
-                   str(d.get("message", "")), d.get("value"))
-
-
-@dataclass(frozen=True)
-class StoredQuality:
-    """``quality``: whether the window could be analysed, and its issues."""
-
-    usable: bool = False
-    issues: tuple[StoredIssue, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredQuality:
-        return cls(bool(d.get("usable", False)),
-                   tuple(StoredIssue.from_dict(i) for i in d.get("issues") or ()))
-
-    @property
-    def warnings(self) -> int:
-        """Issues of severity ``warning``."""
-        return sum(1 for i in self.issues if i.severity == "warning")
-
-
-@dataclass(frozen=True)
-class StoredCycle:
-    """One oscillation of OP or PV (``oscillation.oscillations[]``)."""
-
-    signal: str
-    period_s: float | None
-    amplitude: float | None = None
-    regularity: float | None = None
-    presence: float | None = None
-    present_from_s: float | None = None
-    present_to_s: float | None = None
-    method: str | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredCycle:
-        return cls(str(d.get("signal", "")), d.get("period_s"), d.get("amplitude"),
-                   d.get("regularity"), d.get("presence"), d.get("present_from_s"),
-                   d.get("present_to_s"), d.get("method"))
-
-
-@dataclass(frozen=True)
-class StoredOscillation:
-    """``oscillation``: the loop's detected oscillation and the period analysed."""
-
-    detected: bool = False
-    period_s: float | None = None
-    regularity: float | None = None
-    amplitude_op: float | None = None
-    amplitude_pv: float | None = None
-    analysed_period_s: float | None = None
-    envelope_variation: float | None = None
-    oscillations: tuple[StoredCycle, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredOscillation:
-        return cls(bool(d.get("detected", False)), d.get("period_s"), d.get("regularity"),
-                   d.get("amplitude_op"), d.get("amplitude_pv"), d.get("analysed_period_s"),
-                   d.get("envelope_variation"),
-                   tuple(StoredCycle.from_dict(o) for o in d.get("oscillations") or ()))
-
-    @property
-    def analysed_period(self) -> float | None:
-        """The period the analysis used (also for an irregular cycle), else the detected
-        one."""
-        period = self.analysed_period_s or self.period_s
-        return None if period is None else float(period)
-
-
-@dataclass(frozen=True)
-class StoredEpisode:
-    """One stick-jump episode (``stiction.episodes[]``), times in s from the window's
-    first sample."""
-
-    start_s: float
-    jump_s: float
-    end_s: float
-    op_travel: float
-    pv_jump: float
-    op_during_jump: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredEpisode:
-        return cls(d["start_s"], d["jump_s"], d["end_s"], d["op_travel"], d["pv_jump"],
-                   d.get("op_during_jump"))
-
-
-@dataclass(frozen=True)
-class StoredStiction:
-    """``stiction``: the loop's own verdict (or ``valve``'s fields of it)."""
-
-    verdict: str | None = None
-    confidence: float = 0.0
-    reason: str = ""
-    score: float | None = None
-    pattern: str | None = None
-    op_travel: float | None = None
-    episode_stick_band: float | None = None
-    episodes: tuple[StoredEpisode, ...] = ()
-    episode_S: float | None = None
-    """``episode_size.S``: S from OP's travel between its turns and the slips."""
-    size_check: str | None = None
-    """``episode_size.note``: whether that S agrees with the Hammerstein estimate."""
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredStiction:
-        sized = d.get("episode_size") or {}
-        return cls(d.get("verdict"), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
-                   d.get("score"), d.get("pattern"), d.get("op_travel"),
-                   d.get("episode_stick_band"),
-                   tuple(StoredEpisode.from_dict(e) for e in d.get("episodes") or ()),
-                   sized.get("S"), sized.get("note"))
-
-
-@dataclass(frozen=True)
-class StoredProcess:
-    """The identified first-order process of an estimate (``quantification.process``)."""
-
-    K: float
-    tau: float
-    theta: float
-    integrating: bool = False
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredProcess:
-        return cls(float(d["K"]), float(d["tau"]), float(d["theta"]),
-                   bool(d.get("integrating", False)))
-
-
-@dataclass(frozen=True)
-class StoredEstimate:
-    """``quantification``: the Hammerstein estimate
-    (:meth:`analytics.quantification.StictionEstimate.to_dict`)."""
-
-    S: float | None = None
-    J: float | None = None
-    fs: float | None = None
-    fd: float | None = None
-    S_interval: tuple[float, float] | None = None
-    J_interval: tuple[float, float] | None = None
-    valve_model: str | None = None
-    process: StoredProcess | None = None
-    gain_given: bool = False
-    gain_source: str | None = None
-    J_product_only: bool = False
-    fit_r2: float | None = None
-    """Output-error R^2 of the fit."""
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredEstimate:
-        process = d.get("process")
-        return cls(_float(d.get("S")), _float(d.get("J")), _float(d.get("fs")),
-                   _float(d.get("fd")), _interval(d.get("S_interval")),
-                   _interval(d.get("J_interval")), d.get("valve_model"),
-                   None if not process else StoredProcess.from_dict(process),
-                   bool(d.get("gain_given")), d.get("gain_source"),
-                   bool(d.get("J_product_only")), _float(d.get("fit_r2")))
 
 
 @dataclass(frozen=True)
@@ -409,16 +228,13 @@ class StoredKpis:
 
 @dataclass(frozen=True)
 class StoredDiagnosis:
-    """A loop run's stored diagnosis (``AnalysisRun.result``) as the service reads it."""
+    """A loop run's stored diagnosis (``AnalysisRun.result``) as the service reads it: the
+    analysis (:meth:`analytics.diagnosis.LoopDiagnosis.from_dict`, lenient) and what the
+    service added to it."""
 
-    samples: int | None = None
-    ts: float | None = None
-    process_type: str | None = None
-    quality: StoredQuality = field(default_factory=StoredQuality)
-    oscillation: StoredOscillation = field(default_factory=StoredOscillation)
-    stiction: StoredStiction = field(default_factory=StoredStiction)
-    quantification: StoredEstimate | None = None
-    apparent_stiction: Mapping[str, Any] | None = None
+    analysis: LoopDiagnosis
+    gain_source: str | None = None
+    """``quantification.gain_source``: where a given process gain came from."""
     health: float | None = None
     first_sample_at: float | None = None
     kpis: StoredKpis = field(default_factory=StoredKpis)
@@ -428,14 +244,10 @@ class StoredDiagnosis:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> StoredDiagnosis:
         d = d or {}
-        estimate, manual, valve = d.get("quantification"), d.get("manual"), d.get("valve")
+        manual, valve = d.get("manual"), d.get("valve")
         return cls(
-            samples=d.get("samples"), ts=d.get("ts"), process_type=d.get("process_type"),
-            quality=StoredQuality.from_dict(_section(d, "quality")),
-            oscillation=StoredOscillation.from_dict(_section(d, "oscillation")),
-            stiction=StoredStiction.from_dict(_section(d, "stiction")),
-            quantification=None if not estimate else StoredEstimate.from_dict(estimate),
-            apparent_stiction=d.get("apparent_stiction") or None,
+            analysis=LoopDiagnosis.from_dict(d, lenient=True),
+            gain_source=_section(d, "quantification").get("gain_source"),
             health=d.get("health"), first_sample_at=d.get("first_sample_at"),
             kpis=StoredKpis.from_dict(d.get("kpis")),
             manual=None if manual is None else ManualStretch.from_dict(manual),
@@ -443,103 +255,24 @@ class StoredDiagnosis:
         )
 
     @property
-    def final(self) -> StoredValve | StoredStiction:
+    def oscillation(self) -> LoopOscillation:
+        """The analysis's oscillation (a lenient read always has one)."""
+        assert self.analysis.oscillation is not None
+        return self.analysis.oscillation
+
+    @property
+    def analysed_period(self) -> float | None:
+        """The period the analysis used (also for an irregular cycle), else the detected
+        one."""
+        period = self.analysis.cycle_period_s or self.oscillation.period_s
+        return None if period is None else float(period)
+
+    @property
+    def final(self) -> StoredValve | StictionVerdict:
         """The final verdict on the valve (``valve``) when settled, else the loop's own."""
-        return self.valve if self.valve is not None else self.stiction
+        return self.valve if self.valve is not None else self.analysis.stiction
 
     @property
     def final_by_unit(self) -> bool:
         """Whether the final verdict is the unit's diagnosis's."""
         return self.valve is not None and self.valve.by_unit
-
-
-@dataclass(frozen=True)
-class StoredStickyValve:
-    """A valve a unit's diagnosis names sticky (``sticky_valves[]``)."""
-
-    loop: str
-    confidence: float
-    reason: str = ""
-    S: float | None = None
-    J: float | None = None
-    period_s: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredStickyValve:
-        return cls(str(d["loop"]), float(d.get("confidence") or 0.0), str(d.get("reason", "")),
-                   _float(d.get("S")), _float(d.get("J")), _float(d.get("period_s")))
-
-
-@dataclass(frozen=True)
-class StoredGroupMember:
-    """A signal of an oscillation group (``groups[].members[]``)."""
-
-    signal: str
-    amplitude: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupMember:
-        return cls(str(d.get("signal", "")), d.get("amplitude"))
-
-
-@dataclass(frozen=True)
-class StoredGroupEvidence:
-    """The own-valve test of a loop in a group (``groups[].evidence[]``)."""
-
-    loop: str
-    own_valve_gain: float | None = None
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroupEvidence:
-        return cls(str(d["loop"]), d.get("own_valve_gain"))
-
-
-@dataclass(frozen=True)
-class StoredGroup:
-    """An oscillation group of a unit's diagnosis (``groups[]``)."""
-
-    period_s: float | None = None
-    loops: tuple[str, ...] = ()
-    members: tuple[StoredGroupMember, ...] = ()
-    evidence: tuple[StoredGroupEvidence, ...] = ()
-    sticky_valves: tuple[str, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> StoredGroup:
-        return cls(_float(d.get("period_s")), tuple(d.get("loops") or ()),
-                   tuple(StoredGroupMember.from_dict(m) for m in d.get("members") or ()),
-                   tuple(StoredGroupEvidence.from_dict(e) for e in d.get("evidence") or ()),
-                   tuple(d.get("sticky_valves") or ()))
-
-
-@dataclass(frozen=True)
-class StoredUnitDiagnosis:
-    """A unit run's stored diagnosis (``UnitAnalysisRun.result``) as the service reads it."""
-
-    sticky_valves: tuple[StoredStickyValve, ...] = ()
-    groups: tuple[StoredGroup, ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> StoredUnitDiagnosis:
-        d = d or {}
-        return cls(tuple(StoredStickyValve.from_dict(f) for f in d.get("sticky_valves") or ()),
-                   tuple(StoredGroup.from_dict(g) for g in d.get("groups") or ()))
-
-    def valve_decisions(self) -> tuple[list[str], list[str]]:
-        """The loops whose valves the diagnosis names sticky, and those it clears.
-
-        A valve is cleared when the own-valve test of its loop ran on a shared
-        oscillation (``own_valve_gain`` known) and did not name it: its loop
-        cycles because a neighbour's sticky valve drives it (thesis chapter 2,
-        section 2.3.5).  Loops in no diagnosed oscillation are neither.
-
-        >>> StoredUnitDiagnosis.from_dict({"sticky_valves": [{"loop": "b"}], "groups": [
-        ...     {"evidence": [{"loop": "a", "own_valve_gain": 0.0},
-        ...      {"loop": "b", "own_valve_gain": 0.2},
-        ...      {"loop": "c", "own_valve_gain": None}]}]}).valve_decisions()
-        (['b'], ['a'])
-        """
-        sticky = [finding.loop for finding in self.sticky_valves]
-        tested = {e.loop for group in self.groups for e in group.evidence
-                  if e.own_valve_gain is not None}
-        return sticky, sorted(tested - set(sticky))

@@ -335,7 +335,7 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
     amplitudes and the stiction pattern and episodes (:func:`run_episodes`).
     """
     diagnosis = StoredDiagnosis.from_dict(run.result)
-    valve = diagnosis.valve or StoredValve()
+    valve, analysis = diagnosis.valve or StoredValve(), diagnosis.analysis
     return {
         "run_id": run.id,
         "window_start": run.window_start,
@@ -346,11 +346,11 @@ def evidence_from_run(run: AnalysisRun) -> dict[str, Any]:
         "period_s": run.period_s,
         "amplitude_op": diagnosis.oscillation.amplitude_op,
         "amplitude_pv": diagnosis.oscillation.amplitude_pv,
-        "pattern": diagnosis.stiction.pattern,
-        "op_travel": diagnosis.stiction.op_travel,
-        "episode_stick_band": diagnosis.stiction.episode_stick_band,
-        "episode_S": diagnosis.stiction.episode_S,
-        "size_check": diagnosis.stiction.size_check,
+        "pattern": analysis.pattern,
+        "op_travel": analysis.op_travel,
+        "episode_stick_band": analysis.episode_stick_band,
+        "episode_S": None if analysis.episode_size is None else analysis.episode_size.S,
+        "size_check": None if analysis.size_comparison is None else analysis.size_comparison.note,
         "episodes": run_episodes(run),
         "S_interval": None if valve.S_interval is None else list(valve.S_interval),
         "J_interval": None if valve.J_interval is None else list(valve.J_interval),
@@ -374,10 +374,11 @@ def run_episodes(run: AnalysisRun) -> list[dict[str, float]]:
     diagnosis = StoredDiagnosis.from_dict(run.result)
     origin = (_window(run)[0] if diagnosis.first_sample_at is None
               else diagnosis.first_sample_at)
+    ts = diagnosis.analysis.ts
     return [
-        {"start": origin + e.start_s, "jump": origin + e.jump_s, "end": origin + e.end_s,
-         "op_travel": e.op_travel, "pv_jump": e.pv_jump}
-        for e in diagnosis.stiction.episodes
+        {"start": origin + e.start * ts, "jump": origin + e.jump_at * ts,
+         "end": origin + e.end * ts, "op_travel": e.op_travel, "pv_jump": e.pv_jump}
+        for e in diagnosis.analysis.episodes
     ]
 
 

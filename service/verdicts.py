@@ -33,7 +33,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from analytics.plantwide import UnitDiagnosis
+from analytics.plantwide import UnitDiagnosis, ValveFinding
 from analytics.quantification import combine_windows
 from service.analysis import health_score
 from service.store.models import AnalysisRun, UnitAnalysisRun
@@ -41,8 +41,6 @@ from service.stored import (
     GainFlags,
     SizeWindow,
     StoredDiagnosis,
-    StoredStickyValve,
-    StoredUnitDiagnosis,
     StoredValve,
     ValveSize,
 )
@@ -76,12 +74,12 @@ class UnitDecision:
     unit_id, run_id : str, int
         The unit and its diagnosis (:class:`~service.store.models.UnitAnalysisRun`).
     sticky : dict
-        ``loop id -> finding`` (:class:`~service.stored.StoredStickyValve`: ``confidence``,
+        ``loop id -> finding`` (:class:`~analytics.plantwide.ValveFinding`: ``confidence``,
         ``S``, ``J``, ``reason``) of each loop whose valve the diagnosis names sticky, most
         confident first; findings given in their stored (dict) form are read into it.
     cleared : tuple of str
         The loops whose valves it clears
-        (:meth:`~service.stored.StoredUnitDiagnosis.valve_decisions`).
+        (:meth:`~analytics.plantwide.UnitDiagnosis.valve_decisions`).
     valves : dict
         ``loop id -> valve tag`` of the unit's loops (the loop id when no valve is
         configured).
@@ -89,13 +87,13 @@ class UnitDecision:
 
     unit_id: str
     run_id: int
-    sticky: Mapping[str, StoredStickyValve]
+    sticky: Mapping[str, ValveFinding]
     cleared: tuple[str, ...]
     valves: dict[str, str]
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sticky", {
-            loop: f if isinstance(f, StoredStickyValve) else StoredStickyValve.from_dict(f)
+            loop: f if isinstance(f, ValveFinding) else ValveFinding.from_dict(f, lenient=True)
             for loop, f in self.sticky.items()})
 
 
@@ -104,7 +102,7 @@ def unit_decision(run: UnitAnalysisRun | None, valves: Mapping[str, str]
     """The decision of a stored unit diagnosis; None when it is missing or not ``ok``."""
     if run is None or run.status != "ok" or run.result is None:
         return None
-    diagnosis = StoredUnitDiagnosis.from_dict(run.result)
+    diagnosis = UnitDiagnosis.from_dict(run.result, lenient=True)
     sticky, cleared = diagnosis.valve_decisions()
     findings = {f.loop: f for f in diagnosis.sticky_valves}
     return UnitDecision(run.unit_id, run.id, {loop: findings[loop] for loop in sticky},
@@ -125,8 +123,8 @@ def valve_decision(loop_id: str, diagnosis: StoredDiagnosis | Mapping[str, Any],
                    unit: UnitDecision | None = None) -> StoredValve:
     """The final verdict on the valve of ``loop_id`` (:func:`valve_verdict`), typed."""
     stored = _stored(diagnosis)
-    own = stored.stiction
-    size = stored.quantification
+    own = stored.analysis.stiction
+    size = stored.analysis.quantification
     verdict = StoredValve(
         verdict=own.verdict, confidence=own.confidence,
         S=None if size is None else size.S, J=None if size is None else size.J,
@@ -205,13 +203,13 @@ def combined_size(verdict: StoredValve, diagnosis: StoredDiagnosis,
     if verdict.verdict != "stiction":
         return size
     windows = list(previous)
-    own = diagnosis.quantification
+    own = diagnosis.analysis.quantification
     if (own is not None and own.S is not None and own.S == verdict.S and own.J is not None
             and own.S_interval and own.J_interval
             and (not windows or window[0] >= windows[-1].window_end)):
         windows.append(SizeWindow(window[0], window[1], own.S, own.S_interval, own.J,
                                   own.J_interval, gain_given=own.gain_given,
-                                  gain_source=own.gain_source,
+                                  gain_source=diagnosis.gain_source,
                                   J_product_only=own.J_product_only, fit_r2=own.fit_r2))
     windows = windows[-MAX_SIZE_WINDOWS:]
     if not windows:

@@ -69,3 +69,10 @@ def test_the_scan_catches_a_forbidden_import(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text("from service.api import app\nimport numpy as np\n")
     assert imported_roots(bad) & set(FORBIDDEN) == {"service"}
+
+
+def test_every_router_has_its_mirrored_route_tests():
+    """``service/api/routes/<route>.py`` is tested in ``tests/service/api/test_<route>.py``."""
+    routes = {p.stem for p in (ROOT / "service/api/routes").glob("*.py") if p.stem != "__init__"}
+    tested = {p.stem.removeprefix("test_") for p in (ROOT / "tests/service/api").glob("test_*.py")}
+    assert sorted(routes - tested) == []

@@ -279,6 +279,14 @@ class ValveFinding:
                 "S": self.S, "J": self.J, "J_product_only": self.J_product_only,
                 "reason": self.reason}
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "finding", *,
+                  lenient: bool = False) -> ValveFinding:
+        """The finding of :meth:`to_dict`'s form (see :meth:`UnitDiagnosis.from_dict`)."""
+        f = Reader(d, where, lenient=lenient)
+        return cls(f("loop"), f("confidence", 0.0), f("period_s"), f("S"), f("J"),
+                   f("reason", ""), bool(f.get("J_product_only")))
+
 
 @dataclass(frozen=True)
 class UnitDiagnosis:
@@ -314,6 +322,25 @@ class UnitDiagnosis:
         """Number of sticky valves found."""
         return len(self.sticky_valves)
 
+    def valve_decisions(self) -> tuple[list[str], list[str]]:
+        """The loops whose valves the diagnosis names sticky, and those it clears.
+
+        A valve is cleared when the own-valve test of its loop ran on a shared
+        oscillation (``own_valve_gain`` known) and did not name it: its loop
+        cycles because a neighbour's sticky valve drives it (thesis chapter 2,
+        section 2.3.5).  Loops in no diagnosed oscillation are neither.
+
+        >>> UnitDiagnosis.from_dict({"sticky_valves": [{"loop": "b"}], "groups": [
+        ...     {"evidence": [{"loop": "a", "own_valve_gain": 0.0},
+        ...      {"loop": "b", "own_valve_gain": 0.2},
+        ...      {"loop": "c", "own_valve_gain": None}]}]}, lenient=True).valve_decisions()
+        (['b'], ['a'])
+        """
+        sticky = [finding.loop for finding in self.sticky_valves]
+        tested = {e.loop for group in self.groups for e in group.evidence
+                  if e.own_valve_gain is not None}
+        return sticky, sorted(tested - set(sticky))
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch unit-analyze --json`` contract)."""
         return {
@@ -331,7 +358,7 @@ class UnitDiagnosis:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> UnitDiagnosis:
+    def from_dict(cls, d: Mapping[str, Any], *, lenient: bool = False) -> UnitDiagnosis:
         """The diagnosis of :meth:`to_dict`'s form (a stored or a ``unit-analyze --json``
         one): ``to_dict(from_dict(d)) == d``.
 
@@ -343,7 +370,10 @@ class UnitDiagnosis:
         ``no_valve_harmonic_misfit`` (NaN and empty).  Diagnoses stored before the unit's
         model was used have no ``linear`` and no group ``model``, and those stored before
         the replay no group ``replay``: None; findings stored before
-        ``J_product_only`` read False.
+        ``J_product_only`` read False.  ``lenient`` reads a partial diagnosis (the
+        service's view of a stored one): a missing field reads None, except the lists
+        (empty), ``confidence`` (0), ``reason`` and ``note`` (empty), ``sticky`` (False)
+        and ``half_gains`` (None, None).
 
         Raises
         ------
@@ -351,14 +381,12 @@ class UnitDiagnosis:
             A field is missing or of the wrong kind; the message names it and where
             (``groups[0].evidence[1]``).
         """
-        read = Reader(d, "unit diagnosis")
+        read = Reader(d, "unit diagnosis", lenient=lenient)
         return cls(
-            loops=tuple(read("loops")), samples=read("samples"), ts=read("ts"),
+            loops=tuple(read("loops", ())), samples=read("samples"), ts=read("ts"),
             groups=tuple(_group_from_dict(g) for g in read.items("groups")),
-            sticky_valves=tuple(
-                ValveFinding(f("loop"), f("confidence"), f("period_s"), f("S"), f("J"),
-                             f("reason"), bool(f.get("J_product_only")))
-                for f in read.items("sticky_valves")),
+            sticky_valves=tuple(ValveFinding.from_dict(f.d, f.where, lenient=lenient)
+                                for f in read.items("sticky_valves")),
             linear=None if read.get("linear") is None else _linear_from_dict(read.part("linear")),
         )
 
@@ -371,7 +399,7 @@ def _group_from_dict(read: Reader) -> GroupDiagnosis:
     """The inverse of :func:`_group_dict` (see :meth:`UnitDiagnosis.from_dict`)."""
     shapes = None if read("shape_decomposition") is None else read.part("shape_decomposition")
     return GroupDiagnosis(
-        period_s=read("period_s"), cycles=read("cycles"), loops=tuple(read("loops")),
+        period_s=read("period_s"), cycles=read("cycles"), loops=tuple(read("loops", ())),
         members=tuple(
             GroupMember(m("signal"), m("period_s"), m("regularity"), m("power_fraction"),
                         m("amplitude"), m("similarity"))
@@ -383,11 +411,14 @@ def _group_from_dict(read: Reader) -> GroupDiagnosis:
             cycles=dict(shapes("cycles"))),
         evidence=tuple(
             LoopEvidence(e("loop"), e("nonlinearity_op"), e("nonlinearity_pv"),
-                         e("own_valve_gain"), e.pair("half_gains"), e("S"), e("J"),
-                         e("sticky"), e("note"), bool(e.get("J_product_only")))
+                         e("own_valve_gain"),
+                         (None, None) if e("half_gains") is None and e.lenient
+                         else e.pair("half_gains"),
+                         e("S"), e("J"), e("sticky", False), e("note", ""),
+                         bool(e.get("J_product_only")))
             for e in read.items("evidence")),
-        sticky_valves=tuple(read("sticky_valves")), envelope_cv=read("envelope_cv"),
-        note=read("note"),
+        sticky_valves=tuple(read("sticky_valves", ())), envelope_cv=read("envelope_cv"),
+        note=read("note", ""),
         model=None if read.get("model") is None else _localisation_from_dict(read.part("model")),
         replay=None if read.get("replay") is None else _replay_from_dict(read.part("replay")),
     )

@@ -13,6 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from analytics.plantwide import UnitDiagnosis
 from service.alarms import alarm_payload, update_alarms_from_analysis
 from service.analysis import UnitWindows, stiction_pattern_text
 from service.config import LoopConfig, PlantConfig, Settings
@@ -22,7 +23,7 @@ from service.plant import PlantRegistry
 from service.scheduling.jobs import JobOutcome
 from service.store.db import Store
 from service.store.models import AnalysisRun, UnitAnalysisRun
-from service.stored import StoredDiagnosis, StoredUnitDiagnosis
+from service.stored import StoredDiagnosis
 from service.tickets import evidence_from_run, ticket_payload, update_ticket_from_analysis
 from service.verdicts import latest_unit_decision, previous_size_windows, settle_run
 
@@ -48,18 +49,19 @@ def alarm_message(diagnosis: dict[str, Any]) -> str:
     stuck valve freezes PV, so it comes with unusable data), a valve the unit's
     diagnosis clears its reason ("cycles because FV-502 sticks")."""
     stored = StoredDiagnosis.from_dict(diagnosis)
-    stiction, final = stored.stiction, stored.final
+    analysis, final = stored.analysis, stored.final
     if stored.final_by_unit and final.verdict != "stiction":
         pattern: str | None = final.reason
     else:
-        pattern = stiction_pattern_text(stiction.pattern, stiction.op_travel)
+        pattern = stiction_pattern_text(analysis.pattern, analysis.op_travel)
     # in words, as the dashboard's verdicts read ("no stiction", not "no_stiction")
     valve = (f"valve: {str(final.verdict).replace('_', ' ')}"
              + ("" if pattern is None else f" ({pattern})"))
-    if not stored.quality.usable:
+    if not analysis.quality.usable:
         if final.verdict == "stiction":
             return f"data unusable, {valve}"
-        return stiction.reason  # "data unusable: ..." or why a loop in manual is not judged
+        # "data unusable: ..." or why a loop in manual is not judged
+        return analysis.stiction.reason
     osc = stored.oscillation
     if not osc.detected:
         return "no oscillation" + ("" if pattern is None else f"; {valve}")
@@ -143,7 +145,7 @@ class ResultWriter:
             )
             if diagnosis is not None:
                 stored = StoredDiagnosis.from_dict(diagnosis)
-                run.usable = stored.quality.usable
+                run.usable = stored.analysis.quality.usable
                 run.oscillating = stored.oscillation.detected
                 run.period_s = stored.oscillation.period_s
                 run.result = diagnosis
@@ -197,7 +199,7 @@ class ResultWriter:
             return
         self.metrics.inc("loopwatch_unit_analyses_total", status=outcome.status)
         sticky, cleared = ([], []) if outcome.result is None else (
-            StoredUnitDiagnosis.from_dict(outcome.result).valve_decisions())
+            UnitDiagnosis.from_dict(outcome.result, lenient=True).valve_decisions())
         try:
             with self.store.session() as session:
                 session.add(UnitAnalysisRun(

@@ -161,7 +161,7 @@ class UnitAnalysisRun(Base):
     """Loops whose valves the diagnosis names sticky."""
     cleared_loops: Mapped[list[str]] = mapped_column(JSON)
     """Loops of a diagnosed oscillation whose own valve the diagnosis clears
-    (:meth:`service.stored.StoredUnitDiagnosis.valve_decisions`)."""
+    (:meth:`analytics.plantwide.UnitDiagnosis.valve_decisions`)."""
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     error: Mapped[str | None] = mapped_column(Text)
     round_end: Mapped[float | None] = mapped_column(Float)

@@ -313,9 +313,12 @@ def test_a_given_process_gain_sizes_the_sticky_valve_and_leaves_the_verdict() ->
 
 
 def assert_round_trip(d):
-    """to_dict(from_dict(d)) == d to the byte, for the JSON as stored (json.loads of it)."""
+    """to_dict(from_dict(d)) == d to the byte, for the JSON as stored (json.loads of it),
+    strict and lenient."""
     stored = json.dumps(d.to_dict())
-    assert json.dumps(LoopDiagnosis.from_dict(json.loads(stored)).to_dict()) == stored
+    for lenient in (False, True):
+        again = LoopDiagnosis.from_dict(json.loads(stored), lenient=lenient)
+        assert json.dumps(again.to_dict()) == stored
 
 
 def test_loop_diagnoses_of_the_library_round_trip_through_their_json_form():

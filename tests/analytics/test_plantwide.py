@@ -349,6 +349,7 @@ def test_unit_diagnosis_with_the_model_and_of_tep_round_trip():
     for diagnosis in (with_model, tep):
         stored = json_form(diagnosis)
         assert json_form(UnitDiagnosis.from_dict(json.loads(stored))) == stored
+        assert json_form(UnitDiagnosis.from_dict(json.loads(stored), lenient=True)) == stored
     assert all(g.model is not None and g.replay is not None for g in with_model.groups)
     assert tep.sticky_valves  # XMV(10): the round trip carried a finding
 
@@ -358,6 +359,7 @@ def test_a_stored_unit_diagnosis_with_a_missing_field_is_refused_naming_it():
     unit = {"a": (np.sin(2 * np.pi * k / 80), np.sin(2 * np.pi * k / 80 - 1))}
     stored = diagnose_unit(unit, 1.0).to_dict()
     assert json_form(UnitDiagnosis.from_dict(stored)) == json.dumps(stored)
+    assert json_form(UnitDiagnosis.from_dict(stored, lenient=True)) == json.dumps(stored)
     del stored["groups"][0]["evidence"][0]["sticky"]
     with pytest.raises(DataError, match=r"^unit diagnosis\.groups\[0\]\.evidence\[0\]: "
                                         r"the field 'sticky' is missing$"):

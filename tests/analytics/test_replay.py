@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from analytics.lti import TransferFunction
-from analytics.replay import stiction_model_path
+from analytics.replay import (
+    MODEL_CYCLES_KEPT,
+    MODEL_DECIMALS,
+    MODEL_POINTS,
+    ModelTrace,
+    stiction_model_path,
+)
 from analytics.synthetic_cases import synthetic_library
 from analytics.valves import ChoudhuryValve, KanoValve
 
@@ -62,3 +69,22 @@ def test_model_path_predicts_pv_through_the_process_with_fitted_offset_and_drift
     np.testing.assert_allclose(path.mv[start:], op[start:])
     np.testing.assert_allclose(path.pv[start:], pv[start:], atol=1e-9)
     assert path.r2 == pytest.approx(1.0)
+
+
+def test_the_trace_keeps_the_last_periods_at_most_model_points_and_round_trips():
+    op, _, pv, ts = sticky_flow_loop()
+    path = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+                               process=TRUE_FLOW_PROCESS, period_s=100.0, label="m")
+    trace = path.trace(op)
+    last = slice(-MODEL_CYCLES_KEPT * path.period, None)
+    assert trace.op == tuple(np.round(op[last], MODEL_DECIMALS))
+    assert trace.mv == tuple(np.round(path.mv[last], MODEL_DECIMALS))
+    assert (trace.r2, trace.label) == (path.r2, "m")
+    assert ModelTrace.from_dict(json.loads(json.dumps(trace.to_dict()))) == trace
+    slow = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
+                               process=TRUE_FLOW_PROCESS, period_s=500.0, label="m")
+    kept = slow.trace(op)  # three periods of 500 samples: every k-th, from the start
+    first = max(slow.start, op.size - 1500)
+    step = math.ceil((op.size - first) / MODEL_POINTS)
+    assert step > 1 and len(kept.op) <= MODEL_POINTS
+    assert kept.pv == tuple(np.round(slow.pv[first::step], MODEL_DECIMALS))

@@ -21,7 +21,7 @@ import pytest
 
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
 from analytics.lti import TransferFunction
-from analytics.replay import stiction_model_path
+from analytics.replay import MODEL_CYCLES_KEPT, stiction_model_path
 from analytics.simulation import PIDController
 from analytics.stiction.signature import fit_signature_ellipse
 from analytics.valves import ChoudhuryValve, KanoValve
@@ -159,10 +159,11 @@ def test_signature_draws_the_fitted_model_over_pv_and_in_a_valve_panel():
     path = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
                                      process=TRUE_FLOW_PROCESS, period_s=100.0,
                                      label="fitted kano valve, S = 4.00 %, J = 2.00 %")
-    root = parse(plots.render_svg(plots.signature_figure(op, pv, model=path, title="s")))
+    root = parse(plots.render_svg(plots.signature_figure(op, pv, model=path.trace(op),
+                                                         title="s")))
     signature, valve = panels(root)
     assert valve.get("data-title") == "Fitted valve model: OP against the model's MV"
-    last = slice(-plots.MODEL_CYCLES_DRAWN * path.period, None)  # the last cycles only
+    last = slice(-MODEL_CYCLES_KEPT * path.period, None)  # the last cycles only
     x, y = drawn(signature, "model_pv")
     np.testing.assert_allclose(x, op[last], atol=resolution(signature, "x"))
     np.testing.assert_allclose(y, path.pv[last], atol=resolution(signature, "y"))
@@ -178,7 +179,7 @@ def test_signature_with_measured_mv_draws_the_model_over_it():
     op, mv, pv, ts = sticky_flow_loop()
     path = stiction_model_path(op, pv, ts, valve=KanoValve(4.0, 2.0),
                                      process=TRUE_FLOW_PROCESS, period_s=100.0, label="m")
-    root = parse(plots.render_svg(plots.signature_figure(op, pv, mv=mv, model=path,
+    root = parse(plots.render_svg(plots.signature_figure(op, pv, mv=mv, model=path.trace(op),
                                                          title="s")))
     _, valve = panels(root)
     assert valve.get("data-title") == "Valve signature: OP against MV"

@@ -4,14 +4,15 @@ runs stored before a field existed read with its default."""
 import numpy as np
 import pytest
 
+from analytics.diagnosis import LoopDiagnosis
+from analytics.errors import DataError
+from analytics.plantwide import UnitDiagnosis
 from analytics.synthetic_cases import synthetic_library
 from service.analysis import analyse_window, health_score
 from service.stored import (
     SizeWindow,
     StoredDiagnosis,
-    StoredEstimate,
     StoredKpis,
-    StoredUnitDiagnosis,
     StoredValve,
     ValveSize,
 )
@@ -29,56 +30,48 @@ def sticky_result():
     return analyse_window(loop, 1.0, t, {"op": run.op[0], "pv": run.pv[0], "sp": run.sp[0]})
 
 
-def test_the_diagnosis_view_reads_every_field_the_service_uses(sticky_result):
+def test_the_diagnosis_view_reads_the_analysis_and_what_the_service_adds(sticky_result):
     r = sticky_result
     d = StoredDiagnosis.from_dict(r)
-    assert (d.samples, d.ts, d.process_type) == (r["samples"], r["ts"], r["process_type"])
-    assert d.quality.usable == r["quality"]["usable"]
-    assert [i.code for i in d.quality.issues] == [i["code"] for i in r["quality"]["issues"]]
-    osc = r["oscillation"]
-    assert (d.oscillation.detected, d.oscillation.period_s, d.oscillation.regularity,
-            d.oscillation.amplitude_op, d.oscillation.amplitude_pv,
-            d.oscillation.analysed_period_s, d.oscillation.envelope_variation) == (
-        osc["detected"], osc["period_s"], osc["regularity"], osc["amplitude_op"],
-        osc["amplitude_pv"], osc["analysed_period_s"], osc["envelope_variation"])
-    assert len(d.oscillation.oscillations) == len(osc["oscillations"])
-    st = r["stiction"]
-    assert (d.stiction.verdict, d.stiction.confidence, d.stiction.reason, d.stiction.pattern,
-            d.stiction.op_travel, d.stiction.episode_stick_band) == (
-        st["verdict"], st["confidence"], st["reason"], st["pattern"], st["op_travel"],
-        st["episode_stick_band"])
-    assert [(e.start_s, e.jump_s, e.end_s) for e in d.stiction.episodes] == [
-        (e["start_s"], e["jump_s"], e["end_s"]) for e in st["episodes"]]
-    q = r["quantification"]
-    assert d.quantification is not None and q["S"] == d.quantification.S
-    assert d.quantification.process is not None
-    assert q["process"]["K"] == d.quantification.process.K
-    assert d.quantification.valve_model == q["valve_model"]
-    assert d.apparent_stiction == r["apparent_stiction"]
+    analysis = {k: v for k, v in r.items() if k in LoopDiagnosis.from_dict(r).to_dict()}
+    assert d.analysis == LoopDiagnosis.from_dict(analysis)  # the one reader, leniently
+    assert d.analysis.to_dict() == analysis
+    assert d.analysed_period == r["oscillation"]["analysed_period_s"]
     assert d.health == r["health"] == health_score(d)
     assert d.first_sample_at == r["first_sample_at"]
     assert d.kpis.oscillation_index == r["kpis"]["oscillation_index"]
     assert d.kpis.saturation == r["kpis"]["saturation"]
-    assert (d.manual, d.valve) == (None, None)
-    assert d.final == d.stiction
+    assert (d.manual, d.valve, d.gain_source) == (None, None, None)
+    assert d.final == d.analysis.stiction
 
 
 def test_runs_stored_before_a_field_existed_read_with_defaults():
     empty = StoredDiagnosis.from_dict({})
-    assert (empty.quality.usable, empty.oscillation.detected, empty.stiction.verdict,
-            empty.quantification, empty.manual, empty.valve, empty.first_sample_at) == (
-        False, False, None, None, None, None, None)
+    a = empty.analysis
+    assert (a.quality.usable, a.quality.issues, empty.oscillation.detected, a.stiction.verdict,
+            a.stiction.confidence, a.stiction.methods, a.episodes, a.quantification,
+            a.ellipse, a.process_type_source) == (
+        False, (), False, None, 0.0, {}, (), None, None, "unknown")
+    assert (empty.manual, empty.valve, empty.first_sample_at) == (None, None, None)
     assert empty.kpis == StoredKpis()
     assert StoredDiagnosis.from_dict(None) == empty
     old = StoredDiagnosis.from_dict({
         "oscillation": {"detected": True, "period_s": 120.0},  # before analysed_period_s
         "quantification": {"S": 4.0, "J": None},  # before intervals and the process
+        "apparent_stiction": {"apparent_stiction": 3.1, "width_ratio": 0.4,
+                              "op_amplitude": 3.9, "residual": 0.1},  # before the geometry
         "valve": {"verdict": "stiction", "confidence": 0.5, "S": 4.0, "J": 2.0}})
-    assert old.oscillation.analysed_period == 120.0
-    assert old.quantification == StoredEstimate(S=4.0)
+    assert old.analysed_period == 120.0
+    estimate = old.analysis.quantification
+    assert estimate is not None
+    assert (estimate.S, estimate.J, estimate.model, estimate.S_interval, estimate.valve_model,
+            estimate.stiction_found) == (4.0, None, None, None, None, False)
+    assert old.analysis.ellipse is None  # the signature plot fits it again
     assert old.valve is not None and old.valve.decided_by == "loop"
     assert (old.valve.S_interval, old.valve.windows_combined) == (None, 0)
     assert old.final is old.valve
+    with pytest.raises(DataError, match="loop diagnosis: the field 'samples' is missing"):
+        LoopDiagnosis.from_dict({})  # strict: refuses what the lenient read fills
 
 
 def test_the_stored_valve_reads_back_what_settling_writes(sticky_result):
@@ -94,19 +87,22 @@ def test_the_stored_valve_reads_back_what_settling_writes(sticky_result):
     assert SizeWindow.from_dict(window.to_dict()) == window
 
 
-def test_the_unit_view_reads_findings_groups_and_valve_decisions():
-    unit = StoredUnitDiagnosis.from_dict({
+def test_a_stored_unit_diagnosis_reads_leniently_with_its_valve_decisions():
+    unit = UnitDiagnosis.from_dict({
         "sticky_valves": [{"loop": "b", "confidence": 0.9, "period_s": 200.0, "S": 4.0,
                            "J": 2.0, "reason": "own valve needed"}],
         "groups": [{"period_s": 200.0, "loops": ["a", "b"],
                     "members": [{"signal": "op_b", "amplitude": 3.0}],
                     "evidence": [{"loop": "a", "own_valve_gain": 0.0},
                                  {"loop": "b", "own_valve_gain": 0.3}],
-                    "sticky_valves": ["b"]}]})
+                    "sticky_valves": ["b"]}]}, lenient=True)
     assert unit.valve_decisions() == (["b"], ["a"])
     (finding,) = unit.sticky_valves
     assert (finding.loop, finding.confidence, finding.S, finding.reason) == (
         "b", 0.9, 4.0, "own valve needed")
     (group,) = unit.groups
     assert (group.period_s, group.loops, group.members[0].amplitude) == (200.0, ("a", "b"), 3.0)
-    assert StoredUnitDiagnosis.from_dict(None).valve_decisions() == ([], [])
+    assert group.evidence[0].half_gains == (None, None)
+    assert UnitDiagnosis.from_dict({}, lenient=True).valve_decisions() == ([], [])
+    with pytest.raises(DataError, match="unit diagnosis: the field 'loops' is missing"):
+        UnitDiagnosis.from_dict({})

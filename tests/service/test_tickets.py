@@ -60,7 +60,7 @@ def add_sticky_run_without_cycle(session, *, at, pattern="stick_jump", episodes=
         window_end=at, status="ok", usable=True, oscillating=False, period_s=None,
         verdict="stiction", confidence=0.8, S=None, J=None, health=68.0,
         result={
-            "first_sample_at": at - WINDOW_S + 1.0,
+            "ts": 0.5, "first_sample_at": at - WINDOW_S + 1.0,
             "oscillation": {"detected": False, "period_s": None, "amplitude_op": None,
                             "amplitude_pv": None},
             "stiction": {

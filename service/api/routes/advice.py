@@ -104,11 +104,11 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
             raise HTTPException(409, "Advice not available: the loop cycles but whether its "
                                      f"valve sticks is {verdict}; no model to advise from")
         oscillation = stored.oscillation
-        assert oscillation.period_s is not None and stored.samples is not None \
-            and stored.ts is not None  # a detected oscillation of an analysed window
+        assert oscillation.period_s is not None and stored.analysis.samples is not None \
+            and stored.analysis.ts is not None  # a detected oscillation of an analysed window
         origin, why = cycle_origin(
-            oscillation.envelope_variation,
-            stored.samples * stored.ts / oscillation.period_s,
+            stored.analysis.envelope_variation,
+            stored.analysis.samples * stored.analysis.ts / oscillation.period_s,
             stored.kpis.saturation)
         if origin == "forced":
             raise HTTPException(409, f"Advice not available: {why}")

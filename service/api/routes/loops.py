@@ -305,14 +305,14 @@ def loop_health(
     ))
     latest = runs[0] if runs else None
     diagnosis = latest.result if latest else None
-    stiction = StoredDiagnosis.from_dict(diagnosis).stiction
+    analysis = StoredDiagnosis.from_dict(diagnosis).analysis
     return HealthPublic(
         loop_id=loop_id,
         health=latest.health if latest else None,
         latest=_run_public(latest) if latest else None,
         diagnosis=None if diagnosis is None else LoopDiagnosisPublic.model_validate(diagnosis),
         trend=[(r.started_at, r.health) for r in reversed(runs)],
-        stiction_pattern=(stiction_pattern_text(stiction.pattern, stiction.op_travel)
+        stiction_pattern=(stiction_pattern_text(analysis.pattern, analysis.op_travel)
                           if latest is not None and latest.verdict == "stiction" else None),
         episodes=[] if latest is None else run_episodes(latest),
     )

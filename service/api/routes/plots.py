@@ -9,9 +9,13 @@ builders of :mod:`service.plots`.  Kinds:
 * ``signature``, ``spectrum``: the window of the latest analysis, in % of
   span as the analysis saw it, with the period it used; the signature shows
   the OP-PV ellipse the analysis fitted (stored with a stiction verdict; fitted
-  here for other verdicts, older analyses and the OP-MV signature) and the
-  fitted stiction model (the valve and process of the latest stiction
-  estimate replayed on the window's OP).
+  here for other verdicts, older analyses and the OP-MV signature: the analysis
+  never sees MV) and the fitted stiction model's trace the analysis stored
+  (:class:`analytics.replay.ModelTrace`; replayed here for analyses stored
+  before it was kept).  The spectrum and ACF are computed here from the window
+  (:mod:`analytics.signals`, the helpers the analysis uses), not stored: they
+  are half a window of numbers per signal (about 60 kB of JSON per run of an
+  hour at 1 s), and a coarser spectrum would not draw the same plot.
 * ``nyquist``: ``G Gc`` and ``-1/N(A)`` for the process model identified by
   the latest stiction estimate, the configured controller and Choudhury's
   describing function at the estimated (S, J) (thesis Eq. 3.16).
@@ -41,11 +45,8 @@ from sqlalchemy import select
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import nyquist_curves, predict_limit_cycles
-from analytics.lti import FirstOrderProcess
-from analytics.quantification import VALVE_MODELS
-from analytics.replay import StictionModelPath, stiction_model_path
+from analytics.replay import ModelTrace, model_trace
 from analytics.stiction.signature import EllipseFit, fit_signature_ellipse
-from analytics.types import INTEGRATING, SELF_REGULATING
 from service import plots
 from service.analysis import to_percent_of_span
 from service.api.deps import (
@@ -128,15 +129,6 @@ def _analysed_window(session: SessionDep, state: StateDep, loop: Loop, run: Anal
                           sp=scaled.get("sp"), mv=scaled.get("mv"), ts=window.ts)
 
 
-def _stored_ellipse(diagnosis: StoredDiagnosis) -> EllipseFit | None:
-    """The OP-PV ellipse the analysis fitted (a stiction verdict on a cycle), or None
-    (no such fit, or a diagnosis stored before the ellipse's geometry was kept)."""
-    stored = diagnosis.apparent_stiction
-    if not stored or "centre" not in stored:
-        return None
-    return EllipseFit.from_dict(stored)
-
-
 def _ellipse(op: np.ndarray | None, valve: np.ndarray | None, period_samples: float | None
              ) -> EllipseFit | None:
     """The signature ellipse fitted here, or None without a period, with gaps or too few
@@ -181,28 +173,14 @@ def _trend(session: SessionDep, state: StateDep, loop: Loop,
 
 
 def _fitted_model(op: np.ndarray, pv: np.ndarray, ts: float, diagnosis: StoredDiagnosis
-                  ) -> StictionModelPath | None:
-    """The latest stiction estimate's valve and process replayed on the window's OP.
-
-    None without an estimate (no stiction verdict), without a period, or with
-    gaps in the window (the valve model cannot run through a missing OP).
-    """
-    estimate = diagnosis.quantification
-    period = diagnosis.oscillation.analysed_period
-    if estimate is None or estimate.S is None or period is None:
-        return None
-    if not (np.isfinite(op).all() and np.isfinite(pv).all()):
-        return None
-    S, J, process = estimate.S, estimate.J or 0.0, estimate.process
-    if process is None or estimate.valve_model is None:
-        return None
-    kind = INTEGRATING if process.integrating else SELF_REGULATING
-    model = FirstOrderProcess(kind, process.K, process.tau, process.theta)
-    return stiction_model_path(
-        op, pv, ts, valve=VALVE_MODELS[estimate.valve_model](S, J),
-        process=model.transfer_function(), period_s=period,
-        label=f"fitted {estimate.valve_model} valve, S = {S:.2f} %, J = {J:.2f} %",
-    )
+                  ) -> ModelTrace | None:
+    """The stiction estimate's valve and process replayed on the window, as the analysis
+    stored it; replayed here for a run stored before the trace was kept
+    (:func:`analytics.replay.model_trace`).  None without an estimate."""
+    stored, estimate = diagnosis.analysis.model_trace, diagnosis.analysis.quantification
+    if stored is not None or estimate is None:
+        return stored
+    return model_trace(op, pv, ts, estimate, diagnosis.analysed_period)
 
 
 def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
@@ -211,11 +189,11 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
     if window.op is None or window.pv is None:
         raise HTTPException(404, "The valve signature needs both OP and PV tags")
     diagnosis = StoredDiagnosis.from_dict(run.result)
-    period = diagnosis.oscillation.analysed_period
+    period = diagnosis.analysed_period
     period_samples = None if period is None else period / window.ts
     return plots.signature_figure(
         window.op, window.pv, mv=window.mv,
-        pv_fit=(_stored_ellipse(diagnosis)
+        pv_fit=(diagnosis.analysis.ellipse
                 or _ellipse(window.op, window.pv, period_samples)),
         mv_fit=_ellipse(window.op, window.mv, period_samples),
         model=_fitted_model(window.op, window.pv, window.ts, diagnosis),
@@ -226,7 +204,7 @@ def _signature(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRu
 def _spectrum(session: SessionDep, state: StateDep, loop: Loop, run: AnalysisRun
               ) -> plots.Figure:
     window = _analysed_window(session, state, loop, run)
-    period = StoredDiagnosis.from_dict(run.result).oscillation.analysed_period
+    period = StoredDiagnosis.from_dict(run.result).analysed_period
     return plots.spectrum_figure(
         window.op, window.pv, window.ts, period_s=period,
         title=_title(loop, "spectrum and ACF", window.t[0], window.t[-1]),

@@ -28,6 +28,8 @@ from sqlalchemy.orm import Session
 from analytics.cycle_fit import CYCLES, fit_valve_to_cycle, valve_of
 from analytics.errors import AnalyticsError
 from analytics.limit_cycle import LimitCycleReport, equivalent_loop_phase
+from analytics.plantwide import UnitDiagnosis
+from analytics.quantification import StictionEstimate
 from analytics.simulation import ClosedLoopModel
 from analytics.tuning import CycleAgreement
 from service.api.deps import (
@@ -41,7 +43,7 @@ from service.api.schemas.prediction import UnitPrediction
 from service.loop_model import valve_kind
 from service.prediction import ModelError, check_model, predict_spec
 from service.store.models import Loop, Unit
-from service.stored import StoredDiagnosis, StoredEstimate, StoredUnitDiagnosis, StoredValve
+from service.stored import StoredDiagnosis, StoredValve
 from service.tickets import latest_loop_run, latest_unit_run
 
 router = APIRouter(prefix="/api/v1", tags=["units"],
@@ -133,19 +135,21 @@ def _valve(session: Session, loop_id: str
         unknown = (f"{loop_id}: stiction undecided in analysis {run.id}; its valve is taken "
                    "as healthy") if run.verdict == "undecided" else None
         return healthy, None, unknown, unsized
-    estimate = diagnosis.quantification or StoredEstimate()
+    estimate = diagnosis.analysis.quantification
     # the final verdict's size, the unit's when the loop has none
-    size: StoredValve | StoredEstimate = final if final is not None and final.S is not None \
-        else estimate
+    size: StoredValve | StictionEstimate | None = \
+        final if final is not None and final.S is not None else estimate
     valve: dict[str, Any]
-    if size.S is not None:
-        valve = valve_of(valve_kind(estimate.valve_model), size.S, size.J or 0.0).to_dict()
-    elif estimate.fs is not None and estimate.fd is not None:
+    if size is not None and size.S is not None:
+        valve = valve_of(valve_kind(None if estimate is None else estimate.valve_model),
+                         size.S, size.J or 0.0).to_dict()
+    elif estimate is not None and estimate.fs is not None and estimate.fd is not None:
         valve = {"model": "he", "fs": estimate.fs, "fd": estimate.fd}
     else:
         raise HTTPException(409, f"Prediction not available: loop {loop_id!r} has a stiction "
                                  f"finding (analysis {run.id}) without a size estimate (S, J)")
-    return {**healthy, "valve": valve}, valve, None, (size.S_interval, size.J_interval)
+    intervals = unsized if size is None else (size.S_interval, size.J_interval)
+    return {**healthy, "valve": valve}, valve, None, intervals
 
 
 def _measured_cycle(session: Session, unit_id: str, sticky: str
@@ -158,7 +162,7 @@ def _measured_cycle(session: Session, unit_id: str, sticky: str
     if run is None or run.result is None:
         return None, None, (f"unit {unit_id!r} has no diagnosis yet: the prediction is not "
                             "checked against a measured cycle")
-    diagnosis = StoredUnitDiagnosis.from_dict(run.result)
+    diagnosis = UnitDiagnosis.from_dict(run.result, lenient=True)
     group = next((g for g in diagnosis.groups if sticky in g.loops), None)
     if group is None or group.period_s is None:
         return None, None, None

@@ -4,7 +4,11 @@ plus what the service adds (health, first sample, KPIs, the valve's final verdic
 stretch judged when the loop was in manual).
 
 The models keep keys they do not name: stored diagnoses were written by other
-versions of the analysis.
+versions of the analysis.  They describe the JSON as stored and fill in nothing (the
+health answer leaves out what a run did not store), so their defaults are None; the
+service's own reading (:class:`service.stored.StoredDiagnosis`) fills the defaults of
+``LoopDiagnosis.from_dict(..., lenient=True)`` to compute with (``detected`` False,
+no oscillations), which an answer must not invent for an old run.
 """
 
 from __future__ import annotations
@@ -189,6 +193,11 @@ class LoopDiagnosisPublic(OpenSchema):
     null unless the verdict is stiction."""
     apparent_stiction: dict[str, Any] | None = None
     """Apparent stiction from the valve signature's ellipse (Choudhury et al. 2008)."""
+    model_trace: dict[str, Any] | None = None
+    """The Hammerstein estimate replayed on the window, its last three periods (at most
+    300 samples each, 4 decimals): ``op``, the model's ``mv`` and predicted ``pv`` (% of
+    span), the replay's ``r2`` and ``label``; what the signature plot draws.  Null
+    without an estimate, with gaps in OP or PV, and for runs stored before 2 Dec 2026."""
     health: float | None = None
     """Health score, 0 (worst) to 100."""
     first_sample_at: float | None = None

@@ -19,7 +19,7 @@ from sqlalchemy import select
 
 from analytics.lti import TransferFunction
 from analytics.quantification import VALVE_MODELS
-from analytics.replay import stiction_model_path
+from analytics.replay import MODEL_CYCLES_KEPT, MODEL_POINTS, stiction_model_path
 from analytics.stiction.signature import EllipseFit
 from service import plots
 from service.buffer import LoopBuffers
@@ -90,9 +90,13 @@ def test_signature_draws_the_latest_estimate_replayed_on_the_window(analysed, se
         process=TransferFunction.fopdt(estimate["process"]["K"], estimate["process"]["tau"],
                                        estimate["process"]["theta"]),
         period_s=diagnosis["oscillation"]["analysed_period_s"], label="")
-    last = slice(-plots.MODEL_CYCLES_DRAWN * path.period, None)
+    kept = MODEL_CYCLES_KEPT * path.period  # the last cycles, every k-th beyond MODEL_POINTS
+    last = slice(-kept, None, -(-kept // MODEL_POINTS))
     np.testing.assert_allclose(x, window.op[last], atol=resolution(valve, "x"))
     np.testing.assert_allclose(y, path.mv[last], atol=resolution(valve, "y"))
+    stored = diagnosis["model_trace"]  # the analysis's replay, which the plot draws
+    np.testing.assert_allclose(stored["mv"], path.mv[last], atol=5e-5)
+    assert stored["r2"] == pytest.approx(path.r2, rel=1e-9)
     assert path.r2 > 0.8  # the fit explains the measured signature
     assert f"R² {path.r2:.2f}" in signature.findtext(f".//{SVG}text[last()]")
     assert f"S = {estimate['S']:.2f} %" in ET.tostring(valve, encoding="unicode")
