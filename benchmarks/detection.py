@@ -23,15 +23,20 @@ Run with ``make bench`` or ``.venv/bin/python benchmarks/detection.py``.
 
 from __future__ import annotations
 
-import csv
-import statistics
-import sys
-import time
-from collections import defaultdict
-from collections.abc import Sequence
-from pathlib import Path
+import os
 
-import numpy as np
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core, as the speed target says
+
+import csv  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
