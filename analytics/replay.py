@@ -26,12 +26,16 @@ from analytics.signals import detrend
 from analytics.types import FloatArray
 from analytics.valves import ValveModel
 
-__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_POINTS", "ModelTrace",
+__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_LEAD_PERIODS", "MODEL_POINTS", "ModelTrace",
            "StictionModelPath", "model_trace", "stiction_model_path"]
 
 MODEL_CYCLES_KEPT = 3
 """Periods of the replayed model a diagnosis keeps (the last ones): the signature plot
 draws these, more would hide the samples."""
+
+MODEL_LEAD_PERIODS = 4
+"""Periods replayed before those kept (:func:`model_trace`): the model starts at an OP
+maximum of the first three, so at least one period of lead-in precedes what is kept."""
 
 MODEL_POINTS = 300
 """Samples kept of each of the trace's signals at most (every k-th beyond): a slow
@@ -47,8 +51,8 @@ class ModelTrace:
     """The fitted model's path over the window's last :data:`MODEL_CYCLES_KEPT` periods,
     as a diagnosis keeps it (:meth:`StictionModelPath.trace`): the measured OP, the
     model's MV and predicted PV at the same samples (every k-th, at most
-    :data:`MODEL_POINTS`, to :data:`MODEL_DECIMALS`), ``r2`` and ``label`` of the whole
-    replay."""
+    :data:`MODEL_POINTS`, to :data:`MODEL_DECIMALS`), ``r2`` and ``label`` of the
+    replay (over the last ``MODEL_CYCLES_KEPT + MODEL_LEAD_PERIODS`` periods)."""
 
     op: tuple[float, ...]
     mv: tuple[float, ...]
@@ -166,15 +170,13 @@ def model_trace(op: FloatArray, pv: FloatArray, ts: float, estimate: StictionEst
     without a size, process, valve model or period, or with gaps in OP or PV (the valve
     model cannot run through a missing OP).
 
-    Only the last ``MODEL_CYCLES_KEPT + 4`` periods are replayed: the model starts at an
-    OP maximum of their first three, so at least one period of lead-in precedes what is
-    kept, and replaying a whole 10,000-sample window cost 48 ms, more than the rest of the
-    diagnosis together."""
+    Only the last ``MODEL_CYCLES_KEPT + MODEL_LEAD_PERIODS`` periods are replayed (a whole
+    10,000-sample window cost 48 ms, half the rest of the diagnosis)."""
     S, J, process = estimate.S, estimate.J or 0.0, estimate.model
     if S is None or process is None or estimate.valve_model is None or period_s is None:
         return None
-    replayed = slice(max(0, op.size - (MODEL_CYCLES_KEPT + 4) * max(1, round(period_s / ts))),
-                     None)
+    periods = MODEL_CYCLES_KEPT + MODEL_LEAD_PERIODS
+    replayed = slice(max(0, op.size - periods * max(1, round(period_s / ts))), None)
     op, pv = op[replayed], pv[replayed]
     if not (np.isfinite(op).all() and np.isfinite(pv).all()):
         return None

@@ -132,6 +132,16 @@ async function request(path, options = {}) {
   return response;
 }
 
+/** Expensive analyses (advice, model check, unit diagnosis) go one at a time from this
+ * tab: the server runs one per key and answers a second with 429 (a model check asked
+ * while the loop page's advice still ran). */
+let analysisQueue = Promise.resolve();
+function analysis(path, options) {
+  const answer = analysisQueue.then(() => api(path, options));
+  analysisQueue = answer.catch(() => undefined);
+  return answer;
+}
+
 async function api(path, options) {
   return (await request(`/api/v1${path}`, options)).json();
 }
@@ -793,7 +803,7 @@ function adviceSection(path, unavailable = null) {
   box.setAttribute("aria-busy", "true");
   box.append(h("p", { class: "unavailable", role: "status" },
     "Working out the advice: the loop model is simulated at each tuning…"));
-  api(path).then((advice) => box.replaceChildren(adviceResult(advice))).catch((error) => {
+  analysis(path).then((advice) => box.replaceChildren(adviceResult(advice))).catch((error) => {
     // 409: the loop has no estimate or no controller yet; the answer says which
     box.replaceChildren(h("p", { class: "unavailable" }, error instanceof ApiError
       && error.status === 409 ? error.message : `Tuning advice: not available (${error.message}).`));
@@ -977,7 +987,7 @@ async function unitDiagnosis(unitId, valves, loopsById) {
   // Runs the unit diagnosis on the latest windows: it takes a moment, so the page shows
   // the loops first and this fills in when it arrives.
   try {
-    const diagnosis = await api(`/units/${encodeURIComponent(unitId)}/diagnosis`);
+    const diagnosis = await analysis(`/units/${encodeURIComponent(unitId)}/diagnosis`);
     const skipped = diagnosis.loops_without_complete_window;
     return [
       section("Sticky valves, most certain first", "sticky-title",
@@ -1125,7 +1135,7 @@ async function renderModelCheck(loopId) {
     result.replaceChildren(h("p", { class: "unavailable" },
       "Checking the model on the current window; this takes a few seconds…"));
     try {
-      const answer = await api(`${path}/model-check`, { method: "POST" });
+      const answer = await analysis(`${path}/model-check`, { method: "POST" });
       const parts = await modelCheckResult(loopId, answer);
       if (page !== session.page) return;  // the user went elsewhere meanwhile
       result.replaceChildren(...parts);

@@ -37,6 +37,7 @@ import uvicorn
 from pypdf import PdfReader
 from sqlalchemy import delete, select
 
+from analytics.replay import MODEL_POINTS
 from analytics.synthetic_cases import synthetic_library, window_start
 from service.analysis import analyse_window
 from service.config import Settings
@@ -225,7 +226,9 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
                                  'model\'s MV"] path[data-series="model_mv"]')
     diagnosis = running.call("GET", "/api/v1/loops/FIC-1/health", "viewer")["diagnosis"]
     period = round(diagnosis["oscillation"]["analysed_period_s"])
-    assert (model_mv.get_attribute("d") or "").count("L") == 3 * period - 1  # 3 cycles drawn
+    stored = diagnosis["model_trace"]  # the last 3 cycles, thinned to MODEL_POINTS
+    assert len(stored["mv"]) == len(range(0, 3 * period, -(-3 * period // MODEL_POINTS)))
+    assert (model_mv.get_attribute("d") or "").count("L") == len(stored["mv"]) - 1
     estimate = diagnosis["quantification"]
     assert f"S = {estimate['S']:.2f} %, J = {estimate['J']:.2f} %" in signature.inner_html()
     # S read off the episodes beside the Hammerstein S, and whether they agree (issue 17).
