@@ -26,8 +26,8 @@ from analytics.signals import detrend
 from analytics.types import FloatArray
 from analytics.valves import ValveModel
 
-__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_LEAD_PERIODS", "MODEL_POINTS", "ModelTrace",
-           "StictionModelPath", "model_trace", "stiction_model_path"]
+__all__ = ["MODEL_CYCLES_KEPT", "MODEL_DECIMALS", "MODEL_LEAD_PERIODS", "MODEL_POINTS",
+           "ModelTrace", "StictionModelPath", "model_trace", "stiction_model_path"]
 
 MODEL_CYCLES_KEPT = 3
 """Periods of the replayed model a diagnosis keeps (the last ones): the signature plot
