@@ -20,6 +20,9 @@ References
    state-space system", subsection on systems with time delay.
 .. [3] C. F. Van Loan, "Computing integrals involving the matrix exponential",
    *IEEE Trans. Automatic Control* 23(3), 395-404, 1978.
+.. [4] C. Moler and C. Van Loan, "Nineteen dubious ways to compute the exponential
+   of a matrix, twenty-five years later", *SIAM Review* 45(1), 3-49, 2003,
+   section 3 (Taylor series) and method 3 (scaling and squaring).
 """
 
 from __future__ import annotations
@@ -31,9 +34,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 import scipy.optimize
 import scipy.signal
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from analytics.errors import ModelSpecError
@@ -559,8 +562,54 @@ def _hold_matrices(a: FloatArray, b: FloatArray, h: float) -> tuple[FloatArray, 
     block = np.zeros((m + 1, m + 1))
     block[:m, :m] = a
     block[:m, m] = b
-    expo = scipy.linalg.expm(block * h)
+    expo = exact_expm(block * h)
     return expo[:m, :m], expo[:m, m]
+
+
+_TAYLOR_TERMS = 20
+
+
+@njit(cache=True)
+def _matmul(left: FloatArray, right: FloatArray) -> FloatArray:
+    """``left @ right`` summed in index order (no BLAS kernel, no fused multiply-add)."""
+    rows, inner, cols = left.shape[0], left.shape[1], right.shape[1]
+    out = np.zeros((rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            acc = 0.0
+            for k in range(inner):
+                acc += left[i, k] * right[k, j]
+            out[i, j] = acc
+    return out
+
+
+@njit(cache=True)
+def exact_expm(a: FloatArray) -> FloatArray:
+    """``exp(A)`` of a small matrix, identical to the last bit on every CPU.
+
+    Scaling and squaring ([4]_): ``A`` is halved until its infinity norm is at most
+    1/2 (exact: powers of two), the Taylor series is summed to 20 terms by Horner's
+    rule (truncation below ``0.5**21 / 21!``, far under rounding) and squared back.
+    Every product is an ordered scalar loop: :func:`scipy.linalg.expm` goes through
+    BLAS, whose kernels (chosen per CPU) round differently, and a stick-slip
+    simulation amplifies a last-bit difference in ``Ad`` into another trajectory.
+    """
+    m = a.shape[0]
+    norm = 0.0
+    for i in range(m):
+        norm = max(norm, np.sum(np.abs(a[i])))
+    squarings = 0
+    scaled = a.copy()
+    while norm > 0.5:
+        scaled = scaled * 0.5
+        norm *= 0.5
+        squarings += 1
+    expo = np.eye(m)
+    for k in range(_TAYLOR_TERMS, 0, -1):
+        expo = np.eye(m) + _matmul(scaled, expo) / k
+    for _ in range(squarings):
+        expo = _matmul(expo, expo)
+    return expo
 
 
 def discretise(tf: TransferFunction, dt: float) -> DiscreteEntry:
@@ -607,7 +656,7 @@ def discretise(tf: TransferFunction, dt: float) -> DiscreteEntry:
     b_vec = b[:, 0].astype(float)
     ad, _ = _hold_matrices(a, b_vec, dt)
     phi_late, b0 = _hold_matrices(a, b_vec, dt - eps)
-    b1 = phi_late @ _hold_matrices(a, b_vec, eps)[1]
+    b1 = _matmul(phi_late, _hold_matrices(a, b_vec, eps)[1][:, None])[:, 0]
     ad, b0, b1, c_vec = (_frozen(x) for x in (ad, b0, b1, c[0, :]))
     return DiscreteEntry(ad, b0, b1, c_vec, float(dd[0, 0]), d, eps > 0.0, dt)
 

@@ -521,21 +521,23 @@ def test_equivalent_loop_phase_is_eq_3_20_computed_directly() -> None:
 
 
 def test_the_columns_cycle_shows_eq_3_20s_loop_and_a_valve_lagging_beyond_any_df() -> None:
-    """Issue 19: the demo's column (valve 2 a He valve fs 3, fd 1, noise as simulated)
-    cycles at about 200 s.  Read at the fundamental of that cycle, the loop from valve 2's
-    MV round to its OP (-OP1 / MV1) is L_eq of Eq. 3.20 with the other loops' controllers
-    and healthy valves (within 2 degrees and 5 %; the 0.25 s hold adds 0.45 degrees), so
-    no lag is missing from it.  The valve rests 99 % of the time and slips twice a
-    period: its MV's fundamental lags OP's by more than 90 degrees (about 102), and OP's
-    fundamental is below S/2 = 2; a sinusoidal-input DF lags at most 90 degrees (-1/N
-    from -90 to -180 degrees, Table 5.1), so no valve size balances this cycle."""
+    """Issue 19: the demo's column (valve 2 a He valve fs 3, fd 1, noise as simulated) cycles at
+    about 200 s (175-235 s over seeds 0-3: where He's valve comes to rest in each slip
+    decides the next stick, so the period wanders by a sample's rounding; the checks below
+    are made at the measured period). Read at the fundamental of that cycle, the loop from
+    valve 2's MV round to its OP (-OP1 / MV1) is L_eq of Eq. 3.20 with the other loops'
+    controllers and healthy valves (within 2 degrees and 5 %; the 0.25 s hold adds 0.45
+    degrees), so no lag is missing from it. The valve rests 99 % of the time and slips twice
+    a period: its MV's fundamental lags OP's by more than 90 degrees (about 102), and OP's
+    fundamental is below S/2 = 2; a sinusoidal-input DF lags at most 90 degrees (-1/N from
+    -90 to -180 degrees, Table 5.1), so no valve size balances this cycle."""
     model = column3x3(sticky=(2,), duration=8000.0)
     run = model.run()
     late = run.t > 3000.0
     op, mv = run.op[1][late], run.mv[1][late]
     slips = np.flatnonzero(np.diff(mv) > 1e-9)
     period = float(np.median(np.diff(slips))) * model.dt
-    assert period == pytest.approx(200.0, rel=0.05)
+    assert period == pytest.approx(200.0, rel=0.2)
     samples = round(period / model.dt)
     n = op.size // samples * samples
     phasor = np.exp(-2j * math.pi * np.arange(n) / samples)

@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.signal
 
 from analytics.errors import ModelSpecError
-from analytics.lti import TransferFunction, discretise, process_gain, simulate_open_loop
+from analytics.lti import (
+    TransferFunction,
+    discretise,
+    exact_expm,
+    process_gain,
+    simulate_open_loop,
+)
 
 G33 = TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, theta=1.0)
 
@@ -210,3 +220,55 @@ def test_process_gain_is_the_steady_state_or_the_integrating_gain(
 def test_process_gain_refuses_models_without_one(model: TransferFunction) -> None:
     with pytest.raises(ModelSpecError):
         process_gain(model)
+
+
+def test_exact_expm_of_a_rotation_is_cos_and_sin() -> None:
+    for angle in (1e-6, 0.3, 2.0, 40.0):
+        rotation = exact_expm(np.array([[0.0, -angle], [angle, 0.0]]))
+        c, s = math.cos(angle), math.sin(angle)
+        np.testing.assert_allclose(rotation, [[c, -s], [s, c]], rtol=0, atol=1e-12)
+
+
+def test_exact_expm_matches_scipy() -> None:
+    rng = np.random.default_rng(3)
+    for order in (1, 2, 3, 5):
+        for scale in (0.01, 1.0, 10.0):
+            a = rng.normal(size=(order, order)) * scale
+            expected = scipy.linalg.expm(a)
+            np.testing.assert_allclose(exact_expm(a), expected, rtol=0,
+                                       atol=1e-11 * np.abs(expected).max())
+
+
+_DISCRETISED_COLUMN = """
+import hashlib
+import numpy as np
+from analytics.lti import discretise
+from analytics.scenarios import column3x3
+model = column3x3(sticky=(2,), duration=600.0)
+entries = [discretise(g, model.dt) for row in model.process for g in row if g is not None]
+run = model.run()
+parts = [x for e in entries for x in (e.Ad, e.B0, e.B1)] + [run.op, run.pv]
+print(hashlib.sha256(b"".join(np.ascontiguousarray(x).tobytes() for x in parts)).hexdigest())
+"""
+
+
+def _avx2() -> bool:
+    try:
+        with open("/proc/cpuinfo") as info:
+            return " avx2" in info.read()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _avx2(), reason="OpenBLAS's Haswell kernels need an x86-64 CPU with AVX2")
+def test_discretisation_and_simulation_do_not_depend_on_the_blas_kernel() -> None:
+    # The stick-slip column amplifies a last-bit difference in Ad into another cycle
+    # (178 s against 200 s): scipy.linalg.expm through OpenBLAS's Haswell kernels gave
+    # other bits than through its Sandybridge ones.
+    digests = set()
+    for kernel in ("Sandybridge", "Haswell"):
+        env = {**os.environ, "OPENBLAS_CORETYPE": kernel}
+        done = subprocess.run([sys.executable, "-c", _DISCRETISED_COLUMN], env=env, check=True,
+                              capture_output=True, text=True, timeout=300)
+        digests.add(done.stdout.strip())
+    assert len(digests) == 1
