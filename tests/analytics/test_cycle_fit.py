@@ -72,10 +72,12 @@ def test_a_size_off_is_fitted_back_within_the_intervals(scale, ratio):
 
 
 def test_the_cycle_of_another_process_is_not_forced_onto_the_valve():
-    """The plant's dead time is 20 s, the model's 2 s: no valve within the estimate's
+    """The plant's dead time is 16 s, the model's 2 s: no valve within the estimate's
     (narrow) intervals gives the plant's amplitude, so the check names the process and
-    fits its dead time, which comes out near the plant's (within a step of its grid)."""
-    plant = TransferFunction.fopdt(1.2, 8.0, 20.0)
+    fits its dead time, which comes out near the plant's (within a step of its grid).
+    (At 20 s of dead time this loop keeps no steady cycle: its OP swings 22-52 % in
+    bursts, and which burst a run ends in turns on the last bits of the simulation.)"""
+    plant = TransferFunction.fopdt(1.2, 8.0, 16.0)
     period, amplitude = measured(HeValve(6.0, 2.0), plant)
     model = loop_model(HeValve(6.0, 2.0))
     fit = fit_valve_to_cycle(model, period, amplitude,
@@ -83,7 +85,7 @@ def test_the_cycle_of_another_process_is_not_forced_onto_the_valve():
     assert fit.cause == "process" and not fit.estimated.reproduces
     assert fit.estimated.amplitude_error is not None and fit.estimated.amplitude_error < -0.5
     assert fit.delay_s is not None and fit.delay_s[0] == 2.0
-    assert abs(fit.delay_s[1] - 20.0) <= 0.25 * period / 12
+    assert abs(fit.delay_s[1] - 16.0) <= 0.25 * period / 12
     assert fit.reproduces
     assert 7.5 <= fit.chosen.S <= 8.5 and 3.5 - 1e-9 <= fit.chosen.J <= 4.5 + 1e-9
     assert "dead time fitted (2 s identified" in fit.explanation()

@@ -134,11 +134,13 @@ def test_model_tests_every_sticky_set_against_the_cycle(column_csv, tmp_path, ca
     assert report["k"] == 2
     assert {v["loop"] for v in report["sticky_valves"]} == {"loop1", "loop2"}
     assert report["model_used"] is True and report["linear"]["stable"] is True
-    for group in report["groups"]:  # every non-empty set of the valves whose OP moves
+    # Every non-empty set of the valves whose OP moves is tried.  A group's fingerprint may
+    # add valve 3 beside a sticky one (3 of 8 seeds of this column); the replay decides.
+    for group in report["groups"]:
         assert len(group["model"]["candidates"]) in (1, 3, 7)
-        assert set(group["model"]["sticky_valves"]) <= {"loop1", "loop2"}
+        assert set(group["model"]["sticky_valves"]) & {"loop1", "loop2"}
     fast = min(report["groups"], key=lambda g: g["period_s"])["model"]
-    assert len(fast["candidates"]) == 7 and set(fast["sticky_valves"]) == {"loop1", "loop2"}
+    assert len(fast["candidates"]) == 7 and fast["candidates"][0]["loops"] == ["loop1", "loop2"]
     assert run(column_csv, "--skip", "2000", "--model", model) == 0
     out = capsys.readouterr().out
     assert "model: the linear loops are stable" in out

@@ -318,7 +318,9 @@ def test_isdb_loops() -> None:
 
 # Recorded from the reference implementation at commit 67886dc: one-hour
 # windows at 1 s of the synthetic library, with the period diagnose_loop
-# analyses.  (index, test error, surrogate mean, surrogate std) per signal.
+# analyses.  (index, test error, surrogate mean, surrogate std) per signal.  The
+# stick-slip case was recorded again when the simulation's matrix exponential became the
+# same on every CPU (analytics.lti.exact_expm): its trajectory is another one.
 REFERENCE_INDICES = {
     ("flow-noise-ts1", "pv"): (
         -0.10707784364058959, 347.24970787547005, 342.241612136416, 15.59020232004889
@@ -327,10 +329,10 @@ REFERENCE_INDICES = {
         -0.5538840141256749, 339.70249715983505, 304.87344178975434, 20.960498637402498
     ),
     ("flow-kano-S4-J2-ts1", "pv"): (
-        1.5067333260889844, 22.67399367172763, 51.914160967856795, 6.468777363106811
+        1.7576408245216766, 23.781504582763066, 64.78514261902939, 7.776264157463273
     ),
     ("flow-kano-S4-J2-ts1", "op"): (
-        1.5051674533633714, 11.66254586179657, 42.58367536398584, 6.847771750820697
+        1.4328400539139783, 11.64756682772517, 55.73685163609932, 10.25685192796848
     ),
     ("flow-sine60s-ts1", "pv"): (
         -0.2910234653538019, 1.330401811768076, 1.2956969833440493, 0.039750320914083405
@@ -347,7 +349,7 @@ REFERENCE_INDICES = {
 }
 REFERENCE_PERIODS = {
     "flow-noise-ts1": 47.891699896715494,
-    "flow-kano-S4-J2-ts1": 102.36633974375195,
+    "flow-kano-S4-J2-ts1": 101.21423300943856,
     "flow-sine60s-ts1": 60.001207268069585,
     "level-aggressive-ts1": 19.763654309315406,
 }
