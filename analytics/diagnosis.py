@@ -95,6 +95,7 @@ from analytics.stiction.stick_jump import (
     StickEpisode,
     analyse_window,
     op_travel,
+    robust_noise,
 )
 from analytics.types import FloatArray
 
@@ -187,6 +188,11 @@ class LoopDiagnosis:
         near 0 for a limit cycle or a periodic forcing, about 0.52 for a
         lightly damped loop driven by noise (an over-tuned loop); None
         without an oscillation or with fewer than eight periods.
+    pv_noise : float or None
+        PV's noise standard deviation from its first differences
+        (:func:`~analytics.stiction.stick_jump.robust_noise`), with which the tuning
+        advice checks its retunes (:func:`analytics.tuning.advise`); None unless the
+        verdict is stiction.
     """
 
     samples: int
@@ -207,6 +213,7 @@ class LoopDiagnosis:
     episode_size: EpisodeSize | None = None
     size_comparison: SizeComparison | None = None
     model_trace: ModelTrace | None = None
+    pv_noise: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready form (the ``loopwatch analyze --json`` contract)."""
@@ -218,6 +225,7 @@ class LoopDiagnosis:
             "process_type_source": self.process_type_source,
             "quality": {
                 "usable": self.quality.usable,
+                "pv_noise": self.pv_noise,
                 "issues": [
                     {"code": i.code, "signal": i.signal, "severity": i.severity,
                      "message": i.message, "value": i.value}
@@ -293,18 +301,18 @@ class LoopDiagnosis:
         unusable; the episodes listed are the consistent ones (``consistent`` True), their
         times in samples ``round(t_s / ts)``.
 
-        ``lenient`` reads a diagnosis stored by an older version (or a partial one).  Every
+        ``lenient`` reads a diagnosis stored by an older version (or a partial one). Every
         version stored ``samples`` and ``ts`` (the episodes need ``ts``); later ones added
         ``oscillations``, ``envelope_variation``, the pattern, ``op_travel``, the episodes
-        and their band (26 Nov 2026), the ellipse's geometry (26 Nov),
-        ``episode_size`` (1 Dec) and ``model_trace`` (2 Dec; read None where missing,
-        strict or not).  A missing field reads None, except ``quality.usable``,
+        and their band (26 Nov 2026), the ellipse's geometry (26 Nov), ``episode_size`` (1
+        Dec), ``model_trace`` and ``quality.pv_noise`` (2 Dec; these two read None where
+        missing, strict or not). A missing field reads None, except ``quality.usable``,
         ``oscillation.detected``, ``stiction_found`` and ``trustworthy`` (False),
-        ``stiction.confidence`` (0), ``process_type_source`` ("unknown"), the texts
-        (empty) and the lists and ``methods`` (empty); the oscillation is read also for
-        unusable data (not detected); an ``apparent_stiction`` stored before its
-        geometry (``centre``, ``semi_axes``, ``angle``) reads None, and a
-        quantification without its ``process`` has no ``model``.
+        ``stiction.confidence`` (0), ``process_type_source`` ("unknown"), the texts (empty)
+        and the lists and ``methods`` (empty); the oscillation is read also for unusable
+        data (not detected); an ``apparent_stiction`` stored before its geometry
+        (``centre``, ``semi_axes``, ``angle``) reads None, and a quantification without its
+        ``process`` has no ``model``.
 
         Raises
         ------
@@ -355,6 +363,7 @@ class LoopDiagnosis:
                 agrees, stiction.part("episode_size")("note")),
             model_trace=None if read.get("model_trace") is None else ModelTrace.from_dict(
                 read("model_trace"), f"{read.where}.model_trace"),
+            pv_noise=quality.get("pv_noise"),
         )
 
 
@@ -777,4 +786,5 @@ def diagnose_loop(
         sized, compared,
         None if estimate is None or "op" not in signals or "pv" not in signals
         else model_trace(signals["op"], signals["pv"], ts, estimate, period_s),
+        None if verdict.verdict != STICTION or pv_clean is None else robust_noise(pv_clean),
     )

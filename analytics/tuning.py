@@ -87,7 +87,7 @@ from analytics.limit_cycle import (
 )
 from analytics.lti import FirstOrderProcess, TransferFunction
 from analytics.oscillation import RAYLEIGH_ENVELOPE_CV
-from analytics.simulation import ClosedLoopModel, PIDController
+from analytics.simulation import ClosedLoopModel, Disturbance, PIDController
 from analytics.types import BoolArray, ComplexArray, FloatArray, IntArray, ProcessType
 from analytics.valves import IdealValve, ValveModel
 
@@ -111,6 +111,15 @@ _MAX_REFUTED = 20
 _BRACKET_GROUP = 32
 #: Longest verification simulation, samples.
 _MAX_SAMPLES = 2_000_000
+
+NOISY_RUN_S = 14_400.0
+"""Length of the simulation with the measured PV noise that checks each retune."""
+
+NOISY_SETTLE_S = 3_600.0
+"""Its start, left out of the valve travel (the setpoint step and the settling)."""
+
+NOISE_SEED = 20_260_301
+"""Seed of that noise: the same sequence for the current tuning and every retune."""
 
 
 def _json_float(value: float | None) -> float | None:
@@ -831,6 +840,9 @@ class Recommendation:
         least :data:`MIN_REDUCTION`.
     max_sensitivity : float or None
         ``Ms`` of the retuned loop (single loop only).
+    travel_rate_with_noise : float or None
+        Valve travel per second of the sticky loops (% per s) with the measured PV
+        noise (:meth:`_Evaluator.travel_with_noise`); None when no noise was given.
     """
 
     tunings: tuple[Tuning, ...]
@@ -839,6 +851,7 @@ class Recommendation:
     simulated: OscillationEffect
     outcome: Outcome
     max_sensitivity: float | None = None
+    travel_rate_with_noise: float | None = None
 
     @property
     def offered(self) -> bool:
@@ -856,6 +869,7 @@ class Recommendation:
             "max_sensitivity": None
             if self.max_sensitivity is None
             else _json_float(self.max_sensitivity),
+            "travel_rate_with_noise": self.travel_rate_with_noise,
         }
 
 
@@ -881,6 +895,9 @@ class TuningAdvice:
         Candidates the simulation did not confirm.
     notes : tuple of str
         Why an action was not offered, what the simulation adds.
+    current_travel_rate_with_noise : float or None
+        The current tuning's valve travel with the measured PV noise; None when no
+        noise was given.
     """
 
     loops: tuple[str, ...]
@@ -892,6 +909,7 @@ class TuningAdvice:
     recommendations: tuple[Recommendation, ...]
     rejected: tuple[Recommendation, ...]
     notes: tuple[str, ...]
+    current_travel_rate_with_noise: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form for the service."""
@@ -905,6 +923,7 @@ class TuningAdvice:
             "recommendations": [r.to_dict() for r in self.recommendations],
             "rejected": [r.to_dict() for r in self.rejected],
             "notes": list(self.notes),
+            "current_travel_rate_with_noise": self.current_travel_rate_with_noise,
         }
 
 
@@ -967,11 +986,19 @@ class _Evaluator:
     """Predicts and simulates retunes of one model, against its current tuning."""
 
     def __init__(
-        self, model: ClosedLoopModel, *, hold_delay: float, describing: DescribingChoice
+        self,
+        model: ClosedLoopModel,
+        *,
+        hold_delay: float,
+        describing: DescribingChoice,
+        measurement_noise: Sequence[float] | None = None,
     ) -> None:
         self.model = model
         self.hold_delay = hold_delay
         self.describing = describing
+        self.measurement_noise = measurement_noise
+        self._noisy: dict[tuple[Tuning, ...], float] = {}
+        self.withdrawn_for_noise: set[tuple[Tuning, ...]] = set()
         self.sticky = tuple(not isinstance(loop.valve, IdealValve) for loop in model.loops)
         self._predictions: dict[tuple[Tuning, ...], Prediction] = {}
         self._simulations: dict[tuple[Tuning, ...], OscillationEffect] = {}
@@ -1023,10 +1050,39 @@ class _Evaluator:
             self._simulations[tunings] = effect
         return self._simulations[tunings]
 
+    def travel_with_noise(self, tunings: tuple[Tuning, ...]) -> float | None:
+        """Valve travel per second of the sticky loops (mean ``|MV_k - MV_(k-1)|`` / dt,
+        % per s) at ``tunings`` with the measured PV noise added to every loop (cached;
+        None without a noise level).  The setpoint step of :func:`excited_model`, then
+        :data:`NOISY_RUN_S` s of which the first :data:`NOISY_SETTLE_S` are left out; the
+        same noise sequence for every tuning (common random numbers), so the comparison
+        carries little of its scatter.  A noise-free model can settle where the loop,
+        shaken by its noise, keeps slipping: a retune that removes the noise-free cycle
+        with more gain can make the valve travel more."""
+        if self.measurement_noise is None:
+            return None
+        if tunings not in self._noisy:
+            excited = excited_model(_with_tunings(self.model, tunings), duration=NOISY_RUN_S)
+            loops = tuple(
+                dataclasses.replace(loop, disturbances=(
+                    *loop.disturbances,
+                    Disturbance("noise", std, at="measurement", seed=NOISE_SEED + i)))
+                for i, (loop, std) in enumerate(
+                    zip(excited.loops, self.measurement_noise, strict=True))
+            )
+            run = dataclasses.replace(excited, loops=loops).run()
+            settled = run.t >= NOISY_SETTLE_S
+            self._noisy[tunings] = float(sum(
+                np.abs(np.diff(run.mv[i][settled])).mean() / self.model.dt
+                for i, sticky in enumerate(self.sticky) if sticky))
+        return self._noisy[tunings]
+
     def recommend(
         self, tunings: tuple[Tuning, ...], source: str, max_sensitivity: float | None = None
     ) -> Recommendation:
-        """Predict and simulate ``tunings`` and judge them against the current tuning."""
+        """Predict and simulate ``tunings`` and judge them against the current tuning;
+        with a noise level, an improvement must also hold with the noise
+        (:meth:`travel_with_noise`, by :data:`MIN_REDUCTION`)."""
         prediction = self.predict(tunings)
         predicted = OscillationEffect.predicted(prediction)
         simulated = self.simulate(tunings)
@@ -1044,7 +1100,14 @@ class _Evaluator:
             outcome = "reduced"
         else:
             outcome = "not improved"
-        return Recommendation(tunings, source, predicted, simulated, outcome, max_sensitivity)
+        noisy = None
+        if outcome in ("removed", "reduced"):
+            noisy, current = self.travel_with_noise(tunings), self.travel_with_noise(self.current)
+            if noisy is not None and current is not None and noisy > (1 - MIN_REDUCTION) * current:
+                outcome = "not improved"
+                self.withdrawn_for_noise.add(tunings)
+        return Recommendation(tunings, source, predicted, simulated, outcome, max_sensitivity,
+                              noisy)
 
 
 def _search_box(
@@ -1090,6 +1153,7 @@ def advise(
     describing: DescribingChoice = "model",
     multi_loop_points: int = 3,
     max_sweeps: int = 2,
+    measurement_noise: Sequence[float] | None = None,
 ) -> TuningAdvice:
     """Retunes that remove or reduce a stiction cycle, each verified by simulation.
 
@@ -1132,11 +1196,17 @@ def advise(
         Count the controller's zero-order hold as ``dt / 2`` of dead time.
     describing : {"model", "equivalent"}
         Describing function of the valves.
+    measurement_noise : sequence of float, optional
+        Each loop's PV noise (standard deviation, PV units): a retune is offered
+        only if it also makes the valves travel less than the current tuning with
+        that noise on every PV (:meth:`_Evaluator.travel_with_noise`).  Without it
+        the verification is noise-free.
 
     Raises
     ------
     ModelSpecError
-        No sticky valve, derivative action, or a model the map cannot handle.
+        No sticky valve, derivative action, or a model the map cannot handle; a
+        noise level per loop that is missing or negative.
     """
     if not all(f > 0 for f in (*kc_factors, *ti_factors)) or not (
         kc_factors[0] < kc_factors[1] and ti_factors[0] < ti_factors[1]
@@ -1151,8 +1221,17 @@ def advise(
         )
     if all(isinstance(loop.valve, IdealValve) for loop in model.loops):
         raise ModelSpecError("no sticky valve: there is no stiction cycle to advise on")
+    if measurement_noise is not None and (
+        len(measurement_noise) != len(model.loops)
+        or not all(math.isfinite(x) and x >= 0 for x in measurement_noise)
+    ):
+        raise ModelSpecError(
+            f"measurement_noise needs one finite standard deviation >= 0 per loop "
+            f"({len(model.loops)}), got {list(measurement_noise)}"
+        )
     hold_delay = model.dt / 2 if include_hold else 0.0
-    evaluator = _Evaluator(model, hold_delay=hold_delay, describing=describing)
+    evaluator = _Evaluator(model, hold_delay=hold_delay, describing=describing,
+                           measurement_noise=measurement_noise)
     names = tuple(loop.name or f"loop{i + 1}" for i, loop in enumerate(model.loops))
     if len(model.loops) == 1:
         candidates, analysis, maps, notes = _single_loop_plan(
@@ -1196,6 +1275,16 @@ def advise(
             "the simulation cycles although the describing function predicts no limit "
             "cycle: a stick-slip cycle whose OP fundamental stays below S/2"
         )
+    withdrawn = [r for r in recommendations if r.tunings in evaluator.withdrawn_for_noise]
+    if withdrawn:
+        current_noisy = evaluator.travel_with_noise(evaluator.current)
+        worst = max(withdrawn, key=lambda r: r.travel_rate_with_noise or 0.0)
+        notes.append(
+            f"{len(withdrawn)} retune(s) that improve the noise-free simulation make the "
+            "valve travel as much or more with the measured PV noise, and are not offered "
+            f"(up to {(worst.travel_rate_with_noise or 0.0) / (current_noisy or math.inf):.2g} "
+            "times the current tuning's travel): more gain lets the noise slip the valve"
+        )
     if any(r.predicted.travel_rate == 0 and r.outcome == "reduced" for r in recommendations):
         notes.append(
             "where the describing function predicts no cycle, the simulation still shows "
@@ -1212,6 +1301,7 @@ def advise(
         recommendations=tuple(offered),
         rejected=tuple(r for r in recommendations if not r.offered),
         notes=tuple(notes),
+        current_travel_rate_with_noise=evaluator.travel_with_noise(evaluator.current),
     )
 
 

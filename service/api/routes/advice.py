@@ -36,7 +36,9 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
     valve that reproduces it, or on the closest one with the error stated.
     A He valve's describing function is Eq. 3.4 at its equivalent S and J (its
     own sinusoidal DF is zero at the OP amplitudes below S / 2 of its stick-slip
-    cycles, so it would predict no cycle anywhere on the map).
+    cycles, so it would predict no cycle anywhere on the map).  Every retune is
+    checked once more with the window's PV noise, which keeps a sticky valve
+    slipping where the noise-free model comes to rest.
 
     A pure function of the run and the loop's configuration (cached by
     :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
@@ -46,7 +48,9 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
     loop_model = model.closed_loop(SIMULATED_S)
     fit = fit_valve_to_cycle(loop_model, period, amplitude, S_interval=model.S_interval,
                              J_interval=model.J_interval)
-    advice = advise(fit.fitted(loop_model), describing="equivalent")
+    noise = stored.analysis.pv_noise  # None for runs stored before it was kept
+    advice = advise(fit.fitted(loop_model), describing="equivalent",
+                    measurement_noise=None if noise is None else (noise,))
     agreement = CycleAgreement.of(advice, period, amplitude)
     if fit.changed:
         advice = dataclasses.replace(advice, notes=(fit.explanation(), *advice.notes))

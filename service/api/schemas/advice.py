@@ -57,6 +57,9 @@ class RecommendationPublic(Schema):
     cycles, "reduced" if its valve travel rate falls enough."""
     max_sensitivity: float | None
     """``Ms`` of the retuned loop (single loop only; null when unstable)."""
+    travel_rate_with_noise: float | None = None
+    """Valve travel of the sticky loops (% per s) in a simulation with the measured PV
+    noise; null when the noise was not known (analyses stored before it was kept)."""
 
 
 class FirstOrderProcessPublic(Schema):
@@ -252,6 +255,9 @@ class StictionAdvice(Schema):
     """Candidates the simulation did not confirm."""
     notes: list[str]
     """Why an action was not offered, what the simulation adds."""
+    current_travel_rate_with_noise: float | None = None
+    """The current tuning's valve travel with the measured PV noise (% per s); null when
+    the noise was not known."""
     valve_fit: ValveFitPublic
     """The estimate's valve checked against the measured cycle and fitted to it."""
     measured_cycle: CycleAgreementPublic

@@ -62,6 +62,9 @@ class QualityPublic(OpenSchema):
     """Whether the window's data could be analysed."""
 
     usable: bool | None = None
+    pv_noise: float | None = None
+    """PV's noise standard deviation (PV units, from its first differences) of a window
+    with a sticky valve; null otherwise."""
     issues: list[dict[str, Any]] | None = None
     """Each problem found: ``code``, ``signal``, ``severity``, ``message``, ``value``."""
 

@@ -107,13 +107,6 @@ def test_a_sticky_valve_gets_advice_from_a_model_that_cycles_as_the_loop(demo, l
 
 
 @pytest.mark.parametrize("loop_id", ["FIC-101", "FIC-105"])
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 19: the safe-tuning pick (Kc 1.0, Ti 12-14 s) removes the cycle in the "
-    "noise-free loop model, but on the plant, with its measurement noise, that gain makes "
-    "the valve travel 1.5-1.8 times as much as the current tuning: the advice must be "
-    "simulated with the measured noise",
-)
 def test_the_offered_retunes_make_the_plants_valve_travel_less(demo, loop_id):
     """Checked on the simulated plant itself (its process, valve and measurement noise):
     each offered retune makes the valve travel less than the current tuning does."""
@@ -271,3 +264,4 @@ def test_a_healthy_valve_cycling_gets_detuning_unless_the_cycle_is_forced(
     assert [r["tunings"] for r in body["recommendations"]] == [
         [{"Kc": 0.25, "Ti": 8.0}], [{"Kc": 0.5 / 3, "Ti": 8.0}]]
     assert body["notes"][-1] == why
+
