@@ -745,15 +745,25 @@ function detuningResult(advice) {
     ...advice.notes.map((note) => h("p", { class: "note" }, note)));
 }
 
+function noisyTravelText(rate, current) {
+  // Valve travel with the measured PV noise, against the current tuning's (null: not known).
+  if (rate === null || rate === undefined || !current) return "not checked";
+  return `valve travel ${(rate / current).toFixed(2)} x the current tuning's`;
+}
+
 function adviceResult(advice) {
   // Tuning advice (GET /loops/{id}/advice): every candidate was predicted with the describing
-  // function and simulated; only the ones the simulation confirms are recommended.
+  // function and simulated, then simulated again with the measured PV noise; only the ones
+  // both simulations confirm are recommended.
   if (advice.kind === "detuning") return detuningResult(advice);
+  const noisyNow = advice.current_travel_rate_with_noise;
   const rows = [...advice.recommendations.map((r) => [r, "recommended"]),
     ...advice.rejected.map((r) => [r, "not recommended"])].map(([r, kind]) =>
     h("tr", { "data-advice": kind },
       h("td", {}, tuningText(r.tunings)), h("td", {}, r.source),
       h("td", {}, cycleText(r.predicted)), h("td", {}, cycleText(r.simulated)),
+      h("td", { "data-column": "with-noise" },
+        noisyTravelText(r.travel_rate_with_noise, noisyNow)),
       h("td", {}, `${kind}: ${r.outcome}`)));
   return h("div", {},
     definitionList([
@@ -762,8 +772,8 @@ function adviceResult(advice) {
       ["Current, simulated", cycleText(advice.current_simulated)],
       ["Against the measured cycle", advice.measured_cycle.explanation],
     ]),
-    table("Candidate tunings", ["Tuning", "From", "Predicted", "Simulated", "Verdict"], rows,
-      "No candidate tuning."),
+    table("Candidate tunings", ["Tuning", "From", "Predicted", "Simulated",
+      "With the PV noise", "Verdict"], rows, "No candidate tuning."),
     ...(advice.notes || []).map((note) => h("p", { class: "note" }, note)));
 }
 

@@ -256,6 +256,13 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     advice = page.locator('[data-advice-box$="/advice"]')
     advice.get_by_text("Current tuning", exact=True).wait_for()
     assert "Kc 0.500, Ti 8.0 s" in advice.inner_text()  # the configured PI tuning
+    # each recommended retune was checked with the PV noise too: less valve travel
+    answer = running.call("GET", "/api/v1/loops/FIC-1/advice", "viewer")
+    noisy = advice.locator('tr[data-advice="recommended"] td[data-column="with-noise"]')
+    assert noisy.count() == len(answer["recommendations"])
+    for cell, offer in zip(noisy.all_inner_texts(), answer["recommendations"], strict=True):
+        ratio = offer["travel_rate_with_noise"] / answer["current_travel_rate_with_noise"]
+        assert cell == f"valve travel {ratio:.2f} x the current tuning's" and ratio < 0.95
 
     alarm = running.call("GET", "/api/v1/alarms?loop_id=FIC-1", "viewer")["data"][0]
     assert alarm["state"] == "unacknowledged"
