@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.signal import lfilter, ss2tf
+from scipy.signal import ss2tf
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import ProcessMatrix
@@ -262,11 +262,45 @@ def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
     return np.concatenate([np.zeros(entry.delay_samples), b]), np.asarray(den, dtype=float)
 
 
+@njit(cache=True)
+def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, start: int,
+                 stop: int, step: int) -> FloatArray:
+    """Each row of ``u`` through ``z^-delay b(z) / a(z)`` (``b`` and ``a`` of one length,
+    ``a[0] = 1``) from zero state, at the samples ``range(start, stop, step)``: the
+    transposed direct form II of :func:`scipy.signal.lfilter`, operation for operation
+    (the same bits), eight rows at a time so that their recursions overlap."""
+    order, rows, width = b.size, u.shape[0], 8
+    count = len(range(start, stop, step))
+    out = np.zeros((rows, count))
+    state, x, y = np.zeros((order, width)), np.empty(width), np.empty(width)
+    for first in range(0, rows, width):
+        block = min(width, rows - first)
+        state[:] = 0.0
+        q, pick = 0, start
+        while q < count and pick < delay:
+            q, pick = q + 1, pick + step
+        for n in range(u.shape[1] - delay):
+            for r in range(block):
+                x[r] = u[first + r, n]
+                y[r] = state[0, r] + b[0] * x[r]
+            for j in range(1, order - 1):
+                for r in range(block):
+                    state[j - 1, r] = state[j, r] + x[r] * b[j] - y[r] * a[j]
+            if order > 1:
+                for r in range(block):
+                    state[order - 2, r] = x[r] * b[order - 1] - y[r] * a[order - 1]
+            if q < count and pick == n + delay:
+                for r in range(block):
+                    out[first + r, q] = y[r]
+                q, pick = q + 1, pick + step
+    return out
+
+
 @dataclass(frozen=True)
 class _Filter:
-    """A sampled entry as :func:`scipy.signal.lfilter` polynomials without the leading zeros
-    of ``b`` (its dead time), which become a shift of the output: the filter's order, and
-    its cost, is that of the lag alone."""
+    """A sampled entry as :func:`scipy.signal.lfilter` polynomials (of one length, ``a[0] =
+    1``) without the leading zeros of ``b`` (its dead time), which become a shift of the
+    output: the filter's order, and its cost, is that of the lag alone."""
 
     b: FloatArray
     a: FloatArray
@@ -277,15 +311,16 @@ class _Filter:
         b, a = _polynomials(entry)
         nonzero = np.flatnonzero(b)
         delay = int(nonzero[0]) if nonzero.size else 0
-        return cls(np.trim_zeros(b[delay:], "b") if nonzero.size else b[:1], a, delay)
+        b = np.trim_zeros(b[delay:], "b") if nonzero.size else b[:1]
+        if a[0] != 1.0:  # normalised as lfilter does
+            b, a = b / a[0], a / a[0]
+        order = max(b.size, a.size)
+        return cls(np.pad(b, (0, order - b.size)), np.pad(a, (0, order - a.size)), delay)
 
-    def __call__(self, u: FloatArray) -> FloatArray:
-        """``H(z) u`` along the last axis, from zero initial state."""
-        out = np.zeros(u.shape)
-        if self.delay < u.shape[-1]:
-            out[..., self.delay:] = lfilter(self.b, self.a, u[..., :u.shape[-1] - self.delay],
-                                            axis=-1)
-        return out
+    def __call__(self, u: FloatArray, samples: slice) -> FloatArray:
+        """``H(z) u`` of each row of ``u`` from zero initial state, at ``samples``."""
+        return np.asarray(_direct_form(self.b, self.a, self.delay, u,
+                                       *samples.indices(u.shape[1])))
 
 
 @dataclass(frozen=True)
@@ -304,12 +339,14 @@ class _Problem:
                  process: ProcessMatrix, ts: float) -> None:
         n = len(ops)
         self.n, self.ops = n, ops
+        entries = [[None if g is None else discretise(g, ts) for g in row] for row in process]
         self.filters: list[list[_Filter | None]] = [
-            [None if g is None else _Filter.of(discretise(g, ts)) for g in row]
-            for row in process]
-        settle = max(_settling_samples(discretise(g, ts)) for row in process for g in row
-                     if g is not None)
+            [None if e is None else _Filter.of(e) for e in row] for row in entries]
+        settle = max(_settling_samples(e) for row in entries for e in row if e is not None)
         samples = pvs[0].size
+        # each entry's step response over the window, for the slips moved one by one
+        self.steps = [[None if f is None else f(np.ones((1, samples)), slice(None))[0]
+                       for f in row] for row in self.filters]
         self.spans = [max(float(np.percentile(x, 99) - np.percentile(x, 1)), 1e-9) for x in ops]
         self.turns = [_turning_points(moving_average(x, 5), TURN_HYSTERESIS * span)
                       for x, span in zip(ops, self.spans, strict=True)]
@@ -339,7 +376,7 @@ class _Problem:
         """``w_i G_ik u`` on the fit samples, centred, one row per row of ``u``."""
         filt = self.filters[i][k]
         assert filt is not None
-        z = filt(u - u[:, :1])[:, self.fit]
+        z = filt(u - u[:, :1], self.fit)
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
 
     def row_misfits(self, i: int, regressors: FloatArray, variable: int,
@@ -603,11 +640,8 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     base, jump = replays[k].copy(), jumps[k].copy()
     op = problem.ops[k]
     rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
-    residual, scale, steps = {}, {}, {}
+    residual, scale = {}, {}
     for i in rows:
-        filt = problem.filters[i][k]
-        assert filt is not None
-        steps[i] = filt(np.ones(base.size))
         _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
         residual[i] = res.copy()
         scale[i] = (gains[k] * problem.weights[i],
@@ -638,8 +672,9 @@ def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
         change = np.zeros(shifts.size)
         responses = {}
         for i in rows:
-            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, steps[i],
-                            picks)
+            step = problem.steps[i][k]
+            assert step is not None
+            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, step, picks)
             r = residual[i][q0:q1]
             change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
             responses[i] = dz
