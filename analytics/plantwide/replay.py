@@ -632,57 +632,123 @@ def _superpose(u: FloatArray, step: FloatArray, picks: NDArray[np.int64]) -> Flo
     return out
 
 
+@njit(cache=True)
+def _block_sum(x: FloatArray, first: int, count: int) -> float:
+    """``np.sum`` of at most 128 elements as numpy adds them: eight accumulators from
+    eight on, the rest one by one."""
+    if count < 8:
+        total = 0.0
+        for q in range(first, first + count):
+            total += x[q]
+        return total
+    r0, r1, r2, r3 = x[first], x[first + 1], x[first + 2], x[first + 3]
+    r4, r5, r6, r7 = x[first + 4], x[first + 5], x[first + 6], x[first + 7]
+    end = first + count - count % 8
+    for q in range(first + 8, end, 8):
+        r0, r1, r2, r3 = r0 + x[q], r1 + x[q + 1], r2 + x[q + 2], r3 + x[q + 3]
+        r4, r5, r6, r7 = r4 + x[q + 4], r5 + x[q + 5], r6 + x[q + 6], r7 + x[q + 7]
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for q in range(end, first + count):
+        total += x[q]
+    return total
+
+
+@njit(cache=True)
+def _numpy_sum(x: FloatArray) -> float:
+    """``np.sum(x)`` with numpy's bits: its pairwise summation, blocks of up to 128
+    (:func:`_block_sum`) added in halves of a multiple of eight elements.  The recursion
+    runs on a stack of its own (numba's cache cannot load a recursive function)."""
+    first, count = np.zeros(64, np.int64), np.zeros(64, np.int64)
+    left, left_done = np.zeros(64), np.zeros(64, np.bool_)
+    top, count[0] = 0, x.size
+    while True:
+        if count[top] > 128:  # descend into the left half
+            half = count[top] // 2
+            half -= half % 8
+            top += 1
+            first[top], count[top], left_done[top] = first[top - 1], half, False
+            continue
+        value = _block_sum(x, first[top], count[top])
+        while True:  # return the value to the frames above
+            top -= 1
+            if top < 0:
+                return value
+            if left_done[top]:
+                value = left[top] + value
+                continue
+            left[top], left_done[top] = value, True
+            half = count[top] // 2
+            half -= half % 8
+            top += 1  # then the right half
+            first[top], count[top], left_done[top] = first[top - 1] + half, count[top - 1] - half, False
+            break
+
+
+@njit(cache=True)
+def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
+                    slips: NDArray[np.int64], residual: FloatArray, scale: FloatArray,
+                    steps: FloatArray, start: int, stride: int, tail: int) -> None:
+    """The loop of :func:`_refine_slips` over the slips of one replay, in place on its
+    levels ``base``, its slip directions ``jump`` and the PV residuals (one row per PV the
+    valve drives, with its gain and jump coefficient in ``scale`` and its entry's step
+    response in ``steps``)."""
+    stop = base.size
+    for j in range(slips.size):
+        t = slips[j]
+        before = slips[j - 1] if j > 0 else 0
+        after = slips[j + 1] if j + 1 < slips.size else stop
+        earliest = max(-SLIP_SHIFT, before + 1 - t)
+        count = min(SLIP_SHIFT, after - 1 - t) + 1 - earliest
+        low, high = t + earliest, min(after + tail, stop)
+        q0 = max(0, -(-(low - start) // stride))
+        q1 = max(q0, -(-(high - start) // stride))
+        if count < 2 or q1 == q0:
+            continue
+        picks = start + stride * np.arange(q0, q1) - low
+        trial_base = np.empty((count, after - low))
+        trial_jump = np.empty((count, after - low))
+        for m in range(count):
+            moved = t + earliest + m - low
+            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + earliest + m]
+            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
+        delta_base = np.zeros((count, high - low))
+        delta_jump = np.zeros((count, high - low))
+        delta_base[:, :after - low] = trial_base - base[low:after]
+        delta_jump[:, :after - low] = trial_jump - jump[low:after]
+        change = np.zeros(count)
+        responses = np.empty((residual.shape[0], count, q1 - q0))
+        for i in range(residual.shape[0]):
+            dz = _superpose(scale[i, 0] * delta_base + scale[i, 1] * delta_jump, steps[i],
+                            picks)
+            r = residual[i, q0:q1]
+            held = _numpy_sum(r * r)
+            for m in range(count):
+                d = r - dz[m]
+                change[m] += _numpy_sum(d * d) - held
+            responses[i] = dz
+        best = np.argmin(change)
+        if change[best] < 0 and earliest + best != 0:
+            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
+            for i in range(residual.shape[0]):
+                residual[i, q0:q1] -= responses[i, best]
+
+
 def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
                   jumps: dict[int, FloatArray]) -> None:
     """Move each slip of valve ``k`` by up to :data:`SLIP_SHIFT` samples where that lowers
     the misfit (gains and jump coefficients held), its level the OP at the new instant;
     ``replays[k]`` (the levels before the jump) and ``jumps[k]`` are updated in place."""
     base, jump = replays[k].copy(), jumps[k].copy()
-    op = problem.ops[k]
     rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
-    residual, scale = {}, {}
+    residual, scale = [], []
     for i in rows:
         _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
-        residual[i] = res.copy()
-        scale[i] = (gains[k] * problem.weights[i],
-                    coefficients[_jump_index(problem, i, k, jumps)] * problem.weights[i])
-    start, stop, stride = problem.fit.start, base.size, problem.fit.step
-    tail = problem.settle
-    slips = _slips(base, jump)
-    for j, t in enumerate(slips):
-        before = slips[j - 1] if j > 0 else 0
-        after = slips[j + 1] if j + 1 < slips.size else stop
-        shifts = np.arange(max(-SLIP_SHIFT, before + 1 - t), min(SLIP_SHIFT, after - 1 - t) + 1)
-        low, high = t + shifts[0], min(after + tail, stop)
-        q0 = max(0, -(-(low - start) // stride))
-        q1 = max(q0, -(-(high - start) // stride))
-        if shifts.size < 2 or q1 == q0:
-            continue
-        picks = start + stride * np.arange(q0, q1) - low
-        trial_base = np.empty((shifts.size, after - low))
-        trial_jump = np.empty((shifts.size, after - low))
-        for m, shift in enumerate(shifts):
-            moved = t + shift - low
-            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + shift]
-            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
-        delta_base = np.zeros((shifts.size, high - low))
-        delta_jump = np.zeros((shifts.size, high - low))
-        delta_base[:, :after - low] = trial_base - base[low:after]
-        delta_jump[:, :after - low] = trial_jump - jump[low:after]
-        change = np.zeros(shifts.size)
-        responses = {}
-        for i in rows:
-            step = problem.steps[i][k]
-            assert step is not None
-            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, step, picks)
-            r = residual[i][q0:q1]
-            change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
-            responses[i] = dz
-        best = int(np.argmin(change))
-        if change[best] < 0 and shifts[best] != 0:
-            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
-            for i in rows:
-                residual[i][q0:q1] -= responses[i][best]
+        residual.append(res)
+        scale.append((gains[k] * problem.weights[i],
+                      coefficients[_jump_index(problem, i, k, jumps)] * problem.weights[i]))
+    _move_each_slip(problem.ops[k], base, jump, _slips(base, jump), np.array(residual),
+                    np.array(scale), np.array([problem.steps[i][k] for i in rows]),
+                    problem.fit.start, problem.fit.step, problem.settle)
     replays[k], jumps[k] = base, jump
 
 
