@@ -263,25 +263,29 @@ def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
 
 
 @njit(cache=True)
-def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, start: int,
-                 stop: int, step: int) -> FloatArray:
-    """Each row of ``u`` through ``z^-delay b(z) / a(z)`` (``b`` and ``a`` of one length,
-    ``a[0] = 1``) from zero state, at the samples ``range(start, stop, step)``: the
+def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centred: bool,
+                 start: int, stop: int, step: int) -> FloatArray:
+    """Each row of ``u`` (less its first sample if ``centred``) through ``z^-delay b(z) /
+    a(z)`` (``b`` and ``a`` of one length, ``a[0] = 1``) from zero state, at the samples
+    ``range(start, stop, step)``: the
     transposed direct form II of :func:`scipy.signal.lfilter`, operation for operation
     (the same bits), eight rows at a time so that their recursions overlap."""
     order, rows, width = b.size, u.shape[0], 8
     count = len(range(start, stop, step))
     out = np.zeros((rows, count))
     state, x, y = np.zeros((order, width)), np.empty(width), np.empty(width)
+    origin = np.zeros(width)
     for first in range(0, rows, width):
         block = min(width, rows - first)
         state[:] = 0.0
+        if centred:
+            origin[:block] = u[first:first + block, 0]
         q, pick = 0, start
         while q < count and pick < delay:
             q, pick = q + 1, pick + step
         for n in range(u.shape[1] - delay):
             for r in range(block):
-                x[r] = u[first + r, n]
+                x[r] = u[first + r, n] - origin[r]
                 y[r] = state[0, r] + b[0] * x[r]
             for j in range(1, order - 1):
                 for r in range(block):
@@ -317,9 +321,10 @@ class _Filter:
         order = max(b.size, a.size)
         return cls(np.pad(b, (0, order - b.size)), np.pad(a, (0, order - a.size)), delay)
 
-    def __call__(self, u: FloatArray, samples: slice) -> FloatArray:
-        """``H(z) u`` of each row of ``u`` from zero initial state, at ``samples``."""
-        return np.asarray(_direct_form(self.b, self.a, self.delay, u,
+    def __call__(self, u: FloatArray, samples: slice, centred: bool = False) -> FloatArray:
+        """``H(z) u`` of each row of ``u`` (less its first sample if ``centred``) from zero
+        initial state, at ``samples``."""
+        return np.asarray(_direct_form(self.b, self.a, self.delay, u, centred,
                                        *samples.indices(u.shape[1])))
 
 
@@ -376,7 +381,7 @@ class _Problem:
         """``w_i G_ik u`` on the fit samples, centred, one row per row of ``u``."""
         filt = self.filters[i][k]
         assert filt is not None
-        z = filt(u - u[:, :1], self.fit)
+        z = filt(u, self.fit, centred=True)
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
 
     def row_misfits(self, i: int, regressors: FloatArray, variable: int,
@@ -432,22 +437,36 @@ def _turn_replays(op: FloatArray, turns: NDArray[np.int64], directions: FloatArr
         out[p, :first] = op[first] - 2.0 * directions[0] * fs[p]
         y = op[first] - directions[0] * fd[p]
         out[p, first] = y
-        j = 1
-        for k in range(first + 1, op.size):
-            while j < turns.size and max(turns[j] - lag[p], 0) < k:
-                j += 1
+        k = first + 1
+        for j in range(1, turns.size):
+            narrowed = max(turns[j] - lag[p], 0)
+            if narrowed < k:
+                continue
+            y = _he_run(op, out[p], y, fs[p], fd[p], k, narrowed)
             up = down = fs[p]
-            if j < turns.size and max(turns[j] - lag[p], 0) == k:
-                if directions[j] > 0:
-                    up = (1.0 - TURN_TOLERANCE) * fs[p]
-                else:
-                    down = (1.0 - TURN_TOLERANCE) * fs[p]
-            if op[k] - y > up:
-                y = op[k] - fd[p]
-            elif y - op[k] > down:
-                y = op[k] + fd[p]
-            out[p, k] = y
+            if directions[j] > 0:
+                up = (1.0 - TURN_TOLERANCE) * fs[p]
+            else:
+                down = (1.0 - TURN_TOLERANCE) * fs[p]
+            if op[narrowed] - y > up:
+                y = op[narrowed] - fd[p]
+            elif y - op[narrowed] > down:
+                y = op[narrowed] + fd[p]
+            out[p, narrowed] = y
+            k = narrowed + 1
+        _he_run(op, out[p], y, fs[p], fd[p], k, op.size)
     return out
+
+
+@njit(cache=True)
+def _he_run(op: FloatArray, out: FloatArray, y: float, fs: float, fd: float, start: int,
+            stop: int) -> float:
+    """He's valve from position ``y`` driven by ``op[start:stop]``, written to
+    ``out[start:stop]``; its last position."""
+    for k in range(start, stop):
+        y = he_update(fs, fd, y, op[k])
+        out[k] = y
+    return y
 
 
 def _turning_points(x: FloatArray, hysteresis: float) -> tuple[NDArray[np.int64], FloatArray]:
@@ -492,10 +511,14 @@ class _Valve:
             jumps.append(band * ratio)
         self.fs, self.fd = np.concatenate(bands), np.concatenate(jumps)
         self.size = self.fs.size
-        # one family at a time: only the responses are kept, not the grid of replays
-        self.responses = [None if problem.filters[i][k] is None else np.vstack(
-            [problem.response(i, k, self._replays(family)) for family in self._families()])
-            for i in range(problem.n)]
+        # one family at a time, through every PV: only the responses are kept, not the grid
+        rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
+        parts: dict[int, list[FloatArray]] = {i: [] for i in rows}
+        for family in self._families():
+            replays = self._replays(family)
+            for i in rows:
+                parts[i].append(problem.response(i, k, replays))
+        self.responses = [np.vstack(parts[i]) if i in parts else None for i in range(problem.n)]
 
     def _families(self) -> list[slice]:
         return [slice(0, self.free)] + ([slice(self.free, self.size)] if self.lag.size else [])
