@@ -384,13 +384,13 @@ class _Problem:
         z = filt(u, self.fit, centred=True)
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
 
-    def row_misfits(self, i: int, regressors: FloatArray, variable: int,
-                    candidates: FloatArray, extra: FloatArray | None = None) -> FloatArray:
-        """Ridge misfit of row ``i`` for every candidate regressor of valve ``variable``
-        (rows of ``candidates``), the other valves' regressors held (``regressors``, and
-        the columns ``extra`` with free coefficients: other valves' slip jumps)."""
+    def row_misfits(self, i: int, regressors: FloatArray, valve: _Valve,
+                    extra: FloatArray | None = None) -> FloatArray:
+        """Ridge misfit of row ``i`` for every grid replay of ``valve``, the other valves'
+        regressors held (``regressors``, and the columns ``extra`` with free coefficients:
+        other valves' slip jumps)."""
         present = self.rows[i].present
-        fixed = [k for k in range(self.n) if present[k] and k != variable]
+        fixed = [k for k in range(self.n) if present[k] and k != valve.k]
         target = self.rows[i].target
         prior = 1.0 / GAIN_SIGMA
         free = np.zeros((0, target.size)) if extra is None else extra
@@ -403,11 +403,12 @@ class _Problem:
         theta = gram_inv @ (a.T @ t)
         residual = t - a @ theta
         base = float(residual @ residual)
-        if not present[variable]:
-            return np.full(candidates.shape[0], base)
+        candidates, norms = valve.responses[i], valve.norms[i]
+        if candidates is None or norms is None:
+            return np.full(valve.size, base)
         cross = candidates @ a_data  # (P, fixed)
         z_r = candidates @ residual[:target.size] + prior**2
-        z_norm = np.einsum("ps,ps->p", candidates, candidates) + prior**2
+        z_norm = norms + prior**2
         z_norm -= np.einsum("pf,fg,pg->p", cross, gram_inv, cross)
         # the candidate's own prior row: the fixed fit leaves its target, ``prior``, there
         return np.asarray(base + prior**2 - z_r**2 / np.maximum(z_norm, 1e-12))
@@ -495,6 +496,7 @@ class _Valve:
     every PV."""
 
     def __init__(self, problem: _Problem, k: int) -> None:
+        self.k = k
         op, span = problem.ops[k], problem.spans[k]
         fs, ratio, share = (a.reshape(-1) for a in np.meshgrid(
             np.geomspace(0.003, 0.3, FREE_BANDS) * span, np.asarray(JUMP_RATIOS),
@@ -519,6 +521,10 @@ class _Valve:
             for i in rows:
                 parts[i].append(problem.response(i, k, replays))
         self.responses = [np.vstack(parts[i]) if i in parts else None for i in range(problem.n)]
+        self.norms = [None if z is None else np.einsum("ps,ps->p", z, z) for z in self.responses]
+        # the grid replay chosen with the other valves' grid replays held (:func:`_descend`),
+        # by those valves and their replays: the same choice recurs across candidate sets
+        self.choices: dict[frozenset[tuple[int, int]], int] = {}
 
     def _families(self) -> list[slice]:
         return [slice(0, self.free)] + ([slice(self.free, self.size)] if self.lag.size else [])
@@ -598,17 +604,18 @@ def _descend(problem: _Problem, members: tuple[int, ...], valves: Mapping[int, _
     for _ in range(passes):
         for k in members:
             valve = valves[k]
-            total = np.zeros(valve.size)
-            for i, row in enumerate(problem.rows):
-                regressors = row.healthy.copy()
-                for other, p in chosen.items():
-                    response = valves[other].responses[i]
-                    if other != k and response is not None:
-                        regressors[other] = response[p]
-                response = valve.responses[i]
-                total += problem.row_misfits(i, regressors, k, response if response is not None
-                                             else regressors[k:k + 1])
-            chosen[k] = int(np.argmin(total))
+            held = frozenset((other, p) for other, p in chosen.items() if other != k)
+            if held not in valve.choices:
+                total = np.zeros(valve.size)
+                for i, row in enumerate(problem.rows):
+                    regressors = row.healthy.copy()
+                    for other, p in held:
+                        response = valves[other].responses[i]
+                        if response is not None:
+                            regressors[other] = response[p]
+                    total += problem.row_misfits(i, regressors, valve)
+                valve.choices[held] = int(np.argmin(total))
+            chosen[k] = valve.choices[held]
     return chosen
 
 
@@ -625,10 +632,7 @@ def _reselect(problem: _Problem, k: int, valve: _Valve, replays: Mapping[int, Fl
                 regressors[j] = problem.response(i, j, u[None, :])[0]
         extra = [problem.response(i, j, d[None, :])[0] for j, d in other_jumps.items()
                  if row.present[j]]
-        response = valve.responses[i]
-        total += problem.row_misfits(i, regressors, k, response if response is not None
-                                     else regressors[k:k + 1],
-                                     np.array(extra) if extra else None)
+        total += problem.row_misfits(i, regressors, valve, np.array(extra) if extra else None)
     return int(np.argmin(total))
 
 
