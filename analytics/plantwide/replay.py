@@ -802,13 +802,19 @@ def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     the fitted gains where they are, and one slip moved alone cannot undo that."""
     trials = [_shifted(problem.ops[k], replays[k], jumps[k], shift)
               for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
-    # the other members' responses are the same in every trial
+    # the other members' responses are the same in every trial, and the trials' own
+    # responses in a PV are filtered together
     held = [{(j, jump): problem.response(i, j, u[None, :])[0]
              for jump, signals in ((False, replays), (True, jumps))
              for j, u in signals.items() if j != k and problem.rows[i].present[j]}
             for i in range(problem.n)]
-    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump}, held[i])[0]
-                   for i in range(problem.n)) for base, jump in trials]
+    levels, directions = (np.array(signals) for signals in zip(*trials, strict=True))
+    own = [{(k, False): problem.response(i, k, levels),
+            (k, True): problem.response(i, k, directions)} if problem.rows[i].present[k] else {}
+           for i in range(problem.n)]
+    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump},
+                            {**held[i], **{key: z[m] for key, z in own[i].items()}})[0]
+                   for i in range(problem.n)) for m, (base, jump) in enumerate(trials)]
     replays[k], jumps[k] = trials[int(np.argmin(misfits))]
 
 
