@@ -689,26 +689,23 @@ def _numpy_sum(x: FloatArray) -> float:
     left, left_done = np.zeros(64), np.zeros(64, np.bool_)
     top, count[0] = 0, x.size
     while True:
-        if count[top] > 128:  # descend into the left half
-            half = count[top] // 2
-            half -= half % 8
+        if count[top] > 128:  # the left half first
+            half = count[top] // 2 - count[top] // 2 % 8
+            first[top + 1], count[top + 1], left_done[top + 1] = first[top], half, False
             top += 1
-            first[top], count[top], left_done[top] = first[top - 1], half, False
             continue
         value = _block_sum(x, first[top], count[top])
-        while True:  # return the value to the frames above
+        top -= 1
+        while top >= 0 and left_done[top]:  # both halves of this frame are summed
+            value = left[top] + value
             top -= 1
-            if top < 0:
-                return value
-            if left_done[top]:
-                value = left[top] + value
-                continue
-            left[top], left_done[top] = value, True
-            half = count[top] // 2
-            half -= half % 8
-            top += 1  # then the right half
-            first[top], count[top], left_done[top] = first[top - 1] + half, count[top - 1] - half, False
-            break
+        if top < 0:
+            return value
+        left[top], left_done[top] = value, True  # then its right half
+        half = count[top] // 2 - count[top] // 2 % 8
+        first[top + 1], count[top + 1] = first[top] + half, count[top] - half
+        left_done[top + 1] = False
+        top += 1
 
 
 @njit(cache=True)
