@@ -267,9 +267,9 @@ def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centre
                  start: int, stop: int, step: int) -> FloatArray:
     """Each row of ``u`` (less its first sample if ``centred``) through ``z^-delay b(z) /
     a(z)`` (``b`` and ``a`` of one length, ``a[0] = 1``) from zero state, at the samples
-    ``range(start, stop, step)``: the
-    transposed direct form II of :func:`scipy.signal.lfilter`, operation for operation
-    (the same bits), eight rows at a time so that their recursions overlap."""
+    ``range(start, stop, step)``: the transposed direct form II of
+    :func:`scipy.signal.lfilter`, operation for operation (the same bits), eight rows at a
+    time so that their recursions overlap."""
     order, rows, width = b.size, u.shape[0], 8
     count = len(range(start, stop, step))
     out = np.zeros((rows, count))
