@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.signal import lfilter, ss2tf
+from scipy.signal import ss2tf
 
 from analytics.errors import DataError, ModelSpecError
 from analytics.limit_cycle import ProcessMatrix
@@ -262,11 +262,49 @@ def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
     return np.concatenate([np.zeros(entry.delay_samples), b]), np.asarray(den, dtype=float)
 
 
+@njit(cache=True)
+def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centred: bool,
+                 start: int, stop: int, step: int) -> FloatArray:
+    """Each row of ``u`` (less its first sample if ``centred``) through ``z^-delay b(z) /
+    a(z)`` (``b`` and ``a`` of one length, ``a[0] = 1``) from zero state, at the samples
+    ``range(start, stop, step)``: the transposed direct form II of
+    :func:`scipy.signal.lfilter`, operation for operation (the same bits), eight rows at a
+    time so that their recursions overlap."""
+    order, rows, width = b.size, u.shape[0], 8
+    count = len(range(start, stop, step))
+    out = np.zeros((rows, count))
+    state, x, y = np.zeros((order, width)), np.empty(width), np.empty(width)
+    origin = np.zeros(width)
+    for first in range(0, rows, width):
+        block = min(width, rows - first)
+        state[:] = 0.0
+        if centred:
+            origin[:block] = u[first:first + block, 0]
+        q, pick = 0, start
+        while q < count and pick < delay:
+            q, pick = q + 1, pick + step
+        for n in range(u.shape[1] - delay):
+            for r in range(block):
+                x[r] = u[first + r, n] - origin[r]
+                y[r] = state[0, r] + b[0] * x[r]
+            for j in range(1, order - 1):
+                for r in range(block):
+                    state[j - 1, r] = state[j, r] + x[r] * b[j] - y[r] * a[j]
+            if order > 1:
+                for r in range(block):
+                    state[order - 2, r] = x[r] * b[order - 1] - y[r] * a[order - 1]
+            if q < count and pick == n + delay:
+                for r in range(block):
+                    out[first + r, q] = y[r]
+                q, pick = q + 1, pick + step
+    return out
+
+
 @dataclass(frozen=True)
 class _Filter:
-    """A sampled entry as :func:`scipy.signal.lfilter` polynomials without the leading zeros
-    of ``b`` (its dead time), which become a shift of the output: the filter's order, and
-    its cost, is that of the lag alone."""
+    """A sampled entry as :func:`scipy.signal.lfilter` polynomials (of one length, ``a[0] =
+    1``) without the leading zeros of ``b`` (its dead time), which become a shift of the
+    output: the filter's order, and its cost, is that of the lag alone."""
 
     b: FloatArray
     a: FloatArray
@@ -277,15 +315,17 @@ class _Filter:
         b, a = _polynomials(entry)
         nonzero = np.flatnonzero(b)
         delay = int(nonzero[0]) if nonzero.size else 0
-        return cls(np.trim_zeros(b[delay:], "b") if nonzero.size else b[:1], a, delay)
+        b = np.trim_zeros(b[delay:], "b") if nonzero.size else b[:1]
+        if a[0] != 1.0:  # normalised as lfilter does
+            b, a = b / a[0], a / a[0]
+        order = max(b.size, a.size)
+        return cls(np.pad(b, (0, order - b.size)), np.pad(a, (0, order - a.size)), delay)
 
-    def __call__(self, u: FloatArray) -> FloatArray:
-        """``H(z) u`` along the last axis, from zero initial state."""
-        out = np.zeros(u.shape)
-        if self.delay < u.shape[-1]:
-            out[..., self.delay:] = lfilter(self.b, self.a, u[..., :u.shape[-1] - self.delay],
-                                            axis=-1)
-        return out
+    def __call__(self, u: FloatArray, samples: slice, centred: bool = False) -> FloatArray:
+        """``H(z) u`` of each row of ``u`` (less its first sample if ``centred``) from zero
+        initial state, at ``samples``."""
+        return np.asarray(_direct_form(self.b, self.a, self.delay, u, centred,
+                                       *samples.indices(u.shape[1])))
 
 
 @dataclass(frozen=True)
@@ -304,12 +344,14 @@ class _Problem:
                  process: ProcessMatrix, ts: float) -> None:
         n = len(ops)
         self.n, self.ops = n, ops
+        entries = [[None if g is None else discretise(g, ts) for g in row] for row in process]
         self.filters: list[list[_Filter | None]] = [
-            [None if g is None else _Filter.of(discretise(g, ts)) for g in row]
-            for row in process]
-        settle = max(_settling_samples(discretise(g, ts)) for row in process for g in row
-                     if g is not None)
+            [None if e is None else _Filter.of(e) for e in row] for row in entries]
+        settle = max(_settling_samples(e) for row in entries for e in row if e is not None)
         samples = pvs[0].size
+        # each entry's step response over the window, for the slips moved one by one
+        self.steps = [[None if f is None else f(np.ones((1, samples)), slice(None))[0]
+                       for f in row] for row in self.filters]
         self.spans = [max(float(np.percentile(x, 99) - np.percentile(x, 1)), 1e-9) for x in ops]
         self.turns = [_turning_points(moving_average(x, 5), TURN_HYSTERESIS * span)
                       for x, span in zip(ops, self.spans, strict=True)]
@@ -339,16 +381,16 @@ class _Problem:
         """``w_i G_ik u`` on the fit samples, centred, one row per row of ``u``."""
         filt = self.filters[i][k]
         assert filt is not None
-        z = filt(u - u[:, :1])[:, self.fit]
+        z = filt(u, self.fit, centred=True)
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
 
-    def row_misfits(self, i: int, regressors: FloatArray, variable: int,
-                    candidates: FloatArray, extra: FloatArray | None = None) -> FloatArray:
-        """Ridge misfit of row ``i`` for every candidate regressor of valve ``variable``
-        (rows of ``candidates``), the other valves' regressors held (``regressors``, and
-        the columns ``extra`` with free coefficients: other valves' slip jumps)."""
+    def row_misfits(self, i: int, regressors: FloatArray, valve: _Valve,
+                    extra: FloatArray | None = None) -> FloatArray:
+        """Ridge misfit of row ``i`` for every grid replay of ``valve``, the other valves'
+        regressors held (``regressors``, and the columns ``extra`` with free coefficients:
+        other valves' slip jumps)."""
         present = self.rows[i].present
-        fixed = [k for k in range(self.n) if present[k] and k != variable]
+        fixed = [k for k in range(self.n) if present[k] and k != valve.k]
         target = self.rows[i].target
         prior = 1.0 / GAIN_SIGMA
         free = np.zeros((0, target.size)) if extra is None else extra
@@ -361,11 +403,12 @@ class _Problem:
         theta = gram_inv @ (a.T @ t)
         residual = t - a @ theta
         base = float(residual @ residual)
-        if not present[variable]:
-            return np.full(candidates.shape[0], base)
+        candidates, norms = valve.responses[i], valve.norms[i]
+        if candidates is None or norms is None:
+            return np.full(valve.size, base)
         cross = candidates @ a_data  # (P, fixed)
         z_r = candidates @ residual[:target.size] + prior**2
-        z_norm = np.einsum("ps,ps->p", candidates, candidates) + prior**2
+        z_norm = norms + prior**2
         z_norm -= np.einsum("pf,fg,pg->p", cross, gram_inv, cross)
         # the candidate's own prior row: the fixed fit leaves its target, ``prior``, there
         return np.asarray(base + prior**2 - z_r**2 / np.maximum(z_norm, 1e-12))
@@ -395,22 +438,36 @@ def _turn_replays(op: FloatArray, turns: NDArray[np.int64], directions: FloatArr
         out[p, :first] = op[first] - 2.0 * directions[0] * fs[p]
         y = op[first] - directions[0] * fd[p]
         out[p, first] = y
-        j = 1
-        for k in range(first + 1, op.size):
-            while j < turns.size and max(turns[j] - lag[p], 0) < k:
-                j += 1
+        k = first + 1
+        for j in range(1, turns.size):
+            narrowed = max(turns[j] - lag[p], 0)
+            if narrowed < k:
+                continue
+            y = _he_run(op, out[p], y, fs[p], fd[p], k, narrowed)
             up = down = fs[p]
-            if j < turns.size and max(turns[j] - lag[p], 0) == k:
-                if directions[j] > 0:
-                    up = (1.0 - TURN_TOLERANCE) * fs[p]
-                else:
-                    down = (1.0 - TURN_TOLERANCE) * fs[p]
-            if op[k] - y > up:
-                y = op[k] - fd[p]
-            elif y - op[k] > down:
-                y = op[k] + fd[p]
-            out[p, k] = y
+            if directions[j] > 0:
+                up = (1.0 - TURN_TOLERANCE) * fs[p]
+            else:
+                down = (1.0 - TURN_TOLERANCE) * fs[p]
+            if op[narrowed] - y > up:
+                y = op[narrowed] - fd[p]
+            elif y - op[narrowed] > down:
+                y = op[narrowed] + fd[p]
+            out[p, narrowed] = y
+            k = narrowed + 1
+        _he_run(op, out[p], y, fs[p], fd[p], k, op.size)
     return out
+
+
+@njit(cache=True)
+def _he_run(op: FloatArray, out: FloatArray, y: float, fs: float, fd: float, start: int,
+            stop: int) -> float:
+    """He's valve from position ``y`` driven by ``op[start:stop]``, written to
+    ``out[start:stop]``; its last position."""
+    for k in range(start, stop):
+        y = he_update(fs, fd, y, op[k])
+        out[k] = y
+    return y
 
 
 def _turning_points(x: FloatArray, hysteresis: float) -> tuple[NDArray[np.int64], FloatArray]:
@@ -439,6 +496,7 @@ class _Valve:
     every PV."""
 
     def __init__(self, problem: _Problem, k: int) -> None:
+        self.k = k
         op, span = problem.ops[k], problem.spans[k]
         fs, ratio, share = (a.reshape(-1) for a in np.meshgrid(
             np.geomspace(0.003, 0.3, FREE_BANDS) * span, np.asarray(JUMP_RATIOS),
@@ -455,10 +513,18 @@ class _Valve:
             jumps.append(band * ratio)
         self.fs, self.fd = np.concatenate(bands), np.concatenate(jumps)
         self.size = self.fs.size
-        # one family at a time: only the responses are kept, not the grid of replays
-        self.responses = [None if problem.filters[i][k] is None else np.vstack(
-            [problem.response(i, k, self._replays(family)) for family in self._families()])
-            for i in range(problem.n)]
+        # one family at a time, through every PV: only the responses are kept, not the grid
+        rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
+        parts: dict[int, list[FloatArray]] = {i: [] for i in rows}
+        for family in self._families():
+            replays = self._replays(family)
+            for i in rows:
+                parts[i].append(problem.response(i, k, replays))
+        self.responses = [np.vstack(parts[i]) if i in parts else None for i in range(problem.n)]
+        self.norms = [None if z is None else np.einsum("ps,ps->p", z, z) for z in self.responses]
+        # the grid replay chosen with the other valves' grid replays held (:func:`_descend`),
+        # by those valves and their replays: the same choice recurs across candidate sets
+        self.choices: dict[frozenset[tuple[int, int]], int] = {}
 
     def _families(self) -> list[slice]:
         return [slice(0, self.free)] + ([slice(self.free, self.size)] if self.lag.size else [])
@@ -538,17 +604,18 @@ def _descend(problem: _Problem, members: tuple[int, ...], valves: Mapping[int, _
     for _ in range(passes):
         for k in members:
             valve = valves[k]
-            total = np.zeros(valve.size)
-            for i, row in enumerate(problem.rows):
-                regressors = row.healthy.copy()
-                for other, p in chosen.items():
-                    response = valves[other].responses[i]
-                    if other != k and response is not None:
-                        regressors[other] = response[p]
-                response = valve.responses[i]
-                total += problem.row_misfits(i, regressors, k, response if response is not None
-                                             else regressors[k:k + 1])
-            chosen[k] = int(np.argmin(total))
+            held = frozenset((other, p) for other, p in chosen.items() if other != k)
+            if held not in valve.choices:
+                total = np.zeros(valve.size)
+                for i, row in enumerate(problem.rows):
+                    regressors = row.healthy.copy()
+                    for other, p in held:
+                        response = valves[other].responses[i]
+                        if response is not None:
+                            regressors[other] = response[p]
+                    total += problem.row_misfits(i, regressors, valve)
+                valve.choices[held] = int(np.argmin(total))
+            chosen[k] = valve.choices[held]
     return chosen
 
 
@@ -565,10 +632,7 @@ def _reselect(problem: _Problem, k: int, valve: _Valve, replays: Mapping[int, Fl
                 regressors[j] = problem.response(i, j, u[None, :])[0]
         extra = [problem.response(i, j, d[None, :])[0] for j, d in other_jumps.items()
                  if row.present[j]]
-        response = valve.responses[i]
-        total += problem.row_misfits(i, regressors, k, response if response is not None
-                                     else regressors[k:k + 1],
-                                     np.array(extra) if extra else None)
+        total += problem.row_misfits(i, regressors, valve, np.array(extra) if extra else None)
     return int(np.argmin(total))
 
 
@@ -595,59 +659,120 @@ def _superpose(u: FloatArray, step: FloatArray, picks: NDArray[np.int64]) -> Flo
     return out
 
 
+@njit(cache=True)
+def _block_sum(x: FloatArray, first: int, count: int) -> float:
+    """``np.sum`` of at most 128 elements as numpy adds them: eight accumulators from
+    eight on, the rest one by one."""
+    if count < 8:
+        total = 0.0
+        for q in range(first, first + count):
+            total += x[q]
+        return total
+    r0, r1, r2, r3 = x[first], x[first + 1], x[first + 2], x[first + 3]
+    r4, r5, r6, r7 = x[first + 4], x[first + 5], x[first + 6], x[first + 7]
+    end = first + count - count % 8
+    for q in range(first + 8, end, 8):
+        r0, r1, r2, r3 = r0 + x[q], r1 + x[q + 1], r2 + x[q + 2], r3 + x[q + 3]
+        r4, r5, r6, r7 = r4 + x[q + 4], r5 + x[q + 5], r6 + x[q + 6], r7 + x[q + 7]
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for q in range(end, first + count):
+        total += x[q]
+    return total
+
+
+@njit(cache=True)
+def _numpy_sum(x: FloatArray) -> float:
+    """``np.sum(x)`` with numpy's bits: its pairwise summation, blocks of up to 128
+    (:func:`_block_sum`) added in halves of a multiple of eight elements.  The recursion
+    runs on a stack of its own (numba's cache cannot load a recursive function)."""
+    first, count = np.zeros(64, np.int64), np.zeros(64, np.int64)
+    left, left_done = np.zeros(64), np.zeros(64, np.bool_)
+    top, count[0] = 0, x.size
+    while True:
+        if count[top] > 128:  # the left half first
+            half = count[top] // 2 - count[top] // 2 % 8
+            first[top + 1], count[top + 1], left_done[top + 1] = first[top], half, False
+            top += 1
+            continue
+        value = _block_sum(x, first[top], count[top])
+        top -= 1
+        while top >= 0 and left_done[top]:  # both halves of this frame are summed
+            value = left[top] + value
+            top -= 1
+        if top < 0:
+            return value
+        left[top], left_done[top] = value, True  # then its right half
+        half = count[top] // 2 - count[top] // 2 % 8
+        first[top + 1], count[top + 1] = first[top] + half, count[top] - half
+        left_done[top + 1] = False
+        top += 1
+
+
+@njit(cache=True)
+def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
+                    slips: NDArray[np.int64], residual: FloatArray, scale: FloatArray,
+                    steps: FloatArray, start: int, stride: int, tail: int) -> None:
+    """The loop of :func:`_refine_slips` over the slips of one replay, in place on its
+    levels ``base``, its slip directions ``jump`` and the PV residuals (one row per PV the
+    valve drives, with its gain and jump coefficient in ``scale`` and its entry's step
+    response in ``steps``)."""
+    stop = base.size
+    for j in range(slips.size):
+        t = slips[j]
+        before = slips[j - 1] if j > 0 else 0
+        after = slips[j + 1] if j + 1 < slips.size else stop
+        earliest = max(-SLIP_SHIFT, before + 1 - t)
+        count = min(SLIP_SHIFT, after - 1 - t) + 1 - earliest
+        low, high = t + earliest, min(after + tail, stop)
+        q0 = max(0, -(-(low - start) // stride))
+        q1 = max(q0, -(-(high - start) // stride))
+        if count < 2 or q1 == q0:
+            continue
+        picks = start + stride * np.arange(q0, q1) - low
+        trial_base = np.empty((count, after - low))
+        trial_jump = np.empty((count, after - low))
+        for m in range(count):
+            moved = t + earliest + m - low
+            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + earliest + m]
+            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
+        delta_base = np.zeros((count, high - low))
+        delta_jump = np.zeros((count, high - low))
+        delta_base[:, :after - low] = trial_base - base[low:after]
+        delta_jump[:, :after - low] = trial_jump - jump[low:after]
+        change = np.zeros(count)
+        responses = np.empty((residual.shape[0], count, q1 - q0))
+        for i in range(residual.shape[0]):
+            dz = _superpose(scale[i, 0] * delta_base + scale[i, 1] * delta_jump, steps[i],
+                            picks)
+            r = residual[i, q0:q1]
+            held = _numpy_sum(r * r)
+            for m in range(count):
+                d = r - dz[m]
+                change[m] += _numpy_sum(d * d) - held
+            responses[i] = dz
+        best = np.argmin(change)
+        if change[best] < 0 and earliest + best != 0:
+            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
+            for i in range(residual.shape[0]):
+                residual[i, q0:q1] -= responses[i, best]
+
+
 def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
                   jumps: dict[int, FloatArray]) -> None:
     """Move each slip of valve ``k`` by up to :data:`SLIP_SHIFT` samples where that lowers
     the misfit (gains and jump coefficients held), its level the OP at the new instant;
     ``replays[k]`` (the levels before the jump) and ``jumps[k]`` are updated in place."""
     base, jump = replays[k].copy(), jumps[k].copy()
-    op = problem.ops[k]
     rows = [i for i in range(problem.n) if problem.filters[i][k] is not None]
-    residual, scale, steps = {}, {}, {}
+    residual, scale = [], []
     for i in rows:
-        filt = problem.filters[i][k]
-        assert filt is not None
-        steps[i] = filt(np.ones(base.size))
         _, gains, res, coefficients = _row_fit(problem, i, replays, jumps)
-        residual[i] = res.copy()
-        scale[i] = (gains[k] * problem.weights[i],
-                    coefficients[_jump_index(problem, i, k, jumps)] * problem.weights[i])
-    start, stop, stride = problem.fit.start, base.size, problem.fit.step
-    tail = problem.settle
-    slips = _slips(base, jump)
-    for j, t in enumerate(slips):
-        before = slips[j - 1] if j > 0 else 0
-        after = slips[j + 1] if j + 1 < slips.size else stop
-        shifts = np.arange(max(-SLIP_SHIFT, before + 1 - t), min(SLIP_SHIFT, after - 1 - t) + 1)
-        low, high = t + shifts[0], min(after + tail, stop)
-        q0 = max(0, -(-(low - start) // stride))
-        q1 = max(q0, -(-(high - start) // stride))
-        if shifts.size < 2 or q1 == q0:
-            continue
-        picks = start + stride * np.arange(q0, q1) - low
-        trial_base = np.empty((shifts.size, after - low))
-        trial_jump = np.empty((shifts.size, after - low))
-        for m, shift in enumerate(shifts):
-            moved = t + shift - low
-            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + shift]
-            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
-        delta_base = np.zeros((shifts.size, high - low))
-        delta_jump = np.zeros((shifts.size, high - low))
-        delta_base[:, :after - low] = trial_base - base[low:after]
-        delta_jump[:, :after - low] = trial_jump - jump[low:after]
-        change = np.zeros(shifts.size)
-        responses = {}
-        for i in rows:
-            dz = _superpose(scale[i][0] * delta_base + scale[i][1] * delta_jump, steps[i],
-                            picks)
-            r = residual[i][q0:q1]
-            change += np.sum((r - dz) ** 2, axis=1) - np.sum(r**2)
-            responses[i] = dz
-        best = int(np.argmin(change))
-        if change[best] < 0 and shifts[best] != 0:
-            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
-            for i in rows:
-                residual[i][q0:q1] -= responses[i][best]
+        residual.append(res)
+        scale.append((gains[k] * problem.weights[i],
+                      coefficients[_jump_index(problem, i, k, jumps)] * problem.weights[i]))
+    _move_each_slip(problem.ops[k], base, jump, _slips(base, jump), np.array(residual),
+                    np.array(scale), np.array([problem.steps[i][k] for i in rows]),
+                    problem.fit.start, problem.fit.step, problem.settle)
     replays[k], jumps[k] = base, jump
 
 
@@ -674,13 +799,19 @@ def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
     the fitted gains where they are, and one slip moved alone cannot undo that."""
     trials = [_shifted(problem.ops[k], replays[k], jumps[k], shift)
               for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
-    # the other members' responses are the same in every trial
+    # the other members' responses are the same in every trial, and the trials' own
+    # responses in a PV are filtered together
     held = [{(j, jump): problem.response(i, j, u[None, :])[0]
              for jump, signals in ((False, replays), (True, jumps))
              for j, u in signals.items() if j != k and problem.rows[i].present[j]}
             for i in range(problem.n)]
-    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump}, held[i])[0]
-                   for i in range(problem.n)) for base, jump in trials]
+    levels, directions = (np.array(signals) for signals in zip(*trials, strict=True))
+    own = [{(k, False): problem.response(i, k, levels),
+            (k, True): problem.response(i, k, directions)} if problem.rows[i].present[k] else {}
+           for i in range(problem.n)]
+    misfits = [sum(_row_fit(problem, i, {**replays, k: base}, {**jumps, k: jump},
+                            {**held[i], **{key: z[m] for key, z in own[i].items()}})[0]
+                   for i in range(problem.n)) for m, (base, jump) in enumerate(trials)]
     replays[k], jumps[k] = trials[int(np.argmin(misfits))]
 
 

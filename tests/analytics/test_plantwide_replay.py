@@ -18,6 +18,8 @@ from analytics.errors import ModelSpecError
 from analytics.lti import TransferFunction, discretise, simulate_open_loop
 from analytics.plantwide.replay import (
     _borrow,
+    _Filter,
+    _numpy_sum,
     _polynomials,
     _Problem,
     _set_misfit,
@@ -46,6 +48,31 @@ def test_replay_filters_are_the_exact_sampled_model(tf):
     u = np.random.default_rng(3).standard_normal(400).cumsum()
     b, a = _polynomials(discretise(tf, 0.5))
     assert np.allclose(lfilter(b, a, u), simulate_open_loop(tf, u, 0.5), atol=1e-9)
+
+
+@pytest.mark.parametrize("tf", [
+    TransferFunction.fopdt(-33.68, 8.15, 9.2),
+    TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, 1.0),
+])
+def test_the_jitted_filter_gives_the_bits_of_lfilter(tf):
+    # 11 rows: one block of eight and a part of one
+    u = np.random.default_rng(4).standard_normal((11, 500)).cumsum(axis=1)
+    filt = _Filter.of(discretise(tf, 0.5))
+
+    def delayed_lfilter(x):
+        out = np.zeros(x.shape)
+        out[:, filt.delay:] = lfilter(filt.b, filt.a, x[:, :x.shape[1] - filt.delay])
+        return out
+
+    assert np.array_equal(filt(u, slice(None)), delayed_lfilter(u))
+    assert np.array_equal(filt(u, slice(7, None, 3), centred=True),
+                          delayed_lfilter(u - u[:, :1])[:, 7::3])
+
+
+@pytest.mark.parametrize("size", [0, 1, 7, 8, 13, 128, 129, 300, 1000, 4099])
+def test_the_jitted_sum_gives_the_bits_of_numpy(size):
+    x = np.random.default_rng(size).standard_normal(size) * 1e3
+    assert _numpy_sum(x) == np.sum(x)
 
 
 def test_turning_points_of_a_triangle_are_its_extremes():
