@@ -1002,7 +1002,6 @@ class _Evaluator:
         self.describing = describing
         self.measurement_noise = measurement_noise
         self._noisy: dict[tuple[Tuning, ...], float] = {}
-        self.withdrawn_for_noise: set[tuple[Tuning, ...]] = set()
         self.sticky = tuple(not isinstance(loop.valve, IdealValve) for loop in model.loops)
         self._predictions: dict[tuple[Tuning, ...], Prediction] = {}
         self._simulations: dict[tuple[Tuning, ...], OscillationEffect] = {}
@@ -1111,7 +1110,6 @@ class _Evaluator:
             noisy, current = self.travel_with_noise(tunings), self.travel_with_noise(self.current)
             if noisy is not None and current is not None and noisy > (1 - MIN_REDUCTION) * current:
                 outcome = "not improved"
-                self.withdrawn_for_noise.add(tunings)
         return Recommendation(tunings, source, predicted, simulated, outcome, max_sensitivity,
                               noisy)
 
@@ -1281,7 +1279,9 @@ def advise(
             "the simulation cycles although the describing function predicts no limit "
             "cycle: a stick-slip cycle whose OP fundamental stays below S/2"
         )
-    withdrawn = [r for r in recommendations if r.tunings in evaluator.withdrawn_for_noise]
+    # checked with noise only once the noise-free simulation confirmed them
+    withdrawn = [r for r in recommendations
+                 if r.travel_rate_with_noise is not None and not r.offered]
     if withdrawn:
         current_noisy = evaluator.travel_with_noise(evaluator.current)
         worst = max(withdrawn, key=lambda r: r.travel_rate_with_noise or 0.0)
