@@ -85,7 +85,7 @@ from analytics.limit_cycle import (
     predict_limit_cycles,
     simulate_limit_cycle,
 )
-from analytics.lti import FirstOrderProcess, TransferFunction
+from analytics.lti import FirstOrderProcess, TransferFunction, process_gain
 from analytics.oscillation import RAYLEIGH_ENVELOPE_CV
 from analytics.simulation import ClosedLoopModel, Disturbance, PIDController
 from analytics.types import BoolArray, ComplexArray, FloatArray, IntArray, ProcessType
@@ -100,6 +100,15 @@ Outcome = Literal["removed", "reduced", "not improved", "unstable"]
 MS_LIMIT = 2.0
 #: A verified reduction must cut the simulated valve travel rate by this fraction.
 MIN_REDUCTION = 0.05
+
+MAX_LOAD_ERROR_RATIO = 3.0
+"""Most a recommended retune may multiply the error that a load leaves (:func:`load_error`:
+the integrated error after a load step under PI control, the offset under P) against the
+current tuning.  A retune that removes the cycle only by slowing the loop further hardly
+controls: it swaps the valve's cycle for loads that go uncorrected, and repairing the valve
+is the answer.  Three times is the most the product's own detuning of a linearly
+oscillating loop costs (:func:`detune`: ``Kc / 3`` for a gain margin of 3 from about 1,
+:data:`DETUNING_GAIN_MARGINS`)."""
 #: The describing function of a valve, built once per valve (a tabulated one costs
 #: a simulation per amplitude).
 _describing_function = functools.lru_cache(maxsize=64)(valve_describing_function)
@@ -124,6 +133,38 @@ retune.  One run is not enough: a retune that removes the noise-free cycle with 
 can rest for long stretches in one noise sequence and slip all along in another (the
 demo's FIC-101 model at Kc 1: 0.75 or 1.48 times the current travel in one run, 1.04 or
 1.50 over these four, as the last bits of the identified process fall)."""
+
+
+def load_error(kc: ArrayLike, ti: ArrayLike, inverse_k: float) -> FloatArray:
+    """The error a unit load step at the valve leaves under the tuning ``Kc``, ``Ti``
+    (Astrom & Hagglund 2006 [2]_, ch. 4: the load-disturbance criteria).
+
+    With integral action, the integrated error ``IE = Ti / |Kc|``: the final-value
+    theorem on ``E(s) = -G(s) / (s (1 + G(s) C(s)))`` gives ``1 / ki`` for every stable
+    loop, self-regulating or integrating.  Under P control (``Ti`` infinite) the offset
+    ``1 / (1/|K| + |Kc|)``, where ``inverse_k`` is ``1/|K|`` (:func:`inverse_gain`) of a
+    self-regulating process and 0 of an integrating one.  Only ratios between tunings of
+    the same structure are meaningful.
+
+    >>> float(load_error(2.0, 10.0, 0.5)), float(load_error(2.0, math.inf, 0.5))
+    (5.0, 0.4)
+    """
+    gain = np.abs(np.asarray(kc, dtype=np.float64))
+    integral = np.asarray(ti, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(np.where(np.isinf(integral), 1.0 / (inverse_k + gain),
+                                   integral / gain), dtype=np.float64)
+
+
+def inverse_gain(process: TransferFunction) -> float:
+    """``1/|K|`` of a self-regulating ``process``, 0 of an integrating one (for
+    :func:`load_error`), and 0 of a process without a gain to take (two integrators: P
+    control's offset is then ``1/|Kc|``, as for one)."""
+    try:
+        kind, gain = process_gain(process)
+    except ModelSpecError:
+        return 0.0
+    return 0.0 if kind == "integrating" else 1.0 / abs(gain)
 
 
 def _json_float(value: float | None) -> float | None:
@@ -847,6 +888,10 @@ class Recommendation:
     travel_rate_with_noise : float or None
         Valve travel per second of the sticky loops (% per s) with the measured PV
         noise (:meth:`_Evaluator.travel_with_noise`); None when no noise was given.
+    load_error_ratio : float or None
+        The error a load step at a valve leaves, against the current tuning's: the
+        largest over the loops (:func:`load_error`); at most :data:`MAX_LOAD_ERROR_RATIO`
+        (or the bound given to :func:`advise`) for a retune the search may pick.
     """
 
     tunings: tuple[Tuning, ...]
@@ -856,6 +901,7 @@ class Recommendation:
     outcome: Outcome
     max_sensitivity: float | None = None
     travel_rate_with_noise: float | None = None
+    load_error_ratio: float | None = None
 
     @property
     def offered(self) -> bool:
@@ -874,6 +920,9 @@ class Recommendation:
             if self.max_sensitivity is None
             else _json_float(self.max_sensitivity),
             "travel_rate_with_noise": self.travel_rate_with_noise,
+            "load_error_ratio": None
+            if self.load_error_ratio is None
+            else _json_float(self.load_error_ratio),
         }
 
 
@@ -902,6 +951,8 @@ class TuningAdvice:
     current_travel_rate_with_noise : float or None
         The current tuning's valve travel with the measured PV noise; None when no
         noise was given.
+    max_load_error_ratio : float
+        The bound on a retune's :attr:`Recommendation.load_error_ratio` the search kept to.
     """
 
     loops: tuple[str, ...]
@@ -914,6 +965,7 @@ class TuningAdvice:
     rejected: tuple[Recommendation, ...]
     notes: tuple[str, ...]
     current_travel_rate_with_noise: float | None = None
+    max_load_error_ratio: float = MAX_LOAD_ERROR_RATIO
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form for the service."""
@@ -928,6 +980,7 @@ class TuningAdvice:
             "rejected": [r.to_dict() for r in self.rejected],
             "notes": list(self.notes),
             "current_travel_rate_with_noise": self.current_travel_rate_with_noise,
+            "max_load_error_ratio": _json_float(self.max_load_error_ratio),
         }
 
 
@@ -1006,6 +1059,8 @@ class _Evaluator:
         self._predictions: dict[tuple[Tuning, ...], Prediction] = {}
         self._simulations: dict[tuple[Tuning, ...], OscillationEffect] = {}
         self.current = tuple(Tuning.of(loop.controller) for loop in model.loops)
+        self.inverse_gains = tuple(inverse_gain(row[i])  # type: ignore[arg-type]
+                                   for i, row in enumerate(_process_matrix(model)))
         self.current_predicted = OscillationEffect.predicted(self.predict(self.current))
         self.current_simulated = self.simulate(self.current)
 
@@ -1082,6 +1137,13 @@ class _Evaluator:
             self._noisy[tunings] = float(np.mean(rates))
         return self._noisy[tunings]
 
+    def load_error_ratio(self, tunings: tuple[Tuning, ...]) -> float:
+        """The largest ratio over the loops of :func:`load_error` at ``tunings`` to the
+        current tuning's."""
+        return max(
+            float(load_error(new.kc, new.ti, g) / load_error(now.kc, now.ti, g))
+            for new, now, g in zip(tunings, self.current, self.inverse_gains, strict=True))
+
     def recommend(
         self, tunings: tuple[Tuning, ...], source: str, max_sensitivity: float | None = None
     ) -> Recommendation:
@@ -1111,7 +1173,7 @@ class _Evaluator:
             if noisy is not None and current is not None and noisy > (1 - MIN_REDUCTION) * current:
                 outcome = "not improved"
         return Recommendation(tunings, source, predicted, simulated, outcome, max_sensitivity,
-                              noisy)
+                              noisy, self.load_error_ratio(tunings))
 
 
 def _search_box(
@@ -1158,6 +1220,7 @@ def advise(
     multi_loop_points: int = 3,
     max_sweeps: int = 2,
     measurement_noise: Sequence[float] | None = None,
+    max_load_error_ratio: float = MAX_LOAD_ERROR_RATIO,
 ) -> TuningAdvice:
     """Retunes that remove or reduce a stiction cycle, each verified by simulation.
 
@@ -1165,14 +1228,15 @@ def advise(
     current tuning (first-order processes), each action of its Table 5.11 row
     applied to its one parameter, and the best point of the safe-tuning map
     over ``Kc`` in ``kc_factors`` and ``Ti`` in ``ti_factors`` times the
-    current values (``points`` each). Candidates must be stable with
-    ``Ms <= ms_limit`` (or no less robust than the current tuning, if that is
-    already beyond it). Among those the map's pick is the safe one with the
-    most integral action ``Kc / Ti`` (``Kc`` for P control), confirmed by the
-    exact solver: it removes the predicted cycle at the least cost in
-    disturbance rejection; if no tuning is safe, the one with the smallest
-    predicted valve travel ``4 A / T``. A one-parameter action picks the same
-    way along its parameter.
+    current values (``points`` each). Candidates must be stable with ``Ms <=
+    ms_limit`` (or no less robust than the current tuning, if that is already
+    beyond it) and leave at most ``max_load_error_ratio`` times the current
+    tuning's error after a load step (:func:`load_error`). Among those the
+    map's pick is the safe one with the most integral action ``Kc / Ti``
+    (``Kc`` for P control), confirmed by the exact solver: it removes the
+    predicted cycle at the least cost in disturbance rejection; if no tuning
+    is safe, the one with the smallest predicted valve travel ``4 A / T``. A
+    one-parameter action picks the same way along its parameter.
 
     Multi-loop (section 5.6): step 1 maps each sticky loop in isolation and
     keeps its stable tunings with ``Ms <= ms_limit`` on a
@@ -1205,6 +1269,9 @@ def advise(
         only if it also makes the valves travel less than the current tuning with
         that noise on every PV (:meth:`_Evaluator.travel_with_noise`).  Without it
         the verification is noise-free.
+    max_load_error_ratio : float
+        Bound (>= 1) on how much a retune may slow the rejection of loads
+        (:data:`MAX_LOAD_ERROR_RATIO`); ``inf`` searches the whole box.
 
     Raises
     ------
@@ -1223,6 +1290,10 @@ def advise(
         raise ModelSpecError(
             f"points must be >= 2 and multi_loop_points >= 1, got {points}, {multi_loop_points}"
         )
+    if not max_load_error_ratio >= 1:
+        raise ModelSpecError(
+            f"max_load_error_ratio must be >= 1 (1: no slower than now), "
+            f"got {max_load_error_ratio}")
     if all(isinstance(loop.valve, IdealValve) for loop in model.loops):
         raise ModelSpecError("no sticky valve: there is no stiction cycle to advise on")
     if measurement_noise is not None and (
@@ -1239,7 +1310,8 @@ def advise(
     names = tuple(loop.name or f"loop{i + 1}" for i, loop in enumerate(model.loops))
     if len(model.loops) == 1:
         candidates, analysis, maps, notes = _single_loop_plan(
-            model, evaluator, kc_factors, ti_factors, points, hold_delay, describing, ms_limit
+            model, evaluator, kc_factors, ti_factors, points, hold_delay, describing, ms_limit,
+            max_load_error_ratio,
         )
     else:
         analysis = None
@@ -1252,6 +1324,7 @@ def advise(
             describing,
             ms_limit,
             max_sweeps,
+            max_load_error_ratio,
         )
     recommendations: list[Recommendation] = []
     seen: set[tuple[Tuning, ...]] = set()
@@ -1308,6 +1381,7 @@ def advise(
         rejected=tuple(r for r in recommendations if not r.offered),
         notes=tuple(notes),
         current_travel_rate_with_noise=evaluator.travel_with_noise(evaluator.current),
+        max_load_error_ratio=max_load_error_ratio,
     )
 
 
@@ -1323,6 +1397,7 @@ def _single_loop_plan(
     hold_delay: float,
     describing: DescribingChoice,
     ms_limit: float,
+    max_load_error_ratio: float,
 ) -> tuple[list[Candidate], SingleLoopAnalysis | None, dict[int, SafeTuningMap], list[str]]:
     """Candidates for one loop: each Table 5.11 action along its one parameter, then
     the best point of the safe-tuning map (see :func:`advise`)."""
@@ -1353,13 +1428,30 @@ def _single_loop_plan(
         """Add the best point of ``line``; a safe pick is confirmed by the exact solver
         first (the map's bracketing can miss a crossing through a narrow branch of
         a tabulated ``-1/N`` curve), and dropped from the map if refuted."""
-        allowed = line.linear_stable & (line.max_sensitivity <= robustness)
+        robust = line.linear_stable & (line.max_sensitivity <= robustness)
+        kc, ti = np.meshgrid(line.kc, line.ti, indexing="ij")
+        slowed = load_error(kc, ti, evaluator.inverse_gains[0]) / load_error(
+            kc0, ti0, evaluator.inverse_gains[0])
+        allowed = robust & (slowed <= max_load_error_ratio * (1 + 1e-9))
+        beyond = _pick(line, robust & line.safe & ~allowed)
+        if beyond is not None and not (allowed & line.safe).any():
+            i, j, _ = beyond
+            notes.append(
+                f"{source}: the map predicts no cycle at Kc = {line.kc[i]:.3g}, Ti = "
+                f"{line.ti[j]:.3g} s, but that tuning leaves {slowed[i, j]:.3g} times the "
+                f"current error after a load step (the bound is {max_load_error_ratio:.3g}): "
+                "not offered")
         for _ in range(_MAX_REFUTED):
             picked = _pick(line, allowed)
             if picked is None:
                 notes.append(
                     f"{source} not offered: every {what} in the search box leaves the linear "
                     f"loop unstable or less robust than Ms = {robustness:.3g}"
+                    if not robust.any() else
+                    f"{source} not offered: every {what} in the search box that keeps the "
+                    f"loop stable with Ms <= {robustness:.3g} leaves more than "
+                    f"{max_load_error_ratio:.3g} times the current error after a load step: "
+                    "the loop would hardly control, the valve needs repair"
                 )
                 return
             i, j, safe = picked
@@ -1411,6 +1503,7 @@ def _multi_loop_plan(
     describing: DescribingChoice,
     ms_limit: float,
     max_sweeps: int,
+    max_load_error_ratio: float,
 ) -> tuple[list[Candidate], dict[int, SafeTuningMap], list[str]]:
     """Section 5.6: safe intervals per isolated sticky loop, then the combination."""
     model = evaluator.model
@@ -1449,7 +1542,11 @@ def _multi_loop_plan(
         maps[k] = tuning_map
         sign = math.copysign(1.0, current.kc)
         robustness = _robustness_limit(here, ms_limit)
-        allowed = tuning_map.linear_stable & (tuning_map.max_sensitivity <= robustness)
+        grid_kc, grid_ti = np.meshgrid(tuning_map.kc, tuning_map.ti, indexing="ij")
+        slowed = load_error(grid_kc, grid_ti, evaluator.inverse_gains[k]) / load_error(
+            current.kc, current.ti, evaluator.inverse_gains[k])
+        allowed = (tuning_map.linear_stable & (tuning_map.max_sensitivity <= robustness)
+                   & (slowed <= max_load_error_ratio * (1 + 1e-9)))
         options[k] = [current] + [
             Tuning(sign * float(tuning_map.kc[i]), float(tuning_map.ti[j]))
             for i, j in zip(*np.nonzero(allowed), strict=True)
@@ -1457,7 +1554,8 @@ def _multi_loop_plan(
         if len(options[k]) == 1:
             notes.append(
                 f"loop {k + 1}: no tuning in the search box is stable in isolation with "
-                f"Ms <= {robustness:.3g}; kept as it is"
+                f"Ms <= {robustness:.3g} and leaves at most {max_load_error_ratio:.3g} times "
+                "the current error after a load step; kept as it is"
             )
 
     blind = evaluator.current_simulated.oscillating and not evaluator.current_predicted.oscillating

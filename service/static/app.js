@@ -751,6 +751,12 @@ function noisyTravelText(rate, current) {
   return `valve travel ${(rate / current).toFixed(2)} x the current tuning's`;
 }
 
+function loadErrorText(ratio) {
+  // The error a load step leaves under a retune, against the current tuning's.
+  if (ratio === null || ratio === undefined) return "not known";
+  return `${ratio.toFixed(2)} x the current tuning's`;
+}
+
 function adviceResult(advice) {
   // Tuning advice (GET /loops/{id}/advice): every candidate was predicted with the describing
   // function and simulated, then simulated again with the measured PV noise; only the ones
@@ -764,6 +770,7 @@ function adviceResult(advice) {
       h("td", {}, cycleText(r.predicted)), h("td", {}, cycleText(r.simulated)),
       h("td", { "data-column": "with-noise" },
         noisyTravelText(r.travel_rate_with_noise, noisyNow)),
+      h("td", { "data-column": "load-error" }, loadErrorText(r.load_error_ratio)),
       h("td", {}, `${kind}: ${r.outcome}`)));
   return h("div", {},
     definitionList([
@@ -773,7 +780,7 @@ function adviceResult(advice) {
       ["Against the measured cycle", advice.measured_cycle.explanation],
     ]),
     table("Candidate tunings", ["Tuning", "From", "Predicted", "Simulated",
-      "With the PV noise", "Verdict"], rows, "No candidate tuning."),
+      "With the PV noise", "Error after a load", "Verdict"], rows, "No candidate tuning."),
     ...(advice.notes || []).map((note) => h("p", { class: "note" }, note)));
 }
 

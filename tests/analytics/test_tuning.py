@@ -26,6 +26,7 @@ from analytics.scenarios import chapter4, level_loop, temperature_loop
 from analytics.simulation import ClosedLoopModel, Disturbance, Loop, PIDController
 from analytics.synthetic_cases import synthetic_library
 from analytics.tuning import (
+    MAX_LOAD_ERROR_RATIO,
     TABLE_5_11,
     Detuning,
     FirstOrderProcess,
@@ -37,6 +38,8 @@ from analytics.tuning import (
     cycle_origin,
     detune,
     excited_model,
+    inverse_gain,
+    load_error,
     safe_tuning_map,
     table_5_11_rule,
 )
@@ -455,17 +458,69 @@ def temperature_advice():
     return advise(temperature_loop())
 
 
+@pytest.fixture(scope="module")
+def unbounded_temperature_advice():
+    return advise(temperature_loop(), max_load_error_ratio=math.inf)
+
+
 def test_temperature_advice_is_verified(temperature_advice) -> None:
     """Every offered retune cuts the simulated valve travel of the current cycle
-    (35 s, thesis Fig. 5.15) by at least 5 %; the first one is safe by the thesis's
-    own conditions (Eqs. 5.44-5.45) and robust (Ms <= 2)."""
+    (35 s, thesis Fig. 5.15) by at least 5 % and keeps the error a load leaves within
+    the bound."""
     advice = temperature_advice
     assert advice.current_simulated.oscillating
     assert known_period(advice.current_simulated.period_s) == pytest.approx(35.0, rel=0.01)
     assert advice.recommendations
+    for recommendation in (*advice.recommendations, *advice.rejected):
+        assert recommendation.load_error_ratio is not None
+        assert recommendation.load_error_ratio <= MAX_LOAD_ERROR_RATIO * (1 + 1e-9)
     for recommendation in advice.recommendations:
         assert recommendation.outcome in ("removed", "reduced")
         assert recommendation.simulated.travel_rate < 0.95 * advice.current_simulated.travel_rate
+
+
+@pytest.mark.parametrize("process", [TEMPERATURE, FOPDT, INTEGRATING], ids=str)
+@pytest.mark.parametrize(("kc", "ti"), [(1.0, 40.0), (0.5, 100.0), (0.8, math.inf)])
+def test_load_error_is_what_a_simulated_load_step_leaves(process, kc, ti) -> None:
+    """load_error against the linear loop simulated after a unit load step at the valve:
+    its integrated error under PI (the final-value theorem's Ti / Kc), its offset under
+    P; the tunings are checked stable first."""
+    if process is INTEGRATING and math.isinf(ti):
+        kc /= 10  # a P-controlled integrator with this dead time needs a smaller gain
+    controller = PIDController.ideal(kc, ti)
+    assert settles(process, controller, dt=0.05, duration=6000.0)
+    model = ClosedLoopModel(process, (Loop(
+        controller, IdealValve(), setpoint=50.0,
+        disturbances=(Disturbance("step", 1.0, at="input", time=50.0),)),), 0.05, 6000.0)
+    run = model.run()
+    error = run.sp[0] - run.pv[0]
+    expected = float(load_error(kc, ti, inverse_gain(process)))
+    if math.isinf(ti):
+        assert -float(np.mean(error[-2000:])) == pytest.approx(expected, rel=0.01)
+    else:
+        assert -float(np.sum(error) * model.dt) == pytest.approx(expected, rel=0.01)
+
+
+def test_advice_does_not_trade_the_cycle_for_a_loop_that_hardly_controls(
+        temperature_advice, unbounded_temperature_advice) -> None:
+    """Without the bound the search goes to the edges of its box: a tenth of the gain or
+    ten times the integral time, ten times the error a load leaves.  With it, every
+    candidate stays within three times, and the notes name the cycle-free tuning that
+    lies beyond."""
+    unbounded = unbounded_temperature_advice
+    assert max(r.load_error_ratio or 0.0 for r in unbounded.recommendations) >= 9.9
+    assert unbounded.to_dict()["max_load_error_ratio"] is None
+    assert temperature_advice.to_dict()["max_load_error_ratio"] == MAX_LOAD_ERROR_RATIO
+    assert any("the map predicts no cycle at" in note and "times the current error after a "
+               "load step" in note for note in temperature_advice.notes)
+    with pytest.raises(ModelSpecError, match="max_load_error_ratio must be >= 1"):
+        advise(temperature_loop(), max_load_error_ratio=0.5)
+
+
+def test_the_thesis_cycle_free_tuning_without_the_bound(unbounded_temperature_advice) -> None:
+    """Searched without a bound on the load error, the first offer is the map's cycle-free
+    pick, safe by the thesis's own conditions (Eqs. 5.44-5.45) and robust (Ms <= 2)."""
+    advice = unbounded_temperature_advice
     best = advice.recommendations[0]
     assert not best.predicted.oscillating and best.source.startswith("safe-tuning map")
     assert best.max_sensitivity is not None and best.max_sensitivity <= 2.0
@@ -493,7 +548,10 @@ def test_integrating_advice_reduces_and_refuses_ti_below_theta() -> None:
     assert any("Ti below theta not offered" in note for note in advice.notes)
     assert advice.recommendations
     assert all(r.outcome == "reduced" for r in advice.recommendations)
-    raise_ti = next(r for r in advice.recommendations if r.source.endswith("raise Ti"))
+    # Table 5.9's trend: a longer Ti slows the predicted cycle (within the load-error bound,
+    # Ti 2.85 times as long, the simulated travel does not fall by 5 %: not offered)
+    raise_ti = next(r for r in (*advice.recommendations, *advice.rejected)
+                    if r.source.endswith("raise Ti"))
     assert known_period(raise_ti.predicted.period_s) > known_period(
         advice.current_predicted.period_s
     )
@@ -523,7 +581,9 @@ def test_no_cycle_in_simulation_means_nothing_to_offer() -> None:
 @pytest.mark.slow
 def test_multi_loop_procedure_section_5_6() -> None:
     """A 2x2 plant, valve 1 sticky: step 1 maps loop 1 alone, step 2 finds a
-    combination that is stable as a whole; the simulation confirms the reduction."""
+    combination that is stable as a whole; the simulation confirms the reduction.
+    That combination leaves 22 times the error after a load step: within the default
+    bound on it, nothing on the 3 x 3 grid is offered and the notes say why."""
     process = (
         (TransferFunction.fopdt(1.0, 10.0, 2.0), TransferFunction.fopdt(0.3, 8.0, 3.0)),
         (TransferFunction.fopdt(0.2, 12.0, 4.0), TransferFunction.fopdt(0.8, 6.0, 1.0)),
@@ -532,9 +592,15 @@ def test_multi_loop_procedure_section_5_6() -> None:
         Loop(PIDController.ideal(3.0, 6.0), VALVE, name="A"),
         Loop(PIDController.ideal(1.0, 8.0), IdealValve(), name="B"),
     )
-    advice = advise(ClosedLoopModel(process, loops, 0.2, 3000.0))
+    bounded = advise(ClosedLoopModel(process, loops, 0.2, 3000.0))
+    assert not bounded.recommendations and not bounded.rejected
+    assert any(note.startswith("loop 1: no tuning in the search box") and "at most 3 times "
+               "the current error after a load step" in note for note in bounded.notes)
+    advice = advise(ClosedLoopModel(process, loops, 0.2, 3000.0),
+                    max_load_error_ratio=math.inf)
     assert set(advice.maps) == {0}
     (recommendation,) = advice.recommendations
+    assert recommendation.load_error_ratio == pytest.approx(22.36, rel=1e-3)
     assert recommendation.tunings[1] == advice.current[1]  # the healthy loop is kept
     controllers = [
         t.apply(loop.controller) for t, loop in zip(recommendation.tunings, loops, strict=True)

@@ -263,6 +263,12 @@ def test_operator_opens_the_sticky_loop_and_acknowledges_its_alarm(
     for cell, offer in zip(noisy.all_inner_texts(), answer["recommendations"], strict=True):
         ratio = offer["travel_rate_with_noise"] / answer["current_travel_rate_with_noise"]
         assert cell == f"valve travel {ratio:.2f} x the current tuning's" and ratio < 0.95
+    # ... and none slows the rejection of loads beyond the bound the advice states
+    slowed = advice.locator('tr[data-advice] td[data-column="load-error"]').all_inner_texts()
+    offers = answer["recommendations"] + answer["rejected"]
+    assert slowed == [f"{offer['load_error_ratio']:.2f} x the current tuning's" for offer in offers]
+    assert all(offer["load_error_ratio"] <= answer["max_load_error_ratio"] + 1e-9
+               for offer in offers)
 
     alarm = running.call("GET", "/api/v1/alarms?loop_id=FIC-1", "viewer")["data"][0]
     assert alarm["state"] == "unacknowledged"
@@ -687,7 +693,13 @@ def check_kpi_views(running: RunningService, browser: Browser,
         deadTimeSource({}), deadTimeNote({dead_time_source: 'unknown'})]""") == [
         "dead time configured", "dead time from manual OP moves", None, None]
     shot = tmp_path_factory.mktemp("artefacts") / "dashboard-kpi-columns.png"
-    page.locator("#loops-table").screenshot(path=str(shot))
+    # the page's region, not the element: the overview redraws at every refresh, and an
+    # element screenshot fails when its table is replaced meanwhile (seen under load)
+    box = page.evaluate("""() => {
+        const r = document.querySelector('#loops-table').getBoundingClientRect();
+        return {x: r.x + window.scrollX, y: r.y + window.scrollY, width: r.width,
+                height: r.height}; }""")
+    page.screenshot(path=str(shot), clip=box, full_page=True)
     print(f"KPI columns screenshot: {shot}")
     order = "rows => rows.map(r => r.dataset.loopId)"
     header = page.locator('th:has(button[data-sort="travel"])')

@@ -5,13 +5,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Query
 
 from analytics.cycle_fit import fit_valve_to_cycle
 from analytics.errors import AnalyticsError
-from analytics.tuning import CycleAgreement, Detuning, Tuning, advise, cycle_origin, detune
+from analytics.tuning import (
+    MAX_LOAD_ERROR_RATIO,
+    CycleAgreement,
+    Detuning,
+    Tuning,
+    advise,
+    cycle_origin,
+    detune,
+)
 from service.api.deps import ERROR_RESPONSES, Analyst, SessionDep, StateDep, error_responses
 from service.api.schemas.advice import LoopAdvice
 from service.loop_model import ModelUnavailableError, identified_loop
@@ -26,7 +34,8 @@ SIMULATED_S = 4000.0
 """Length of the simulations that verify each candidate tuning."""
 
 
-def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
+def _advice_for_run(run_id: int, config: str, diagnosis: str, max_load_error_ratio: float
+                    ) -> dict[str, Any]:
     """Advice for a sticky valve, from a model checked against the measured cycle.
 
     The estimate's valve is simulated in the identified loop first; where the
@@ -38,7 +47,8 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
     own sinusoidal DF is zero at the OP amplitudes below S / 2 of its stick-slip
     cycles, so it would predict no cycle anywhere on the map).  Every retune is
     checked once more with the window's PV noise, which keeps a sticky valve
-    slipping where the noise-free model comes to rest.
+    slipping where the noise-free model comes to rest.  No retune may leave more than
+    ``max_load_error_ratio`` times the current error after a load step.
 
     A pure function of the run and the loop's configuration (cached by
     :meth:`service.runtime.AppState.analyse_cached`; ``run_id`` is its key)."""
@@ -50,7 +60,8 @@ def _advice_for_run(run_id: int, config: str, diagnosis: str) -> dict[str, Any]:
                              J_interval=model.J_interval)
     noise = stored.analysis.pv_noise  # None for runs stored before it was kept
     advice = advise(fit.fitted(loop_model), describing="equivalent",
-                    measurement_noise=None if noise is None else (noise,))
+                    measurement_noise=None if noise is None else (noise,),
+                    max_load_error_ratio=max_load_error_ratio)
     agreement = CycleAgreement.of(advice, period, amplitude)
     if fit.changed:
         advice = dataclasses.replace(advice, notes=(fit.explanation(), *advice.notes))
@@ -66,20 +77,26 @@ def _detuning(config: dict[str, Any], period_s: float) -> Detuning:
 
 
 @router.get("/loops/{loop_id}/advice", response_model=LoopAdvice)
-def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) -> dict[str, Any]:
+def loop_advice(
+    loop_id: str, session: SessionDep, state: StateDep, _: Analyst,
+    max_load_error_ratio: Annotated[float, Query(
+        ge=1.0, description="Most a retune may multiply the error a load step leaves "
+        "(integrated error Ti/|Kc| under PI, the offset under P) against the current "
+        "tuning; 'inf' searches the whole box")] = MAX_LOAD_ERROR_RATIO,
+) -> dict[str, Any]:
     """What to retune, from a model checked against the loop's measured cycle.
 
-    A sticky valve (final verdict ``stiction``): retunes that remove or reduce
-    the stiction cycle until the valve is repaired, from the latest estimate
-    (S, J and the identified process) and the configured controller; every
-    offer carries its predicted effect and was checked in simulation, and
-    ``measured_cycle`` says whether the model reproduces the measured cycle.
-    A loop that cycles with a healthy valve: detuning with the predicted gain
-    margin.  404 for an unknown loop; 409 with the reason and what to
-    configure when the loop has no controller, no analysis, no cycle, a valve
-    cleared by its unit's diagnosis, a cycle of steady amplitude with a healthy
-    valve (forced from outside: :func:`analytics.tuning.cycle_origin`), or
-    a model the advice cannot analyse.
+    A sticky valve (final verdict ``stiction``): retunes that remove or reduce the
+    stiction cycle until the valve is repaired, from the latest estimate (S, J and the
+    identified process) and the configured controller; every offer carries its predicted
+    effect and was checked in simulation (also with the measured PV noise), slows the
+    rejection of loads at most ``max_load_error_ratio`` times, and ``measured_cycle``
+    says whether the model reproduces the measured cycle. A loop that cycles with a
+    healthy valve: detuning with the predicted gain margin.  404 for an unknown loop;
+    409 with the reason and what to configure when the loop has no controller, no
+    analysis, no cycle, a valve cleared by its unit's diagnosis, a cycle of steady
+    amplitude with a healthy valve (forced from outside:
+    :func:`analytics.tuning.cycle_origin`), or a model the advice cannot analyse.
     """
     loop = session.get(Loop, loop_id)
     if loop is None:
@@ -126,7 +143,7 @@ def loop_advice(loop_id: str, session: SessionDep, state: StateDep, _: Analyst) 
     try:
         advice = state.analyse_cached(
             _advice_for_run, run.id, json.dumps(loop.config, sort_keys=True),
-            json.dumps(result, sort_keys=True),
+            json.dumps(result, sort_keys=True), max_load_error_ratio,
         )
     except AnalyticsError as exc:
         # the identified model is beyond what the analysis handles: the server's limit

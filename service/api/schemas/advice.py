@@ -60,6 +60,9 @@ class RecommendationPublic(Schema):
     travel_rate_with_noise: float | None = None
     """Valve travel of the sticky loops (% per s) in a simulation with the measured PV
     noise; null when the noise was not known (analyses stored before it was kept)."""
+    load_error_ratio: float | None = None
+    """The error a load step at a valve leaves, against the current tuning's (integrated
+    error ``Ti / |Kc|`` under PI, the offset under P; the largest over the loops)."""
 
 
 class FirstOrderProcessPublic(Schema):
@@ -258,6 +261,8 @@ class StictionAdvice(Schema):
     current_travel_rate_with_noise: float | None = None
     """The current tuning's valve travel with the measured PV noise (% per s); null when
     the noise was not known."""
+    max_load_error_ratio: float | None = None
+    """The bound the search kept to on a retune's ``load_error_ratio`` (null: none)."""
     valve_fit: ValveFitPublic
     """The estimate's valve checked against the measured cycle and fitted to it."""
     measured_cycle: CycleAgreementPublic
