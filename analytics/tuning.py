@@ -920,9 +920,7 @@ class Recommendation:
             if self.max_sensitivity is None
             else _json_float(self.max_sensitivity),
             "travel_rate_with_noise": self.travel_rate_with_noise,
-            "load_error_ratio": None
-            if self.load_error_ratio is None
-            else _json_float(self.load_error_ratio),
+            "load_error_ratio": _json_float(self.load_error_ratio),
         }
 
 
@@ -1191,6 +1189,13 @@ def _robustness_limit(current: SafeTuningMap, ms_limit: float) -> float:
     return max(ms_limit, ms_now) if math.isfinite(ms_now) else ms_limit
 
 
+def _load_error_ratios(tuning_map: SafeTuningMap, current: Tuning, inverse_k: float
+                       ) -> FloatArray:
+    """:func:`load_error` over the grid of ``tuning_map`` (rows ``Kc``) against ``current``."""
+    kc, ti = np.meshgrid(tuning_map.kc, tuning_map.ti, indexing="ij")
+    return load_error(kc, ti, inverse_k) / load_error(current.kc, current.ti, inverse_k)
+
+
 def _pick(tuning_map: SafeTuningMap, allowed: BoolArray) -> tuple[int, int, bool] | None:
     """The best grid point of ``allowed``: if any is safe, the safe one with the most
     integral action (``Kc / Ti``, or ``Kc`` for P); else the one with the smallest
@@ -1429,9 +1434,7 @@ def _single_loop_plan(
         first (the map's bracketing can miss a crossing through a narrow branch of
         a tabulated ``-1/N`` curve), and dropped from the map if refuted."""
         robust = line.linear_stable & (line.max_sensitivity <= robustness)
-        kc, ti = np.meshgrid(line.kc, line.ti, indexing="ij")
-        slowed = load_error(kc, ti, evaluator.inverse_gains[0]) / load_error(
-            kc0, ti0, evaluator.inverse_gains[0])
+        slowed = _load_error_ratios(line, current, evaluator.inverse_gains[0])
         allowed = robust & (slowed <= max_load_error_ratio * (1 + 1e-9))
         beyond = _pick(line, robust & line.safe & ~allowed)
         if beyond is not None and not (allowed & line.safe).any():
@@ -1542,9 +1545,7 @@ def _multi_loop_plan(
         maps[k] = tuning_map
         sign = math.copysign(1.0, current.kc)
         robustness = _robustness_limit(here, ms_limit)
-        grid_kc, grid_ti = np.meshgrid(tuning_map.kc, tuning_map.ti, indexing="ij")
-        slowed = load_error(grid_kc, grid_ti, evaluator.inverse_gains[k]) / load_error(
-            current.kc, current.ti, evaluator.inverse_gains[k])
+        slowed = _load_error_ratios(tuning_map, current, evaluator.inverse_gains[k])
         allowed = (tuning_map.linear_stable & (tuning_map.max_sensitivity <= robustness)
                    & (slowed <= max_load_error_ratio * (1 + 1e-9)))
         options[k] = [current] + [
