@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -268,8 +269,11 @@ def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centre
     """Each row of ``u`` (less its first sample if ``centred``) through ``z^-delay b(z) /
     a(z)`` (``b`` and ``a`` of one length, ``a[0] = 1``) from zero state, at the samples
     ``range(start, stop, step)``: the transposed direct form II of
-    :func:`scipy.signal.lfilter`, operation for operation (the same bits), eight rows at a
-    time so that their recursions overlap."""
+    :func:`scipy.signal.lfilter`, operation for operation (the same bits), several rows at
+    a time so that their recursions overlap (first and second order, the lags of a
+    process matrix: :func:`_direct_form_low_order`, their states in registers)."""
+    if b.size <= 3:
+        return _direct_form_low_order(b, a, delay, u, centred, start, stop, step)
     order, rows, width = b.size, u.shape[0], 8
     count = len(range(start, stop, step))
     out = np.zeros((rows, count))
@@ -296,6 +300,56 @@ def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centre
             if q < count and pick == n + delay:
                 for r in range(block):
                     out[first + r, q] = y[r]
+                q, pick = q + 1, pick + step
+    return out
+
+
+@njit(cache=True)
+def _direct_form_low_order(b: FloatArray, a: FloatArray, delay: int, u: FloatArray,
+                           centred: bool, start: int, stop: int, step: int) -> FloatArray:
+    """:func:`_direct_form` of a filter of order at most 2 (``b`` of at most three
+    coefficients), four rows at a time with the two states of each in local variables
+    (rows beyond the last are zero, their outputs dropped)."""
+    rows, order = u.shape[0], b.size
+    count = len(range(start, stop, step))
+    out = np.zeros((rows, count))
+    b0 = b[0]
+    b1, a1 = (b[1], a[1]) if order > 1 else (0.0, 0.0)
+    b2, a2 = (b[2], a[2]) if order > 2 else (0.0, 0.0)
+    q_first, pick_first = 0, start
+    while q_first < count and pick_first < delay:
+        q_first, pick_first = q_first + 1, pick_first + step
+    four = np.zeros((4, u.shape[1]))
+    for first in range(0, rows, 4):
+        block = min(4, rows - first)
+        four[:block] = u[first:first + block]
+        four[block:] = 0.0
+        origin = four[:, 0].copy() if centred else np.zeros(4)
+        o0, o1, o2, o3 = origin[0], origin[1], origin[2], origin[3]
+        s00 = s01 = s02 = s03 = 0.0  # first state of each row
+        s10 = s11 = s12 = s13 = 0.0  # second state
+        q, pick = q_first, pick_first
+        for n in range(u.shape[1] - delay):
+            x0, x1 = four[0, n] - o0, four[1, n] - o1
+            x2, x3 = four[2, n] - o2, four[3, n] - o3
+            y0, y1 = s00 + b0 * x0, s01 + b0 * x1
+            y2, y3 = s02 + b0 * x2, s03 + b0 * x3
+            if order > 2:
+                s00, s01 = s10 + x0 * b1 - y0 * a1, s11 + x1 * b1 - y1 * a1
+                s02, s03 = s12 + x2 * b1 - y2 * a1, s13 + x3 * b1 - y3 * a1
+                s10, s11 = x0 * b2 - y0 * a2, x1 * b2 - y1 * a2
+                s12, s13 = x2 * b2 - y2 * a2, x3 * b2 - y3 * a2
+            elif order > 1:
+                s00, s01 = x0 * b1 - y0 * a1, x1 * b1 - y1 * a1
+                s02, s03 = x2 * b1 - y2 * a1, x3 * b1 - y3 * a1
+            if q < count and pick == n + delay:
+                out[first, q] = y0
+                if block > 1:
+                    out[first + 1, q] = y1
+                if block > 2:
+                    out[first + 2, q] = y2
+                if block > 3:
+                    out[first + 3, q] = y3
                 q, pick = q + 1, pick + step
     return out
 
@@ -363,6 +417,8 @@ class _Problem:
                             "replay needs to settle")
         stride = max(1, (samples - settle) // FIT_SAMPLES)
         self.fit = slice(settle, samples, stride)
+        self._signal_responses: dict[tuple[int, int, int],
+                                     tuple[weakref.ref[FloatArray], FloatArray]] = {}
         self.weights = [1.0 / max(robust_noise(y), 1e-9 * max(np.ptp(y), 1.0)) for y in pvs]
         self.rows = []
         for i in range(n):
@@ -383,6 +439,21 @@ class _Problem:
         assert filt is not None
         z = filt(u, self.fit, centred=True)
         return self.weights[i] * (z - z.mean(axis=1, keepdims=True))
+
+    def signal_response(self, i: int, k: int, signal: FloatArray) -> FloatArray:
+        """:meth:`response` of one signal, kept while the signal lives: the fits of the
+        candidate sets filter the same replays again and again (two in three filterings
+        of a column localisation repeat one already made).  The signal is known by
+        identity and made read only, so that it cannot change behind its response."""
+        key = (i, k, id(signal))
+        kept = self._signal_responses.get(key)
+        if kept is not None and kept[0]() is signal:
+            return kept[1]
+        signal.flags.writeable = False
+        response = self.response(i, k, signal[None, :])[0]
+        response.flags.writeable = False
+        self._signal_responses[key] = (weakref.ref(signal), response)
+        return response
 
     def row_misfits(self, i: int, regressors: FloatArray, valve: _Valve,
                     extra: FloatArray | None = None) -> FloatArray:
@@ -406,8 +477,10 @@ class _Problem:
         candidates, norms = valve.responses[i], valve.norms[i]
         if candidates is None or norms is None:
             return np.full(valve.size, base)
-        cross = candidates @ a_data  # (P, fixed)
-        z_r = candidates @ residual[:target.size] + prior**2
+        # one pass over the candidates' responses for both products
+        products = candidates @ np.column_stack([a_data, residual[:target.size]])
+        cross = products[:, :-1]  # (P, fixed)
+        z_r = products[:, -1] + prior**2
         z_norm = norms + prior**2
         z_norm -= np.einsum("pf,fg,pg->p", cross, gram_inv, cross)
         # the candidate's own prior row: the fixed fit leaves its target, ``prior``, there
@@ -563,20 +636,25 @@ def _row_fit(problem: _Problem, i: int, replays: Mapping[int, FloatArray],
 
     def column(k: int, signal: FloatArray, jump: bool) -> FloatArray:
         response = known.get((k, jump))
-        return problem.response(i, k, signal[None, :])[0] if response is None else response
+        return problem.signal_response(i, k, signal) if response is None else response
 
     columns = [column(k, replays[k], False) if k in replays else row.healthy[k]
                for k in present]
     extra = [column(k, jumps[k], True) for k in jumps if row.present[k]]
-    prior = 1.0 / GAIN_SIGMA
-    penalty = np.hstack([prior * np.eye(len(present)), np.zeros((len(present), len(extra)))])
-    a = np.vstack([np.array(columns + extra).T, penalty])
-    t = np.concatenate([row.target, prior * np.ones(len(present))])
-    theta = np.linalg.lstsq(a, t, rcond=None)[0]
-    residual = t - a @ theta
+    # the normal equations of the data rows and one prior row per gain (target ``prior``
+    # for the model's gain), as in :meth:`_Problem.row_misfits`: the prior rows keep them
+    # well conditioned, and they cost a fifth of an orthogonal factorisation
+    data = np.array(columns + extra)  # (columns, samples)
+    prior_squared = np.zeros(data.shape[0])
+    prior_squared[:len(present)] = GAIN_SIGMA**-2
+    theta = np.linalg.solve(data @ data.T + np.diag(prior_squared),
+                            data @ row.target + prior_squared)
+    residual = row.target - theta @ data
+    gain_misfit = float(np.sum(prior_squared * (1.0 - theta) ** 2))
     gains = np.zeros(problem.n)
     gains[present] = theta[:len(present)]
-    return float(residual @ residual), gains, residual[:row.target.size], theta[len(present):]
+    return (float(residual @ residual) + gain_misfit, gains, residual,
+            theta[len(present):])
 
 
 def _slip_directions(u: FloatArray) -> FloatArray:
@@ -629,8 +707,8 @@ def _reselect(problem: _Problem, k: int, valve: _Valve, replays: Mapping[int, Fl
         regressors = row.healthy.copy()
         for j, u in others.items():
             if row.present[j]:
-                regressors[j] = problem.response(i, j, u[None, :])[0]
-        extra = [problem.response(i, j, d[None, :])[0] for j, d in other_jumps.items()
+                regressors[j] = problem.signal_response(i, j, u)
+        extra = [problem.signal_response(i, j, d) for j, d in other_jumps.items()
                  if row.present[j]]
         total += problem.row_misfits(i, regressors, valve, np.array(extra) if extra else None)
     return int(np.argmin(total))
@@ -642,21 +720,23 @@ def _jump_index(problem: _Problem, i: int, k: int, jumps: Mapping[int, FloatArra
 
 
 @njit(cache=True)
-def _superpose(u: FloatArray, step: FloatArray, picks: NDArray[np.int64]) -> FloatArray:
-    """A filter's response to each row of ``u`` (from zero state) at the samples ``picks``,
-    as the sum of its step response ``step`` shifted to every change of the row: a slip
-    moved changes ``u`` in a few steps only."""
-    out = np.zeros((u.shape[0], picks.size))
-    for m in range(u.shape[0]):
-        previous = 0.0
-        for tau in range(u.shape[1]):
-            change = u[m, tau] - previous
-            previous = u[m, tau]
-            if change != 0.0:
-                for q in range(picks.size):
-                    if picks[q] >= tau:
-                        out[m, q] += change * step[picks[q] - tau]
-    return out
+def _superpose(breaks: NDArray[np.int64], values: FloatArray, step: FloatArray,
+               picks: NDArray[np.int64], out: FloatArray) -> None:
+    """A filter's response (from zero state) at the samples ``picks`` (ascending), into
+    ``out``, to an input that is 0 before ``breaks[0]`` and ``values[b]`` from
+    ``breaks[b]`` (ascending) on: the sum of its step response ``step`` shifted to every
+    change of the input (a slip moved changes the valve in a few steps only)."""
+    out[:] = 0.0
+    previous, first = 0.0, 0
+    for b in range(breaks.size):
+        tau = breaks[b]
+        change = values[b] - previous
+        previous = values[b]
+        if change != 0.0:
+            while first < picks.size and picks[first] < tau:
+                first += 1
+            for q in range(first, picks.size):
+                out[q] += change * step[picks[q] - tau]
 
 
 @njit(cache=True)
@@ -715,8 +795,16 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
     """The loop of :func:`_refine_slips` over the slips of one replay, in place on its
     levels ``base``, its slip directions ``jump`` and the PV residuals (one row per PV the
     valve drives, with its gain and jump coefficient in ``scale`` and its entry's step
-    response in ``steps``)."""
-    stop = base.size
+    response in ``steps``).  Each trial moves slip ``t`` to ``t + shift``: its level
+    becomes the OP there, and every PV changes by its entry's response to the change of
+    the valve's levels and directions, up to the next slip."""
+    stop, rows, trials = base.size, residual.shape[0], 2 * SLIP_SHIFT + 1
+    responses = np.empty((rows, trials, residual.shape[1]))
+    squares = np.empty(residual.shape[1])
+    change = np.empty(trials)
+    fixed = np.empty(stop + 1, dtype=np.int64)
+    breaks = np.empty(stop + 2, dtype=np.int64)
+    values = np.empty(stop + 2)
     for j in range(slips.size):
         t = slips[j]
         before = slips[j - 1] if j > 0 else 0
@@ -729,32 +817,60 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
         if count < 2 or q1 == q0:
             continue
         picks = start + stride * np.arange(q0, q1) - low
-        trial_base = np.empty((count, after - low))
-        trial_jump = np.empty((count, after - low))
-        for m in range(count):
-            moved = t + earliest + m - low
-            trial_base[m, :moved], trial_base[m, moved:] = base[t - 1], op[t + earliest + m]
-            trial_jump[m, :moved], trial_jump[m, moved:] = jump[t - 1], jump[t]
-        delta_base = np.zeros((count, high - low))
-        delta_jump = np.zeros((count, high - low))
-        delta_base[:, :after - low] = trial_base - base[low:after]
-        delta_jump[:, :after - low] = trial_jump - jump[low:after]
-        change = np.zeros(count)
-        responses = np.empty((residual.shape[0], count, q1 - q0))
-        for i in range(residual.shape[0]):
-            dz = _superpose(scale[i, 0] * delta_base + scale[i, 1] * delta_jump, steps[i],
-                            picks)
+        # the change of the valve (at sample ``low + k``) is constant between the moved
+        # slip and the replay's own steps (the slip itself, and a neighbour already moved
+        # into the stretch), and zero from the next slip on: its breaks but the moved slip
+        n_fixed = 1
+        fixed[0] = 0
+        for k in range(1, after - low):
+            if base[low + k] != base[low + k - 1] or jump[low + k] != jump[low + k - 1]:
+                fixed[n_fixed] = k
+                n_fixed += 1
+        if after < high:
+            fixed[n_fixed] = after - low
+            n_fixed += 1
+        change[:count] = 0.0
+        for i in range(rows):
             r = residual[i, q0:q1]
-            held = _numpy_sum(r * r)
+            for q in range(r.size):
+                squares[q] = r[q] * r[q]
+            held = _numpy_sum(squares[:r.size])
             for m in range(count):
-                d = r - dz[m]
-                change[m] += _numpy_sum(d * d) - held
-            responses[i] = dz
-        best = np.argmin(change)
+                moved = t + earliest + m - low
+                n_breaks, placed = 0, False
+                for f in range(n_fixed):  # the moved slip in its place among the breaks
+                    if not placed and moved <= fixed[f]:
+                        placed = True
+                        if moved < fixed[f]:
+                            breaks[n_breaks] = moved
+                            n_breaks += 1
+                    breaks[n_breaks] = fixed[f]
+                    n_breaks += 1
+                if not placed:
+                    breaks[n_breaks] = moved
+                    n_breaks += 1
+                for b in range(n_breaks):
+                    k = breaks[b]
+                    if k < after - low:
+                        trial_base = base[t - 1] if k < moved else op[t + earliest + m]
+                        trial_jump = jump[t - 1] if k < moved else jump[t]
+                        values[b] = (scale[i, 0] * (trial_base - base[low + k])
+                                     + scale[i, 1] * (trial_jump - jump[low + k]))
+                    else:
+                        values[b] = 0.0
+                dz = responses[i, m, :r.size]
+                _superpose(breaks[:n_breaks], values[:n_breaks], steps[i], picks, dz)
+                for q in range(r.size):
+                    d = r[q] - dz[q]
+                    squares[q] = d * d
+                change[m] += _numpy_sum(squares[:r.size]) - held
+        best = int(np.argmin(change[:count]))
         if change[best] < 0 and earliest + best != 0:
-            base[low:after], jump[low:after] = trial_base[best], trial_jump[best]
-            for i in range(residual.shape[0]):
-                residual[i, q0:q1] -= responses[i, best]
+            moved = t + earliest + best
+            base[low:moved], base[moved:after] = base[t - 1], op[moved]
+            jump[low:moved], jump[moved:after] = jump[t - 1], jump[t]
+            for i in range(rows):
+                residual[i, q0:q1] -= responses[i, best, :q1 - q0]
 
 
 def _refine_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
@@ -801,7 +917,7 @@ def _shift_slips(problem: _Problem, k: int, replays: dict[int, FloatArray],
               for shift in range(-GLOBAL_SHIFT, GLOBAL_SHIFT + 1)]
     # the other members' responses are the same in every trial, and the trials' own
     # responses in a PV are filtered together
-    held = [{(j, jump): problem.response(i, j, u[None, :])[0]
+    held = [{(j, jump): problem.signal_response(i, j, u)
              for jump, signals in ((False, replays), (True, jumps))
              for j, u in signals.items() if j != k and problem.rows[i].present[j]}
             for i in range(problem.n)]

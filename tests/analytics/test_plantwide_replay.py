@@ -50,14 +50,16 @@ def test_replay_filters_are_the_exact_sampled_model(tf):
     assert np.allclose(lfilter(b, a, u), simulate_open_loop(tf, u, 0.5), atol=1e-9)
 
 
-@pytest.mark.parametrize("tf", [
-    TransferFunction.fopdt(-33.68, 8.15, 9.2),
-    TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, 1.0),
+@pytest.mark.parametrize(("tf", "coefficients"), [
+    (TransferFunction.fopdt(-33.68, 8.15, 9.2), 2),
+    (TransferFunction.lead_lag(0.87, 11.61, 3.89, 18.8, 1.0), 3),
+    (TransferFunction([1.0], [60.0, 47.0, 12.0, 1.0], 1.3), 4),  # third order: 8 rows a block
 ])
-def test_the_jitted_filter_gives_the_bits_of_lfilter(tf):
-    # 11 rows: one block of eight and a part of one
+def test_the_jitted_filter_gives_the_bits_of_lfilter(tf, coefficients):
+    # 11 rows: blocks of four (of eight from the third order on) and a part of one
     u = np.random.default_rng(4).standard_normal((11, 500)).cumsum(axis=1)
     filt = _Filter.of(discretise(tf, 0.5))
+    assert filt.b.size == coefficients
 
     def delayed_lfilter(x):
         out = np.zeros(x.shape)
