@@ -574,7 +574,8 @@ def replay_study(seeds: tuple[int, ...], calibration: bool) -> None:
             print(f"  seed {seed} sticky {','.join(map(str, sticky)):6s} best "
                   + ", ".join(f"{{{','.join(v.removeprefix('loop') for v in f.loops)}}} "
                               f"{f.misfit:.0f}" for f in cases[-1][3].candidates[:3])
-                  + f" (healthy {cases[-1][3].no_valve_misfit:.0f})", flush=True)
+                  + f" (healthy {cases[-1][3].no_valve_misfit:.0f}); "
+                  f"{times[-2]:.2f} s, {times[-1]:.2f} s with gains 20 % off", flush=True)
 
     def named(found: ReplayLocalisation, penalty: float) -> tuple[str, ...]:
         m = found.samples

@@ -720,23 +720,19 @@ def _jump_index(problem: _Problem, i: int, k: int, jumps: Mapping[int, FloatArra
 
 
 @njit(cache=True)
-def _superpose(breaks: NDArray[np.int64], values: FloatArray, step: FloatArray,
+def _superpose(taus: NDArray[np.int64], changes: FloatArray, step: FloatArray,
                picks: NDArray[np.int64], out: FloatArray) -> None:
     """A filter's response (from zero state) at the samples ``picks`` (ascending), into
-    ``out``, to an input that is 0 before ``breaks[0]`` and ``values[b]`` from
-    ``breaks[b]`` (ascending) on: the sum of its step response ``step`` shifted to every
-    change of the input (a slip moved changes the valve in a few steps only)."""
-    out[:] = 0.0
-    previous, first = 0.0, 0
-    for b in range(breaks.size):
-        tau = breaks[b]
-        change = values[b] - previous
-        previous = values[b]
-        if change != 0.0:
-            while first < picks.size and picks[first] < tau:
-                first += 1
-            for q in range(first, picks.size):
-                out[q] += change * step[picks[q] - tau]
+    ``out``, to an input that steps by ``changes`` at the samples ``taus`` (ascending):
+    the sum of its step response ``step`` shifted to every change (a slip moved changes
+    the valve in a few steps only), the changes added in their order at each sample."""
+    for q in range(picks.size):
+        total = 0.0
+        for c in range(taus.size):
+            if taus[c] > picks[q]:
+                break
+            total += changes[c] * step[picks[q] - taus[c]]
+        out[q] = total
 
 
 @njit(cache=True)
@@ -764,7 +760,10 @@ def _block_sum(x: FloatArray, first: int, count: int) -> float:
 def _numpy_sum(x: FloatArray) -> float:
     """``np.sum(x)`` with numpy's bits: its pairwise summation, blocks of up to 128
     (:func:`_block_sum`) added in halves of a multiple of eight elements.  The recursion
-    runs on a stack of its own (numba's cache cannot load a recursive function)."""
+    runs on a stack of its own (numba's cache cannot load a recursive function), made only
+    for more than one block."""
+    if x.size <= 128:
+        return _block_sum(x, 0, x.size)
     first, count = np.zeros(64, np.int64), np.zeros(64, np.int64)
     left, left_done = np.zeros(64), np.zeros(64, np.bool_)
     top, count[0] = 0, x.size
@@ -803,8 +802,8 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
     squares = np.empty(residual.shape[1])
     change = np.empty(trials)
     fixed = np.empty(stop + 1, dtype=np.int64)
-    breaks = np.empty(stop + 2, dtype=np.int64)
-    values = np.empty(stop + 2)
+    breaks, taus = np.empty(stop + 2, dtype=np.int64), np.empty(stop + 2, dtype=np.int64)
+    changes = np.empty(stop + 2)
     for j in range(slips.size):
         t = slips[j]
         before = slips[j - 1] if j > 0 else 0
@@ -849,17 +848,21 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
                 if not placed:
                     breaks[n_breaks] = moved
                     n_breaks += 1
+                n_changes, previous = 0, 0.0
                 for b in range(n_breaks):
                     k = breaks[b]
+                    value = 0.0
                     if k < after - low:
                         trial_base = base[t - 1] if k < moved else op[t + earliest + m]
                         trial_jump = jump[t - 1] if k < moved else jump[t]
-                        values[b] = (scale[i, 0] * (trial_base - base[low + k])
-                                     + scale[i, 1] * (trial_jump - jump[low + k]))
-                    else:
-                        values[b] = 0.0
+                        value = (scale[i, 0] * (trial_base - base[low + k])
+                                 + scale[i, 1] * (trial_jump - jump[low + k]))
+                    if value - previous != 0.0:
+                        taus[n_changes], changes[n_changes] = k, value - previous
+                        n_changes += 1
+                    previous = value
                 dz = responses[i, m, :r.size]
-                _superpose(breaks[:n_breaks], values[:n_breaks], steps[i], picks, dz)
+                _superpose(taus[:n_changes], changes[:n_changes], steps[i], picks, dz)
                 for q in range(r.size):
                     d = r[q] - dz[q]
                     squares[q] = d * d
