@@ -800,7 +800,7 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
     stop, rows, trials = base.size, residual.shape[0], 2 * SLIP_SHIFT + 1
     responses = np.empty((rows, trials, residual.shape[1]))
     squares = np.empty(residual.shape[1])
-    change = np.empty(trials)
+    change, held = np.empty(trials), np.empty(rows)
     fixed = np.empty(stop + 1, dtype=np.int64)
     breaks, taus = np.empty(stop + 2, dtype=np.int64), np.empty(stop + 2, dtype=np.int64)
     changes = np.empty(stop + 2)
@@ -828,26 +828,27 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
         if after < high:
             fixed[n_fixed] = after - low
             n_fixed += 1
-        change[:count] = 0.0
         for i in range(rows):
             r = residual[i, q0:q1]
             for q in range(r.size):
                 squares[q] = r[q] * r[q]
-            held = _numpy_sum(squares[:r.size])
-            for m in range(count):
-                moved = t + earliest + m - low
-                n_breaks, placed = 0, False
-                for f in range(n_fixed):  # the moved slip in its place among the breaks
-                    if not placed and moved <= fixed[f]:
-                        placed = True
-                        if moved < fixed[f]:
-                            breaks[n_breaks] = moved
-                            n_breaks += 1
-                    breaks[n_breaks] = fixed[f]
-                    n_breaks += 1
-                if not placed:
-                    breaks[n_breaks] = moved
-                    n_breaks += 1
+            held[i] = _numpy_sum(squares[:q1 - q0])
+        change[:count] = 0.0
+        for m in range(count):
+            moved = t + earliest + m - low
+            n_breaks, placed = 0, False
+            for f in range(n_fixed):  # the moved slip in its place among the breaks
+                if not placed and moved <= fixed[f]:
+                    placed = True
+                    if moved < fixed[f]:
+                        breaks[n_breaks] = moved
+                        n_breaks += 1
+                breaks[n_breaks] = fixed[f]
+                n_breaks += 1
+            if not placed:
+                breaks[n_breaks] = moved
+                n_breaks += 1
+            for i in range(rows):
                 n_changes, previous = 0, 0.0
                 for b in range(n_breaks):
                     k = breaks[b]
@@ -861,12 +862,12 @@ def _move_each_slip(op: FloatArray, base: FloatArray, jump: FloatArray,
                         taus[n_changes], changes[n_changes] = k, value - previous
                         n_changes += 1
                     previous = value
-                dz = responses[i, m, :r.size]
+                r, dz = residual[i, q0:q1], responses[i, m, :q1 - q0]
                 _superpose(taus[:n_changes], changes[:n_changes], steps[i], picks, dz)
                 for q in range(r.size):
                     d = r[q] - dz[q]
                     squares[q] = d * d
-                change[m] += _numpy_sum(squares[:r.size]) - held
+                change[m] += _numpy_sum(squares[:r.size]) - held[i]
         best = int(np.argmin(change[:count]))
         if change[best] < 0 and earliest + best != 0:
             moved = t + earliest + best
