@@ -701,6 +701,10 @@ class Settings(BaseSettings):
     dask_scheduler: str | None = Field(
         default=None, description="address of the Dask scheduler, e.g. tcp://dask:8786"
     )
+    dask_connect_timeout_s: float = Field(
+        default=30.0, gt=0,
+        description="how long the start waits for the Dask scheduler before it gives up, s",
+    )
     ingest_shard: int = Field(
         default=0, ge=0, description="index of this ingest process, 0 .. ingest_shards - 1"
     )

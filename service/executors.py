@@ -110,7 +110,8 @@ def make_executor(settings: Settings) -> Executor:
     """
     if settings.executor == "dask":
         assert settings.dask_scheduler is not None  # checked by Settings
-        return DaskExecutor(settings.dask_scheduler)
+        return DaskExecutor(settings.dask_scheduler,
+                            connect_timeout_s=settings.dask_connect_timeout_s)
     return ProcessPoolExecutor(max_workers=settings.workers, initializer=os.nice,
                                initargs=(ANALYSIS_NICENESS,))
 

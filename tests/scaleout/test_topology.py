@@ -207,8 +207,9 @@ def test_an_unreachable_dask_scheduler_stops_the_start_with_its_address(tmp_path
     address = f"tcp://127.0.0.1:{free_port()}"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "LOOPWATCH_EXECUTOR": "dask",
            "LOOPWATCH_DASK_SCHEDULER": address, "LOOPWATCH_DATA_DIR": str(tmp_path),
-           "LOOPWATCH_ROLE": "scheduler"}
+           "LOOPWATCH_ROLE": "scheduler", "LOOPWATCH_DASK_CONNECT_TIMEOUT_S": "3"}
     done = subprocess.run([*loopwatch_command(), "serve"], env=env, capture_output=True,
                           text=True, timeout=180, cwd=ROOT)
     assert done.returncode == 2, done.stderr[-2000:]
+    assert "Timed out trying to connect" in done.stderr and "after 3 s" in done.stderr
     assert f"cannot reach the Dask scheduler at {address}" in done.stderr
