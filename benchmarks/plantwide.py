@@ -561,6 +561,8 @@ def replay_study(seeds: tuple[int, ...], calibration: bool) -> None:
           f"({'calibration' if calibration else 'held out'}) ==")
     penalties = REPLAY_PENALTIES if calibration else (REPLAY_PENALTY,)
     cases, times = [], []
+    warm_up, _ = randomised_column(STICKY_SETS[0], seeds[0])  # the JIT compiled, untimed
+    replay_sticky_sets(column_unit(warm_up), 0.5, unit_model(warm_up).process)
     for seed in seeds:
         for sticky in STICKY_SETS:
             model, true_s = randomised_column(sticky, seed)
