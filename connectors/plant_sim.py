@@ -610,6 +610,9 @@ class PlantSimulator:
                     ua.Variant(self.value(tag, latest), ua.VariantType.Double),
                 )
                 self._variables[tag] = node.nodeid
+                if loop.id in self._released:  # brought back: the latest sample as served
+                    await server.write_attribute_value(
+                        node.nodeid, self._data_value(tag, latest, self._stamp(loop.id, latest)))
         await server.start()
         return server
 
@@ -624,35 +627,40 @@ class PlantSimulator:
         now = self.clock()
         written = 0
         for loop in self.loops:
-            interval = self.sample_interval(loop.id)
             due = self._due(loop.id, now)
             for k in range(self._released[loop.id] + 1, due + 1):
-                stamp = ua.DateTime.fromtimestamp(self.origin + k * interval, UTC)
+                stamp = self._stamp(loop.id, k)
                 for signal in SIGNALS:
                     await self._serve(f"{loop.id}.{signal}", k, stamp)
                     written += 1
             self._released[loop.id] = max(due, self._released[loop.id])
         return written
 
-    async def _serve(self, tag: str, k: int, stamp: ua.DateTime) -> None:
+    def _stamp(self, loop_id: str, k: int) -> ua.DateTime:
+        """The time stamp of sample ``k`` of ``loop_id``."""
+        assert self.origin is not None
+        return ua.DateTime.fromtimestamp(self.origin + k * self.sample_interval(loop_id), UTC)
+
+    def _data_value(self, tag: str, k: int, stamp: ua.DateTime) -> ua.DataValue:
+        """Sample ``k`` of ``tag`` as OPC UA serves it: its value, or a failed measurement."""
         now = ua.DateTime.now(UTC)
         if tag in self._bad:
-            data_value = ua.DataValue(
+            return ua.DataValue(
                 StatusCode=ua.StatusCode(ua.UInt32(ua.StatusCodes.BadSensorFailure)),
                 SourceTimestamp=stamp, ServerTimestamp=now,
             )
-            if self._modbus is not None:
+        return ua.DataValue(ua.Variant(self.value(tag, k), ua.VariantType.Double),
+                            SourceTimestamp=stamp, ServerTimestamp=now)
+
+    async def _serve(self, tag: str, k: int, stamp: ua.DateTime) -> None:
+        if self._modbus is not None:
+            if tag in self._bad:
                 self._modbus.set_bad(tag)
-        else:
-            value = self.value(tag, k)
-            data_value = ua.DataValue(
-                ua.Variant(value, ua.VariantType.Double),
-                SourceTimestamp=stamp, ServerTimestamp=now,
-            )
-            if self._modbus is not None:
-                self._modbus.set(tag, value)
+            else:
+                self._modbus.set(tag, self.value(tag, k))
         if self._opcua is not None:  # None while taken down
-            await self._opcua.write_attribute_value(self._variables[tag], data_value)
+            await self._opcua.write_attribute_value(self._variables[tag],
+                                                    self._data_value(tag, k, stamp))
 
     async def stop(self) -> None:
         """Stop both servers."""

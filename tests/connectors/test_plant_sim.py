@@ -262,6 +262,37 @@ def test_history_is_the_samples_before_the_start_and_serving_goes_on_from_it():
     assert live == [100, 101, 102, 103]
 
 
+def test_a_server_brought_back_serves_the_latest_sample_with_its_own_time_stamp():
+    # The nodes of a restarted OPC UA server start at the latest sample, stamped as that
+    # sample (not the restart's time: a subscription's first notification would then store
+    # an old value at a new time), and a failed measurement starts bad.
+    start = round(time.time())
+    clock = Clock(start)
+    sim = plant(clock=clock)
+    addresses = {a.tag: a.node_id for a in sim.address_map()}
+
+    async def scenario() -> dict[str, Any]:
+        await sim.start()
+        try:
+            await sim.take_down("opcua")
+            sim.set_bad("FIC-101.PV")
+            clock.now = start + 4.2  # the plant runs on: samples 1-4 released while down
+            await sim.release()
+            clock.now = start + 9.7  # the restart's time, after sample 9 is due
+            await sim.bring_back("opcua")
+            async with Client(sim.opcua_url) as client:
+                return {tag: await client.get_node(addresses[tag]).read_data_value(False)
+                        for tag in ("FIC-101.OP", "FIC-101.PV")}
+        finally:
+            await sim.stop()
+
+    served = asyncio.run(scenario())
+    op, pv = served["FIC-101.OP"], served["FIC-101.PV"]
+    assert op.SourceTimestamp.timestamp() == start + 4.0  # one sample a second: number 4
+    assert op.Value.Value == sim.value("FIC-101.OP", 4)
+    assert pv.StatusCode.is_bad() and pv.SourceTimestamp.timestamp() == start + 4.0
+
+
 def test_start_in_thread_reports_a_port_in_use():
     sim = plant()
     with socket.socket() as taken:
