@@ -25,9 +25,12 @@ class UnitValveFinding(OpenSchema):
     period_s: float | None = None
     """Period of the oscillation it drives, s."""
     S: float | None = None
-    """Identified stick band, % of OP span; null for a fast cycle."""
+    """Stick band this window shows, % of OP span; null for a fast cycle.  The valve's
+    size on the loop list, the loop page and the ticket is its estimate combined over
+    its confirming windows (the loop's ``valve.S``), which moves less."""
     J: float | None = None
-    """Identified slip jump, % of OP span; null for a fast cycle."""
+    """Slip jump this window shows, % of OP span; null for a fast cycle (combined as S
+    is on the other pages)."""
     J_product_only: bool = False
     """J is not resolved by this window: fitted without the process gain it pins only
     ``K J``, and J may sit at a bound of its search (0 or S)."""
