@@ -268,6 +268,26 @@ def _polynomials(entry: DiscreteEntry) -> tuple[FloatArray, FloatArray]:
 
 
 @njit(cache=True)
+def _first_output(start: int, step: int, delay: int, count: int) -> tuple[int, int]:
+    """The first of the ``count`` output samples ``start, start + step, ...`` at or after
+    the dead time ``delay`` (the earlier ones stay zero): its index and sample."""
+    q, pick = 0, start
+    while q < count and pick < delay:
+        q, pick = q + 1, pick + step
+    return q, pick
+
+
+@njit(cache=True)
+def _low_order_coefficients(b: FloatArray, a: FloatArray
+                            ) -> tuple[float, float, float, float, float]:
+    """``b0, b1, a1, b2, a2`` of a filter of order at most 2 (zero beyond its order)."""
+    order = b.size
+    b1, a1 = (b[1], a[1]) if order > 1 else (0.0, 0.0)
+    b2, a2 = (b[2], a[2]) if order > 2 else (0.0, 0.0)
+    return b[0], b1, a1, b2, a2
+
+
+@njit(cache=True)
 def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centred: bool,
                  start: int, stop: int, step: int) -> FloatArray:
     """Each row of ``u`` (less its first sample if ``centred``) through ``z^-delay b(z) /
@@ -290,9 +310,7 @@ def _direct_form(b: FloatArray, a: FloatArray, delay: int, u: FloatArray, centre
         state[:] = 0.0
         if centred:
             origin[:block] = u[first:first + block, 0]
-        q, pick = 0, start
-        while q < count and pick < delay:
-            q, pick = q + 1, pick + step
+        q, pick = _first_output(start, step, delay, count)
         for n in range(u.shape[1] - delay):
             for r in range(block):
                 x[r] = u[first + r, n] - origin[r]
@@ -319,12 +337,8 @@ def _direct_form_low_order(b: FloatArray, a: FloatArray, delay: int, u: FloatArr
     rows, order = u.shape[0], b.size
     count = len(range(start, stop, step))
     out = np.zeros((rows, count))
-    b0 = b[0]
-    b1, a1 = (b[1], a[1]) if order > 1 else (0.0, 0.0)
-    b2, a2 = (b[2], a[2]) if order > 2 else (0.0, 0.0)
-    q_first, pick_first = 0, start
-    while q_first < count and pick_first < delay:
-        q_first, pick_first = q_first + 1, pick_first + step
+    b0, b1, a1, b2, a2 = _low_order_coefficients(b, a)
+    q_first, pick_first = _first_output(start, step, delay, count)
     four = np.zeros((4, u.shape[1]))
     for first in range(0, rows, 4):
         block = min(4, rows - first)
@@ -368,12 +382,8 @@ def _direct_form_one_row(b: FloatArray, a: FloatArray, delay: int, x: FloatArray
     order = b.size
     count = len(range(start, stop, step))
     out = np.zeros((1, count))
-    b0 = b[0]
-    b1, a1 = (b[1], a[1]) if order > 1 else (0.0, 0.0)
-    b2, a2 = (b[2], a[2]) if order > 2 else (0.0, 0.0)
-    q, pick = 0, start
-    while q < count and pick < delay:
-        q, pick = q + 1, pick + step
+    b0, b1, a1, b2, a2 = _low_order_coefficients(b, a)
+    q, pick = _first_output(start, step, delay, count)
     origin = x[0] if centred else 0.0
     s0 = s1 = 0.0
     for n in range(x.size - delay):
@@ -498,6 +508,14 @@ class _Problem:
         precision), or exactly for the grid replays ``picks``, the other valves' regressors
         held (``regressors``, and the columns ``extra`` with free coefficients: other
         valves' slip jumps)."""
+        return self._candidate_misfits(i, valve, self._fixed_fit(i, regressors, valve, extra),
+                                       picks)
+
+    def _fixed_fit(self, i: int, regressors: FloatArray, valve: _Valve,
+                   extra: FloatArray | None) -> tuple[FloatArray, FloatArray, float]:
+        """The ridge fit of row ``i`` without ``valve`` (see :meth:`row_misfits`): its data
+        columns with the residual on the data samples as the last column, the inverse of
+        its Gram matrix and its misfit."""
         present = self.rows[i].present
         fixed = [k for k in range(self.n) if present[k] and k != valve.k]
         target = self.rows[i].target
@@ -511,12 +529,19 @@ class _Problem:
         gram_inv = np.linalg.inv(a.T @ a)
         theta = gram_inv @ (a.T @ t)
         residual = t - a @ theta
-        base = float(residual @ residual)
+        columns = np.column_stack([a_data, residual[:target.size]])
+        return columns, gram_inv, float(residual @ residual)
+
+    def _candidate_misfits(self, i: int, valve: _Valve,
+                           fit: tuple[FloatArray, FloatArray, float],
+                           picks: NDArray[np.int64] | None = None) -> FloatArray:
+        """:meth:`row_misfits` from the fixed part's fit (:meth:`_fixed_fit`)."""
+        columns, gram_inv, base = fit
+        prior = 1.0 / GAIN_SIGMA
         responses, coarse, norms = valve.responses[i], valve.coarse[i], valve.norms[i]
         if responses is None or coarse is None or norms is None:
             return np.full(valve.size if picks is None else picks.size, base)
         # one pass over the candidates' responses for both products
-        columns = np.column_stack([a_data, residual[:target.size]])
         if picks is None:
             products = np.asarray(coarse @ columns.astype(np.float32), dtype=float)
         else:
@@ -534,12 +559,12 @@ class _Problem:
         others held as ``rows`` gives them (each PV's regressors and extra columns, see
         :meth:`row_misfits`): the :data:`SHORTLIST` best in single precision (a pass over
         the grid's responses in half the memory), then the best of those exactly."""
-        coarse = sum(self.row_misfits(i, regressors, valve, extra)
-                     for i, (regressors, extra) in enumerate(rows))
+        fits = [self._fixed_fit(i, regressors, valve, extra)
+                for i, (regressors, extra) in enumerate(rows)]
+        coarse = sum(self._candidate_misfits(i, valve, fit) for i, fit in enumerate(fits))
         picks = np.sort(np.argpartition(coarse, SHORTLIST)[:SHORTLIST]
                         if valve.size > SHORTLIST else np.arange(valve.size))
-        exact = sum(self.row_misfits(i, regressors, valve, extra, picks)
-                    for i, (regressors, extra) in enumerate(rows))
+        exact = sum(self._candidate_misfits(i, valve, fit, picks) for i, fit in enumerate(fits))
         return int(picks[np.argmin(exact)])
 
 
