@@ -109,7 +109,7 @@ from analytics.lti import FirstOrderProcess
 from analytics.oscillation import bandpass, detect_loop_oscillation
 from analytics.serial import Reader
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
-from analytics.valves import HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
+from analytics.valves import HE, HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
 __all__ = [
     "GAIN_PROFILE",
@@ -1049,12 +1049,21 @@ class _Window:
     ) -> tuple[int, FloatArray, FloatArray]:
         """Model code, parameter rows and initial state for the compiled valve kernels.
 
-        The models validate their parameters here; the kernels check nothing
+        The candidates are checked at once as a model checks its own (S, J)
+        (finite, ``0 <= J <= S``): one model is built, of the first invalid
+        candidate if any, so that it raises the model's own error.  The rows
+        are the models' :meth:`~analytics.valves.ValveModel.params_array`:
+        ``(S, J)``, or He's ``(fs, fd)`` (thesis Eq. 1.2, as
+        :func:`~analytics.valves.sj_to_fsfd`).  Building a model per
+        candidate cost a tenth of the search.  The kernels check nothing
         (the valve input is finite, as ``quantify_stiction`` checked OP).
         """
-        models = [VALVE_MODELS[valve_model](S, J) for S, J in candidates]
-        params = np.array([m.params_array() for m in models])
-        return models[0].code, params, models[0].initial_state(float(self.valve_input[0]))
+        sj = np.array(candidates, dtype=np.float64).reshape(-1, 2)
+        S, J = sj[:, 0], sj[:, 1]
+        valid = np.isfinite(sj).all(axis=1) & (J >= 0.0) & (J <= S)
+        model = VALVE_MODELS[valve_model](*candidates[int(np.argmin(valid))])
+        params = np.column_stack(((S + J) / 2.0, (S - J) / 2.0)) if model.code == HE else sj
+        return model.code, params, model.initial_state(float(self.valve_input[0]))
 
     def _valve_run(self) -> tuple[FloatArray, int, float, float]:
         """Valve input, first turning point, first OP sample, ts: see :func:`_valve_cumsum`."""
