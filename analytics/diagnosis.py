@@ -69,6 +69,7 @@ from analytics.quantification import (
 )
 from analytics.replay import ModelTrace, model_trace
 from analytics.serial import Reader
+from analytics.signals import shared_results
 from analytics.stiction.battery import (
     DEFAULT_DETECTORS,
     TRANSIENT_DETECTORS,
@@ -569,6 +570,7 @@ def _set_aside(evidence: MethodEvidence, why: str) -> MethodEvidence:
     return MethodEvidence.undecided(evidence.method, why, evidence.index, evidence.details)
 
 
+@shared_results()  # the methods share their filtered signals and noise levels
 def diagnose_loop(
     *,
     ts: float,

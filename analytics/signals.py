@@ -11,7 +11,11 @@ use them.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,8 +24,42 @@ from scipy import signal as sps
 
 from analytics.types import FloatArray
 
-__all__ = ["Spectrum", "autocorrelation", "detrend", "power_spectrum", "spectrum",
-           "upward_crossings", "zero_crossings"]
+__all__ = ["Spectrum", "autocorrelation", "detrend", "power_spectrum", "shared",
+           "shared_results", "spectrum", "upward_crossings", "zero_crossings"]
+
+_R = TypeVar("_R")
+_SHARED: ContextVar[dict[tuple[Any, ...], Any] | None] = ContextVar("_SHARED", default=None)
+
+
+@contextmanager
+def shared_results() -> Iterator[None]:
+    """Within the block, :func:`shared` computes each result once.
+
+    One loop's diagnosis runs many methods on the same OP and PV, and several
+    filter them alike (:func:`analytics.oscillation.bandpass`) or take their
+    noise (:func:`analytics.stiction.stick_jump.robust_noise`); the results
+    are kept until the block ends, so no later window sees them.
+    """
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
+def shared(fn: Callable[..., _R], x: FloatArray, *args: Any) -> _R:
+    """``fn(x, *args)``, computed once per samples of ``x`` and ``args`` within
+    :func:`shared_results` (an array result is then read-only); else computed."""
+    memo = _SHARED.get()
+    if memo is None:
+        return fn(x, *args)
+    key = (fn, x.dtype.str, x.shape, x.tobytes(), *args)
+    if key not in memo:
+        result = fn(x, *args)
+        if isinstance(result, np.ndarray):
+            result.setflags(write=False)
+        memo[key] = result
+    return memo[key]
 
 
 def zero_crossings(y: FloatArray) -> FloatArray:

@@ -77,6 +77,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from analytics.signals import shared
 from analytics.stiction.evidence import (
     INTEGRATING,
     NO_STICTION,
@@ -216,7 +217,18 @@ def robust_noise(x: FloatArray) -> float:
     steps and jumps.  Quantised or held signals (MAD 0) fall back to the
     standard deviation of the non-zero differences over ``sqrt(2)``, scaled
     by their share, so a lattice still has a noise floor.
+
+    Within :func:`analytics.signals.shared_results` it is computed once
+    (:func:`~analytics.signals.shared`): a diagnosis asks for the noise of the
+    same OP and PV several times (the OP travel, the episodes at each
+    smoothing, the episode sizes, the PV noise reported), under a millisecond
+    each on 10,000 samples.
     """
+    return shared(_robust_noise, np.asarray(x, dtype=np.float64))
+
+
+def _robust_noise(x: FloatArray) -> float:
+    """:func:`robust_noise`, computed."""
     d = np.diff(x)
     if d.size == 0:
         return 0.0
