@@ -5,7 +5,9 @@ the model has: a key the model lacked would be dropped silently.  Each answer of
 demo plant (advice of both kinds, loop and unit diagnosis, model check, CMMS export,
 configuration) and of a unit with a process matrix (prediction) is compared with the
 JSON of the dict its route builds, as the API sent it before the models.  And every 2xx
-answer of ``/openapi.json`` has a named schema or is a file.
+answer of ``/openapi.json`` has a named schema or is a file, and the stored stiction
+estimate, ellipse and valve size windows of the loop diagnosis have a model that names
+each of their keys.
 """
 
 from collections.abc import Callable, Iterator
@@ -19,6 +21,14 @@ from sqlalchemy import select
 
 from service.api.app import openapi_with_json_errors
 from service.api.routes import advice, loops, model_check, tickets, unit_diagnosis, unit_prediction
+from service.api.schemas.base import Schema
+from service.api.schemas.diagnosis import (
+    ApparentStictionPublic,
+    ManualPublic,
+    ProcessEstimatePublic,
+    QuantificationPublic,
+    SizeWindowPublic,
+)
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
@@ -93,6 +103,37 @@ def test_the_loop_diagnosis_of_health_is_the_stored_one(demo) -> None:
             assert stored is not None
             assert body["diagnosis"] == stored.result
 
+
+
+def _documented(model: type[Schema], part: dict[str, Any]) -> None:
+    """Every key of ``part`` is a field of ``model``, in the model's order (the answer's
+    key order is the model's: a field declared out of order reorders the JSON)."""
+    fields = list(model.model_fields)
+    assert [key for key in part if key not in fields] == [], model.__name__
+    assert list(part) == [f for f in fields if f in part], model.__name__
+
+
+def test_the_stored_estimate_and_valve_size_are_documented_field_by_field(demo) -> None:
+    client, _ = demo
+    seen = set()
+    for loop in client.get("/api/v1/loops", headers=HEADERS).json()["data"]:
+        diagnosis = client.get(f"/api/v1/loops/{loop['id']}/health",
+                               headers=HEADERS).json()["diagnosis"]
+        if diagnosis is None:
+            continue
+        if diagnosis.get("quantification") is not None:
+            _documented(QuantificationPublic, diagnosis["quantification"])
+            _documented(ProcessEstimatePublic, diagnosis["quantification"]["process"])
+            seen.add("quantification")
+        if diagnosis.get("apparent_stiction") is not None:
+            _documented(ApparentStictionPublic, diagnosis["apparent_stiction"])
+            seen.add("apparent_stiction")
+        for window in (diagnosis.get("valve") or {}).get("size_windows") or ():
+            _documented(SizeWindowPublic, window)
+            seen.add("size_windows")
+        if diagnosis.get("manual") is not None:
+            _documented(ManualPublic, diagnosis["manual"])
+    assert seen == {"quantification", "apparent_stiction", "size_windows"}
 
 @pytest.fixture
 def unit_client(tmp_path) -> Iterator[TestClient]:
