@@ -58,6 +58,21 @@ class KpisPublic(OpenSchema):
     """The same in seconds, (d - 1) ts."""
 
 
+class QualityIssuePublic(OpenSchema):
+    """One problem found in the window's data (:class:`analytics.quality.QualityIssue`)."""
+
+    code: str | None = None
+    """Machine-readable kind, e.g. ``too_few_samples``, ``gaps``, ``quantisation``."""
+    signal: str | None = None
+    """The signal it concerns (``op``, ``pv``, ``sp``, ``t``); null for the window."""
+    severity: str | None = None
+    """``fatal`` (the window cannot be analysed), ``warning`` or ``info``."""
+    message: str | None = None
+    """The problem in one sentence."""
+    value: float | None = None
+    """The number behind it (the measured figure)."""
+
+
 class QualityPublic(OpenSchema):
     """Whether the window's data could be analysed."""
 
@@ -65,8 +80,31 @@ class QualityPublic(OpenSchema):
     pv_noise: float | None = None
     """PV's noise standard deviation (PV units, from its first differences) of a window
     with a sticky valve; null otherwise."""
-    issues: list[dict[str, Any]] | None = None
+    issues: list[QualityIssuePublic] | None = None
     """Each problem found: ``code``, ``signal``, ``severity``, ``message``, ``value``."""
+
+
+class SignalOscillationPublic(OpenSchema):
+    """One oscillation of OP or PV (:class:`analytics.oscillation.Oscillation`)."""
+
+    signal: str | None = None
+    """``op`` or ``pv``."""
+    period_s: float | None = None
+    """Period, s (from the ACF zero crossings of the band-passed signal)."""
+    amplitude: float | None = None
+    """Half peak-to-peak of the band-passed component, % of span (median over the
+    complete cycles)."""
+    regularity: float | None = None
+    """Thornhill's regularity r (above 1: regular)."""
+    presence: float | None = None
+    """Share of the window in which the oscillation is present."""
+    present_from_s: float | None = None
+    """Start of that stretch, s from the window's first sample; null when not measured."""
+    present_to_s: float | None = None
+    """Its end, s from the window's first sample."""
+    method: str | None = None
+    """``acf_regularity`` (the whole window) or ``segment_acf_regularity`` (only segments
+    of it)."""
 
 
 class OscillationPublic(OpenSchema):
@@ -87,7 +125,7 @@ class OscillationPublic(OpenSchema):
     """How steady the oscillation's amplitude is: near 0 for a limit cycle or a periodic
     forcing, about 0.52 for a loop cycling by its own tuning (noise-driven resonance);
     null without an oscillation or with fewer than eight periods."""
-    oscillations: list[dict[str, Any]] | None = None
+    oscillations: list[SignalOscillationPublic] | None = None
     """Every oscillation of OP and PV: ``signal``, ``period_s``, ``amplitude``,
     ``regularity``, ``presence`` and its span ``present_from_s``..``present_to_s``,
     ``method``."""
@@ -115,6 +153,40 @@ class EpisodeSizePublic(OpenSchema):
     """The comparison in one sentence."""
 
 
+class EpisodePublic(OpenSchema):
+    """One stick-jump episode (:class:`analytics.stiction.stick_jump.StickEpisode`)."""
+
+    start_s: float | None = None
+    """Start of the hold, s from the window's first sample."""
+    jump_s: float | None = None
+    """The slip, s from the window's first sample."""
+    end_s: float | None = None
+    """End of the episode, s from the window's first sample."""
+    op_travel: float | None = None
+    """Net OP change during the hold, % of span: the band the controller pushed through."""
+    pv_jump: float | None = None
+    """Change of the valve proxy from the hold's level to the next (PV units; per second
+    for an integrating process)."""
+    op_during_jump: float | None = None
+    """Net OP change during the jump itself."""
+
+
+class MethodEvidencePublic(OpenSchema):
+    """One detection method's evidence (:class:`analytics.stiction.evidence.MethodEvidence`)."""
+
+    decision: str | None = None
+    """``stiction``, ``no_stiction`` or ``undecided``, with the method's published
+    thresholds."""
+    index: float | None = None
+    """The method's index (e.g. the area ratio, NGI); null when it could not be computed."""
+    confidence: float | None = None
+    """0 to 1: how clearly the index lies on its side of the thresholds."""
+    note: str | None = None
+    """What the index means here, or why the method is undecided."""
+    details: dict[str, Any] | None = None
+    """Further numbers of the method (secondary indices, fit errors)."""
+
+
 class StictionPublic(OpenSchema):
     """The loop's own stiction verdict and the evidence of every method."""
 
@@ -137,10 +209,10 @@ class StictionPublic(OpenSchema):
     """S read off the episodes (OP's travel from its turns to the slips) and whether it
     agrees with the Hammerstein estimate; null unless the verdict is stiction with
     episodes."""
-    episodes: list[dict[str, Any]] | None = None
+    episodes: list[EpisodePublic] | None = None
     """The stick-jump episodes, s from the window's first sample: ``start_s``,
     ``jump_s``, ``end_s``, ``op_travel``, ``pv_jump``, ``op_during_jump``."""
-    methods: dict[str, dict[str, Any]] | None = None
+    methods: dict[str, MethodEvidencePublic] | None = None
     """Each method's ``decision``, ``index``, ``confidence``, ``note`` and ``details``."""
 
 
