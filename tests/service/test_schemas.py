@@ -38,6 +38,12 @@ from service.api.schemas.diagnosis import (
     SignalOscillationPublic,
     SizeWindowPublic,
 )
+from service.api.schemas.units import (
+    GroupMemberPublic,
+    LoopEvidencePublic,
+    RankedSignalPublic,
+    ShapeDecompositionPublic,
+)
 from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
@@ -158,6 +164,27 @@ def test_the_stored_diagnosis_parts_are_documented_field_by_field(demo) -> None:
     assert seen >= {"quantification", "apparent_stiction", "size_windows", "oscillations",
                     "methods"}
 
+
+
+def test_the_unit_diagnosis_groups_are_documented_field_by_field(demo) -> None:
+    client, _ = demo
+    seen = set()
+    for unit in client.get("/api/v1/units", headers=HEADERS).json()["data"]:
+        body = client.get(f"/api/v1/units/{unit['id']}/diagnosis", headers=HEADERS).json()
+        for group in body["groups"]:
+            for member in group["members"]:
+                _documented(GroupMemberPublic, member)
+                seen.add("members")
+            for ranked in group["ranking"]:
+                _documented(RankedSignalPublic, ranked)
+                seen.add("ranking")
+            for evidence in group["evidence"]:
+                _documented(LoopEvidencePublic, evidence)
+                seen.add("evidence")
+            if group["shape_decomposition"] is not None:
+                _documented(ShapeDecompositionPublic, group["shape_decomposition"])
+                seen.add("shape_decomposition")
+    assert seen >= {"members", "ranking", "evidence"}
 
 def test_data_issues_and_the_manual_stretch_pass_through_their_models_unchanged() -> None:
     """What the demo plant's answers lack: a window with data issues, and a run judged on
