@@ -108,6 +108,7 @@ from analytics.errors import DataError
 from analytics.lti import FirstOrderProcess
 from analytics.oscillation import bandpass, detect_loop_oscillation
 from analytics.serial import Reader
+from analytics.signals import autocorrelation
 from analytics.types import INTEGRATING, SELF_REGULATING, FloatArray, ProcessType
 from analytics.valves import HE, HeValve, KanoValve, ValveModel, sj_to_fsfd, valve_series
 
@@ -1278,13 +1279,10 @@ def _effective_samples(residual: FloatArray) -> float:
     """Independent samples a correlated residual is worth: ``m / tau``, ``tau = 1 + 2 sum
     rho_k`` over the autocorrelations up to the first that is not positive (Geyer's
     initial positive sequence, [7]_); at least 2."""
-    r = residual - residual.mean()
-    m = r.size
-    spectrum = np.fft.rfft(r, 2 * m)
-    acov = np.fft.irfft(spectrum * np.conj(spectrum))[:m]
-    if not acov[0] > 0:
+    m = residual.size
+    if m < 2:
         return float(m)
-    rho = acov / acov[0]
+    rho = autocorrelation(residual, m - 1)  # 0 throughout for a constant residual
     stop = np.flatnonzero(rho[1:] <= 0)
     k = int(stop[0]) + 1 if stop.size else m
     tau = 1.0 + 2.0 * float(np.sum(rho[1:k]))

@@ -38,6 +38,77 @@ class UnitValveFinding(OpenSchema):
     """The evidence in one sentence."""
 
 
+class GroupMemberPublic(OpenSchema):
+    """One signal's share in the oscillation (:class:`analytics.plantwide.GroupMember`)."""
+
+    signal: str | None = None
+    """The signal's name (``op_<loop>``, ``pv_<loop>`` or a measurement)."""
+    period_s: float | None = None
+    """Its own oscillation period, s."""
+    regularity: float | None = None
+    """Thornhill's regularity r of its oscillation."""
+    power_fraction: float | None = None
+    """Share of the signal's detrended variance at the oscillation."""
+    amplitude: float | None = None
+    """Half peak-to-peak of the band-passed oscillation, in the signal's units."""
+    similarity: float | None = None
+    """Cosine similarity of its spectrum around the group frequency with the strongest
+    member's (1 for that member)."""
+
+
+class ShapeDecompositionPublic(OpenSchema):
+    """The oscillation's cycle shapes decomposed into sources
+    (:class:`analytics.plantwide.ShapeDecomposition`; thesis chapter 2)."""
+
+    k: int | None = None
+    """Known shapes (sticky valves) chosen by the one-standard-error rule."""
+    n: int | None = None
+    """Valves that can act on the PVs (the group's loops)."""
+    held_out_error: list[float] | None = None
+    """Mean held-out squared error per cycle point for k = 0, 1, ..., summed over the
+    PVs (thesis Tables 2.4-2.6, cross-validated)."""
+    held_out_se: list[float] | None = None
+    """Standard error of each entry's per-cycle difference to the best one."""
+    structures: dict[str, list[str]] | None = None
+    """Each PV's structure with k shapes, in the notation of thesis Table 2.7."""
+    cycles: dict[str, int] | None = None
+    """Complete cycles used per PV."""
+
+
+class RankedSignalPublic(OpenSchema):
+    """One OP or PV in the group's nonlinearity ranking."""
+
+    signal: str | None = None
+    nonlinearity: float | None = None
+    """Surrogate nonlinearity index N (thesis Eq. 2.9; above 1: nonlinear)."""
+
+
+class LoopEvidencePublic(OpenSchema):
+    """What the unit diagnosis found about one loop of the group
+    (:class:`analytics.plantwide.LoopEvidence`)."""
+
+    loop: str | None = None
+    nonlinearity_op: float | None = None
+    """Surrogate nonlinearity index of OP at the group's period; null where it could not
+    be computed."""
+    nonlinearity_pv: float | None = None
+    """The same of PV."""
+    own_valve_gain: float | None = None
+    """Output-error R^2 a stiction model of the loop's own valve adds over a healthy one."""
+    half_gains: list[float | None] | None = None
+    """The same gain in the first and in the second half of the window."""
+    S: float | None = None
+    """Stick band of the identified valve model, % of OP span."""
+    J: float | None = None
+    """Slip jump of the identified valve model, % of OP span."""
+    J_product_only: bool | None = None
+    """The window pins only K J, not J."""
+    sticky: bool | None = None
+    """The stiction model fits well and is needed in the whole window and in each half."""
+    note: str | None = None
+    """The outcome in one sentence."""
+
+
 class OscillationGroup(OpenSchema):
     """One plant-wide oscillation and its diagnosis
     (:class:`analytics.plantwide.GroupDiagnosis`)."""
@@ -48,16 +119,16 @@ class OscillationGroup(OpenSchema):
     """Cycles of it in the window."""
     loops: list[str] | None = None
     """The loops that share it."""
-    members: list[dict[str, Any]] | None = None
+    members: list[GroupMemberPublic] | None = None
     """The signals that oscillate with it: ``signal``, ``period_s``, ``regularity``,
     ``power_fraction``, ``amplitude``, ``similarity``."""
-    shape_decomposition: dict[str, Any] | None = None
+    shape_decomposition: ShapeDecompositionPublic | None = None
     """The decomposition of the oscillation's shapes into sources (thesis chapter 2):
     ``k`` sources of ``n`` signals, held-out errors, structures and cycles."""
-    ranking: list[dict[str, Any]] | None = None
+    ranking: list[RankedSignalPublic] | None = None
     """Every OP and PV by surrogate nonlinearity index, most nonlinear first:
     ``signal``, ``nonlinearity``."""
-    evidence: list[dict[str, Any]] | None = None
+    evidence: list[LoopEvidencePublic] | None = None
     """Per loop: OP and PV nonlinearity, the gain of a stiction model of its own valve,
     S and J, whether it sticks, and a note."""
     sticky_valves: list[str]
