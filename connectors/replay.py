@@ -347,8 +347,11 @@ class ReplayConnector(BackgroundConnector[ReplayCounters]):
 
     @property
     def finished(self) -> bool:
-        """Whether every row has been sent."""
-        return self._counters.rows == self._counters.total_rows
+        """Whether every row has been sent and the sink has taken (or refused) all of
+        it: rows are counted when their batch leaves, before the sink's worker thread
+        has stored it."""
+        counters = self._counters.snapshot()
+        return counters.rows == counters.total_rows and counters.pending == 0
 
     async def run(self) -> None:
         """Send the rows not sent yet, each when it is due."""

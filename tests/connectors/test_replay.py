@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import itertools
+import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -229,6 +230,27 @@ def test_from_config_in_a_thread_and_a_stopped_replay_carries_on_where_it_stoppe
     values = [i["value"] for i in sink.items("X")]
     assert values == [float(k) for k in range(200)]  # nothing lost, nothing twice
     assert max(len(b[0]["items"]) for b in sink.batches) <= 10
+
+
+def test_a_replay_is_finished_only_once_the_sink_has_stored_its_last_batch(tmp_path):
+    path = tmp_path / "export.csv"
+    path.write_text("t,x\n0,1\n1,2\n2,3\n")
+    release = threading.Event()
+    sink = Sink()
+
+    def slow_sink(batch: list[dict[str, Any]]) -> None:
+        release.wait(20)  # a database busy with the last batch
+        sink(batch)
+
+    connector = ReplayConnector(path, slow_sink, columns={"x": "X"}, speed=1e6,
+                                max_rows_per_batch=3)
+    connector.start()
+    wait_for(lambda: connector.counters.rows == 3)  # every row has left the connector
+    assert not connector.finished  # ... but the sink has not stored them yet
+    release.set()
+    wait_for(lambda: connector.finished)
+    assert [i["value"] for i in sink.items("X")] == [1.0, 2.0, 3.0]
+    connector.stop()
 
 
 def test_a_failing_sink_is_counted(tmp_path):
