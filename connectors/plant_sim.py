@@ -449,8 +449,9 @@ class PlantSimulator:
             "url": self.opcua_url,
             "sampling_interval_ms": fastest_ms,
             "publishing_interval_ms": max(fastest_ms, 100.0),
-            # the samples one publishing interval can hold, with room for a late publish
-            "queue_size": max(10, math.ceil(4 * max(fastest_ms, 100.0) / fastest_ms)),
+            # ten seconds of samples per node: a publish held up by a busy machine (the
+            # server drops a node's oldest samples once its queue is full) loses none
+            "queue_size": max(10, math.ceil(10_000.0 / fastest_ms)),
             "watchdog_s": 30.0,
             "nodes": [{"tag": tag, "node_id": addresses[tag].node_id}
                       for loop_id in over_opcua for tag in _watched_tags(loop_id)],

@@ -120,12 +120,15 @@ def test_the_demo_plant_over_opcua_and_modbus_gets_its_alarms_and_tickets(tmp_pa
     # OPC UA delivers every sample with its time stamp: the window is the simulation
     served = [plant.value("FIC-101.PV", plant.sample_index("FIC-101", t)) for t in over_opcua.t]
     np.testing.assert_array_equal(over_opcua.pv, served)
-    # over Modbus a register holds the latest sample (float32), stamped when polled
+    # over Modbus a register holds the latest sample served (float32), stamped when
+    # polled: sample k or an earlier one, a few samples back when the simulator's thread
+    # was held up on a loaded machine
     polled = 0
     for t, value in zip(over_modbus.t, over_modbus.pv, strict=True):
         k = plant.sample_index("FIC-105", t)
         if not np.isnan(value) and value != plant.value("FIC-105.PV", k):  # not back-filled
-            assert value in [np.float32(plant.value("FIC-105.PV", j)) for j in (k - 1, k)]
+            recent = [np.float32(plant.value("FIC-105.PV", j)) for j in range(k - 5, k + 1)]
+            assert value in recent, (t, k, value)
             polled += 1
     assert polled >= 5
 
