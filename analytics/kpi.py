@@ -53,6 +53,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import solve_toeplitz
 
+from analytics.serial import Reader
 from analytics.stiction.stick_jump import (
     moving_average,
     op_travel,
@@ -864,6 +865,40 @@ class LoopKpis:
 
         result: dict[str, Any] = clean(asdict(self))
         return result
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None, *, lenient: bool = False) -> LoopKpis:
+        """The KPIs of :meth:`to_dict`'s form: ``to_dict(from_dict(d)) == d`` (a NaN
+        figure was stored as None and reads None).
+
+        ``lenient`` reads KPIs stored by an older version, or none at all (the
+        service's runs of unusable data): a missing field reads as its default, and
+        a missing ``samples`` and ``ts`` as 0 and NaN.
+
+        Raises
+        ------
+        DataError
+            A field is missing (strict reading) or a part is not an object; the
+            message names it (``loop kpis.harris``).
+        """
+        read = Reader(d, "loop kpis", lenient=lenient)
+
+        def optional(key: str, part: type[Any]) -> Any:
+            return None if read(key) is None else read.part(key).flat(part)
+
+        return cls(
+            samples=read("samples", 0), ts=read("ts", float("nan")),
+            error=optional("error", ErrorStatistics), harris=optional("harris", HarrisIndex),
+            dead_time_source=read("dead_time_source", "unknown"),
+            travel_per_day=read("travel_per_day"), reversals_per_day=read("reversals_per_day"),
+            saturation=read("saturation"),
+            setpoint_responses=tuple(r.flat(SetpointResponse)
+                                     for r in read.items("setpoint_responses")),
+            service_factor=optional("service_factor", ServiceFactor),
+            oscillation_index=read("oscillation_index"),
+            notes=tuple(read("notes", ())), dead_time_samples=read("dead_time_samples"),
+            dead_time_s=read("dead_time_s"), dead_time_note=read("dead_time_note", "unknown"),
+        )
 
 
 def loop_kpis(ts: float, *, op: FloatArray | None = None, pv: FloatArray | None = None,

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from dataclasses import MISSING, fields
+from typing import Any, TypeVar
 
 from analytics.errors import DataError
 
 __all__ = ["Reader"]
+
+T = TypeVar("T")
 
 
 class Reader:
@@ -66,3 +69,16 @@ class Reader:
         if not isinstance(values, list | tuple) or len(values) != 2:
             raise DataError(f"{self.where}.{key}: expected a pair, got {values!r}")
         return values[0], values[1]
+
+    def flat(self, cls: type[T]) -> T:
+        """The dataclass ``cls`` whose fields are all plain values (numbers, texts),
+        each read under its own name; a lenient reader gives a missing one the field's
+        default (None where it has none).
+
+        >>> from analytics.kpi import HarrisIndex
+        >>> Reader({"mv_variance": 1.0, "mse": 4.0, "ratio": 4.0, "normalised": 0.75,
+        ...         "dead_time": 3}, "harris").flat(HarrisIndex).normalised
+        0.75
+        """
+        return cls(**{f.name: self(f.name, None if f.default is MISSING else f.default)
+                      for f in fields(cls)})  # type: ignore[arg-type]

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from analytics.diagnosis import LoopDiagnosis
+from analytics.kpi import LoopKpis
 from analytics.oscillation import LoopOscillation
 from analytics.stiction.battery import StictionVerdict
 
@@ -213,16 +214,18 @@ class StoredKpis:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> StoredKpis:
-        k = d or {}
-        harris, error = _section(k, "harris"), _section(k, "error")
+        """The figures of stored KPIs (:meth:`analytics.kpi.LoopKpis.from_dict`, lenient)."""
+        k = LoopKpis.from_dict(d, lenient=True)
         return cls(
-            oscillation_index=k.get("oscillation_index"),
-            harris_normalised=harris.get("normalised"), harris_ratio=harris.get("ratio"),
-            saturation=k.get("saturation"), within_limits=error.get("within_limits"),
-            error_std=error.get("std"),
-            service_factor=_section(k, "service_factor").get("normal"),
-            travel_per_day=k.get("travel_per_day"), reversals_per_day=k.get("reversals_per_day"),
-            dead_time_note=k.get("dead_time_note"),
+            oscillation_index=k.oscillation_index,
+            harris_normalised=None if k.harris is None else k.harris.normalised,
+            harris_ratio=None if k.harris is None else k.harris.ratio,
+            saturation=k.saturation,
+            within_limits=None if k.error is None else k.error.within_limits,
+            error_std=None if k.error is None else k.error.std,
+            service_factor=None if k.service_factor is None else k.service_factor.normal,
+            travel_per_day=k.travel_per_day, reversals_per_day=k.reversals_per_day,
+            dead_time_note=k.dead_time_note if d else None,  # no KPIs: nothing to say
         )
 
 

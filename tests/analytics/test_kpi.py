@@ -1,11 +1,13 @@
 """Loop performance KPIs against analytic values and simulations with known answers."""
 
+import json
 import math
 
 import numpy as np
 import pytest
 from scipy.signal import lfilter
 
+from analytics.errors import DataError
 from analytics.kpi import (
     DeadTimeEstimate,
     LoopKpis,
@@ -528,6 +530,28 @@ def test_loop_kpis_together_and_json_ready():
     assert "dead time unknown" in unknown.notes[0]
     nothing = loop_kpis(1.0, op=np.full(10, np.nan)).to_dict()
     assert nothing["travel_per_day"] is None and nothing["error"] is None
+
+
+def test_loop_kpis_read_back_from_their_json_form():
+    """from_dict inverts to_dict, every part typed (the service reads stored KPIs so);
+    a strict read names the missing field, a lenient one reads old or absent KPIs."""
+    rng = np.random.default_rng(5)
+    sp = np.repeat([50.0, 55.0], 1800)
+    pv = sp + rng.normal(scale=0.5, size=3600)
+    op = np.clip(40 + rng.normal(scale=0.1, size=3600), 0, 100)
+    k = loop_kpis(1.0, op=op, pv=pv, sp=sp, dead_time=2, pv_limits=(45.0, 60.0),
+                  mode=["A"] * 3000 + ["M"] * 600, mode_mapping={"A": "auto", "M": "manual"},
+                  oscillation={"detected": True, "regularity": 3.0})
+    assert k.harris is not None and k.service_factor is not None and k.setpoint_responses
+    d = json.loads(json.dumps(k.to_dict()))
+    assert LoopKpis.from_dict(d) == k and LoopKpis.from_dict(d).to_dict() == d
+    nothing = loop_kpis(1.0, op=np.full(10, np.nan)).to_dict()
+    assert LoopKpis.from_dict(nothing).to_dict() == nothing
+    del d["harris"]["mse"]
+    with pytest.raises(DataError, match=r"loop kpis\.harris: the field 'mse' is missing"):
+        LoopKpis.from_dict(d)
+    old = LoopKpis.from_dict({"samples": 10, "ts": 1.0, "saturation": 0.25}, lenient=True)
+    assert old.saturation == 0.25 and old.harris is None and old.dead_time_note == "unknown"
 
 
 def test_controller_figures_leave_the_time_in_manual_out_and_say_so():
