@@ -11,6 +11,7 @@ estimate, the ellipse, the valve's size windows) have a model that names each of
 keys.
 """
 
+import itertools
 import json
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -23,6 +24,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from analytics.diagnosis import diagnose_loop
+from analytics.model_check.cases import hidden_effect_case
+from analytics.model_check.effects import EFFECTS
 from service.api.app import openapi_with_json_errors
 from service.api.routes import advice, loops, model_check, tickets, unit_diagnosis, unit_prediction
 from service.api.schemas.base import Schema
@@ -38,6 +41,8 @@ from service.api.schemas.diagnosis import (
     SignalOscillationPublic,
     SizeWindowPublic,
 )
+from service.api.schemas.model_check import LoopModelPublic
+from service.api.schemas.tickets import TicketEpisodePublic, TicketEvidencePublic
 from service.api.schemas.units import (
     GroupMemberPublic,
     LoopEvidencePublic,
@@ -201,6 +206,56 @@ def test_data_issues_and_the_manual_stretch_pass_through_their_models_unchanged(
     answer = LoopDiagnosisPublic.model_validate(diagnosis).model_dump(mode="json",
                                                                        exclude_unset=True)
     assert json.dumps(answer) == json.dumps(jsonable_encoder(diagnosis))
+
+def test_a_tickets_evidence_is_documented_field_by_field(demo) -> None:
+    """The stored evidence of each demo ticket, key by key and in order, is what the
+    ticket routes answer (its episodes included), and nothing is added to it."""
+    client, _ = demo
+    state = client.app.state.loopwatch
+    with state.store.session() as session:
+        stored = {t.id: t.evidence for t in session.scalars(select(Ticket))}
+    assert stored
+    for ticket_id, evidence in stored.items():
+        _documented(TicketEvidencePublic, evidence)
+        for episode in evidence["episodes"]:
+            _documented(TicketEpisodePublic, episode)
+        answer = client.get(f"/api/v1/tickets/{ticket_id}", headers=HEADERS).json()
+        assert json.dumps(answer["evidence"]) == json.dumps(jsonable_encoder(evidence))
+
+
+def _documented_tree(model: type[Schema], part: dict[str, Any]) -> None:
+    """:func:`_documented` for ``part`` and, field by field, its nested objects."""
+    _documented(model, part)
+    for key, value in part.items():
+        nested = _schema_of(model.model_fields[key].annotation)
+        if isinstance(value, dict) and nested is not None:
+            _documented_tree(nested, value)
+
+
+def _schema_of(annotation: Any) -> type[Schema] | None:
+    """The response model in ``annotation`` (``Model`` or ``Model | None``), if any."""
+    options = getattr(annotation, "__args__", (annotation,))
+    return next((o for o in options if isinstance(o, type) and issubclass(o, Schema)), None)
+
+
+def test_every_loop_model_the_check_writes_is_documented_field_by_field() -> None:
+    """The model check's base and extended models: the true models of the hidden-effect
+    cases carry each extension (direction and zone friction, characteristic, load,
+    quantiser), on self-regulating and integrating processes."""
+    seen = set()
+    for effect, seed in itertools.product(["none", *EFFECTS], (0, 1)):
+        case = hidden_effect_case(effect, seed, samples=600)
+        for model in (case.base_model, case.true_model):
+            if model is None:
+                continue
+            spec = model.to_dict()
+            _documented_tree(LoopModelPublic, spec)
+            answer = LoopModelPublic.model_validate(spec).model_dump(exclude_unset=True)
+            assert json.dumps(answer) == json.dumps(spec)
+            seen |= {*spec, *spec["valve"], spec["process"]["type"]}
+    assert seen >= {"load", "measurement", "opening", "closing", "zone", "characteristic",
+                    "fs", "S", "fopdt", "integrating"}
+
 
 @pytest.fixture
 def unit_client(tmp_path) -> Iterator[TestClient]:

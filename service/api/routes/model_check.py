@@ -75,7 +75,8 @@ def _check(op: NDArray[np.float64], pv: NDArray[np.float64], t: NDArray[np.float
     return stamped.to_dict(overlay=True)
 
 
-@router.post("/loops/{loop_id}/model-check", response_model=ModelCheckPublic)
+@router.post("/loops/{loop_id}/model-check", response_model=ModelCheckPublic,
+             response_model_exclude_unset=True)
 def loop_model_check(
     loop_id: str,
     session: SessionDep,

@@ -17,7 +17,7 @@ from service.api.deps import (
     error_responses,
     row_id,
 )
-from service.api.schemas.tickets import CmmsExport
+from service.api.schemas.tickets import CmmsExport, TicketEvidencePublic
 from service.cmms import to_cmms_notification
 from service.logs import audit
 from service.store.models import Ticket
@@ -59,7 +59,7 @@ class TicketPublic(BaseModel):
     description: str
     location: str | None
     malfunction_start: float
-    evidence: dict[str, Any]
+    evidence: TicketEvidencePublic
     created_at: float
     updated_at: float
 

@@ -8,7 +8,7 @@ Every number that is not finite is null.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from service.api.schemas.base import Schema
 
@@ -106,6 +106,123 @@ class OverlayPublic(Schema):
     """False for the warm-up."""
 
 
+class ProcessPublic(Schema):
+    """The first-order process (:func:`analytics.model_check.model.process_to_dict`)."""
+
+    type: Literal["fopdt", "integrating"]
+    """``fopdt``: ``K exp(-theta s) / (tau s + 1)``; ``integrating``:
+    ``K exp(-theta s) / (s (tau s + 1))``."""
+    K: float
+    """Process gain: % of PV span per % of flow (per second for an integrating process)."""
+    tau: float | None = None
+    """Time constant (lag), s; absent for an integrating process without a lag."""
+    theta: float
+    """Dead time, s."""
+
+
+class ControllerPublic(Schema):
+    """The PI controller ``OP = Kc (e + (1 / Ti) integral(e))``, ``e = SP - PV``
+    (:func:`analytics.model_check.model.controller_to_dict`)."""
+
+    type: Literal["PI"]
+    Kc: float
+    """Controller gain (negative: direct acting)."""
+    Ti: float | None = None
+    """Integral time, s; absent for P-only control."""
+    op_limits: list[float] | None = None
+    """``[low, high]`` of OP, %; absent for ``[0, 100]``."""
+
+
+class FrictionPublic(Schema):
+    """Friction parameters of the base valve's model: ``fs``, ``fd`` (He) or ``S``, ``J``
+    (Choudhury, Kano), % of valve travel."""
+
+    fs: float | None = None
+    fd: float | None = None
+    S: float | None = None
+    J: float | None = None
+
+
+class StictionZonePublic(Schema):
+    """Friction inside the band of travel ``low <= MV <= high``, in both directions (the
+    friction parameters of :class:`FrictionPublic` after the band)."""
+
+    low: float
+    high: float
+    fs: float | None = None
+    fd: float | None = None
+    S: float | None = None
+    J: float | None = None
+
+
+class CharacteristicPublic(Schema):
+    """The installed flow characteristic ``flow(MV) = (100 / c) (exp(c (MV - op_bias) / 100)
+    - 1)``: gain 1 at ``op_bias``, changing by ``e^c`` over the whole travel."""
+
+    type: Literal["exponential"]
+    curvature: float
+    """``c`` (0: linear)."""
+
+
+class ModelValvePublic(Schema):
+    """The valve (:meth:`analytics.model_check.model.Valve.to_dict`): the base friction
+    model and its parameters (as :class:`FrictionPublic`), with direction- or
+    position-dependent friction and a characteristic when the check found them."""
+
+    model: str
+    """The base friction model: ``he``, ``choudhury`` or ``kano`` (a healthy valve is
+    ``he`` with ``fs = fd = 0``)."""
+    fs: float | None = None
+    fd: float | None = None
+    S: float | None = None
+    J: float | None = None
+    opening: FrictionPublic | None = None
+    """Friction while the valve opens, when it differs from closing."""
+    closing: FrictionPublic | None = None
+    """Friction while the valve closes."""
+    zone: StictionZonePublic | None = None
+    characteristic: CharacteristicPublic | None = None
+
+
+class LoadPublic(Schema):
+    """An unmeasured periodic load ``amplitude sin(2 pi t / period + phase)`` on PV."""
+
+    kind: Literal["sine"]
+    amplitude: float
+    """% of PV span."""
+    period: float
+    """s."""
+    phase: float
+    """rad."""
+
+
+class MeasurementPublic(Schema):
+    """The PV transmitter: quantised to ``resolution`` from ``origin``, with white noise."""
+
+    resolution: float
+    """% of PV span."""
+    origin: float
+    noise: float
+    """Standard deviation of white measurement noise, % of PV span."""
+
+
+class LoopModelPublic(Schema):
+    """A loop model in the model JSON of issue 8 (the request's ``model``;
+    :meth:`analytics.model_check.model.LoopModel.to_dict`), in % of span."""
+
+    dt: float
+    """Sampling interval of the simulation, s."""
+    process: ProcessPublic
+    controller: ControllerPublic
+    valve: ModelValvePublic
+    op_bias: float
+    """OP at the operating point (valve at rest, process at zero deviation), %."""
+    pv_bias: float | None = None
+    """PV at rest with MV at ``op_bias``, %; absent: estimated from the data."""
+    load: LoadPublic | None = None
+    measurement: MeasurementPublic | None = None
+
+
 class ModelCheckPublic(Schema):
     """What the simulation of the loop gets wrong, the cause, the extended model and the
     gain, on the longest complete stretch of the loop's current window."""
@@ -121,8 +238,8 @@ class ModelCheckPublic(Schema):
     """Samples checked."""
     model_source: Literal["given", "identified"]
     """The request's model, or one identified from the window."""
-    base_model: dict[str, Any]
-    """The base model in the model JSON of issue 8 (as the request's ``model``)."""
+    base_model: LoopModelPublic
+    """The base model."""
     baseline: BaselinePublic
     findings: list[str]
     """What the simulation gets wrong, where and how much, and why."""
@@ -132,8 +249,8 @@ class ModelCheckPublic(Schema):
     """Every cause named, in the order they were added to the model (at most two)."""
     candidates: list[CandidatePublic]
     """Every effect tried."""
-    extended_model: dict[str, Any]
-    """The base model with the causes, in the same model JSON."""
+    extended_model: LoopModelPublic
+    """The base model with the causes."""
     gain: GainPublic
     notes: list[str]
     """How the base model was obtained, and caveats."""
