@@ -134,15 +134,15 @@ def test_every_sample_arrives_over_opcua_with_its_time_stamp_and_value():
 
 def test_the_mode_tag_over_opcua_gives_the_service_factor_exactly():
     """PIC-401 goes to manual 1800 s into the run (plant time).  Served 10 x faster from
-    plant time 1650 s, its samples come through the OPC UA connector into the service's
+    plant time 1740 s, its samples come through the OPC UA connector into the service's
     buffers; the analysis of a window from the first samples received to 50 s of plant
     time after the switch finds the share of its grid points whose plant time lies in
     manual, counted here from the schedule, and OP held there."""
     speed, loop_id = 10.0, "PIC-401"
     start = time.time()
     sim = PlantSimulator(opcua_port=0, modbus_port=0, horizon_s=2400.0, speed=speed,
-                         origin=start - 1650.0 / speed)
-    switch = start + 150.0 / speed  # wall time of plant time 1800 s
+                         origin=start - 1740.0 / speed)
+    switch = start + 60.0 / speed  # wall time of plant time 1800 s
     tags = [f"{loop_id}.{s}" for s in ("OP", "PV", "SP", "MODE")]
     sink = Sink()
     sim.start_in_thread()
