@@ -412,14 +412,22 @@ class ModbusConnector(BackgroundConnector[ModbusCounters]):
     async def _poll(
         self, client: AsyncModbusTcpClient, queue: asyncio.Queue[list[dict[str, Any]] | None]
     ) -> str:
-        """Poll every group each interval until the connection fails; the reason it did."""
+        """Poll every group each interval until the connection fails; the reason it did.
+
+        A stop cancels the task; a cancellation that arrives as a response completes
+        can be lost inside the read (``asyncio.wait_for`` before Python 3.12 returns
+        the response instead), so each read first checks that none is pending.
+        """
         loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
         interval = self.config.poll_interval_s
         next_cycle = loop.time()
         while True:
             batch: list[dict[str, Any]] = []
             try:
                 for index, group in enumerate(self.config.groups):
+                    if task is not None and task.cancelling():
+                        raise asyncio.CancelledError
                     if not client.connected:
                         return "the connection was closed"
                     read = (
