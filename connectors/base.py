@@ -54,6 +54,7 @@ __all__ = [
     "item",
     "number_columns",
     "parse_time",
+    "raise_if_cancelled",
     "read_csv_rows",
 ]
 
@@ -117,6 +118,19 @@ class DeliveryCounters:
         """A copy of the counters now, taken under :attr:`lock`."""
         with self.lock:
             return replace(self)
+
+
+def raise_if_cancelled() -> None:
+    """Raise :class:`asyncio.CancelledError` if the current task has a cancellation pending.
+
+    Python 3.11's ``asyncio.wait_for`` returns the result of an awaitable that completes
+    together with a cancellation and drops the cancellation (fixed in 3.12), and the
+    client libraries read through it: a connector's poll or reconnect loop checks this
+    at each turn, so that a stop ends it.
+    """
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
 
 
 async def hand_over(

@@ -58,6 +58,7 @@ from connectors.base import (
     SampleSink,
     hand_over,
     item,
+    raise_if_cancelled,
 )
 
 __all__ = [
@@ -404,6 +405,7 @@ class ModbusConnector(BackgroundConnector[ModbusCounters]):
                 reason = f"unexpected error: {exc!r}"
             finally:
                 client.close()
+            raise_if_cancelled()
             if self._outages.lost(reason):
                 with self._counters.lock:
                     self._counters.outages += 1
@@ -414,20 +416,18 @@ class ModbusConnector(BackgroundConnector[ModbusCounters]):
     ) -> str:
         """Poll every group each interval until the connection fails; the reason it did.
 
-        A stop cancels the task; a cancellation that arrives as a response completes
-        can be lost inside the read (``asyncio.wait_for`` before Python 3.12 returns
-        the response instead), so each read first checks that none is pending.
+        A stop cancels the task; a cancellation that comes as a response does can be
+        lost inside the read, so each read first checks that none is pending
+        (:func:`~connectors.base.raise_if_cancelled`).
         """
         loop = asyncio.get_running_loop()
-        task = asyncio.current_task()
         interval = self.config.poll_interval_s
         next_cycle = loop.time()
         while True:
             batch: list[dict[str, Any]] = []
             try:
                 for index, group in enumerate(self.config.groups):
-                    if task is not None and task.cancelling():
-                        raise asyncio.CancelledError
+                    raise_if_cancelled()
                     if not client.connected:
                         return "the connection was closed"
                     read = (

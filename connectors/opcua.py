@@ -80,7 +80,14 @@ from pydantic import (
     model_validator,
 )
 
-from connectors.base import BackgroundConnector, Backoff, DeliveryCounters, SampleSink, item
+from connectors.base import (
+    BackgroundConnector,
+    Backoff,
+    DeliveryCounters,
+    SampleSink,
+    item,
+    raise_if_cancelled,
+)
 
 __all__ = [
     "MONITORED_ITEMS_PER_CALL",
@@ -331,6 +338,7 @@ class OpcUaConnector(BackgroundConnector[OpcUaCounters]):
                 except Exception as exc:  # a bug or an unexpected answer: log it, carry on
                     log.exception("opcua %s: session failed unexpectedly", self.config.url)
                     reason = f"{type(exc).__name__}: {exc}"
+                raise_if_cancelled()  # a stop that a library call returned through
                 self._begin_outage(reason)
                 if self._sessions > sessions_before:
                     delays = self.backoff.delays()
