@@ -24,6 +24,7 @@ from analytics.kpi import (
     valve_travel_per_day,
 )
 from analytics.stiction.stick_jump import op_travel, robust_noise
+from analytics.types import FloatArray
 
 # ---------------------------------------------------------------- error statistics
 
@@ -502,7 +503,10 @@ def test_oscillation_index_scale():
     assert oscillation_index(False, 8.0) == 0.0
 
 
-def test_loop_kpis_together_and_json_ready():
+def one_hour_with_a_step(
+) -> tuple[np.random.Generator, FloatArray, FloatArray, FloatArray, LoopKpis]:
+    """A loop with one set-point step, white error, an hour with ten minutes in manual:
+    its generator (for more noise), SP, PV, OP and KPIs with every part computed."""
     rng = np.random.default_rng(5)
     sp = np.repeat([50.0, 55.0], 1800)
     pv = sp + rng.normal(scale=0.5, size=3600)
@@ -510,6 +514,11 @@ def test_loop_kpis_together_and_json_ready():
     k = loop_kpis(1.0, op=op, pv=pv, sp=sp, dead_time=2, pv_limits=(45.0, 60.0),
                   mode=["A"] * 3000 + ["M"] * 600, mode_mapping={"A": "auto", "M": "manual"},
                   oscillation={"detected": True, "regularity": 3.0})
+    return rng, sp, pv, op, k
+
+
+def test_loop_kpis_together_and_json_ready():
+    rng, sp, pv, op, k = one_hour_with_a_step()
     assert isinstance(k, LoopKpis) and k.samples == 3600
     assert k.dead_time_source == "configured"
     assert k.harris.ratio == pytest.approx(1.0, abs=0.05)  # white error: minimum variance
@@ -535,13 +544,7 @@ def test_loop_kpis_together_and_json_ready():
 def test_loop_kpis_read_back_from_their_json_form():
     """from_dict inverts to_dict, every part typed (the service reads stored KPIs so);
     a strict read names the missing field, a lenient one reads old or absent KPIs."""
-    rng = np.random.default_rng(5)
-    sp = np.repeat([50.0, 55.0], 1800)
-    pv = sp + rng.normal(scale=0.5, size=3600)
-    op = np.clip(40 + rng.normal(scale=0.1, size=3600), 0, 100)
-    k = loop_kpis(1.0, op=op, pv=pv, sp=sp, dead_time=2, pv_limits=(45.0, 60.0),
-                  mode=["A"] * 3000 + ["M"] * 600, mode_mapping={"A": "auto", "M": "manual"},
-                  oscillation={"detected": True, "regularity": 3.0})
+    *_, k = one_hour_with_a_step()
     assert k.harris is not None and k.service_factor is not None and k.setpoint_responses
     d = json.loads(json.dumps(k.to_dict()))
     assert LoopKpis.from_dict(d) == k and LoopKpis.from_dict(d).to_dict() == d
