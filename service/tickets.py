@@ -52,10 +52,10 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal, get_args
 
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload
 
@@ -172,73 +172,86 @@ _NON_NUMERIC_KEYS = ("pattern", "episodes", "S_interval", "J_interval", "size_ch
 _NO_CYCLE_PATTERNS = ("stick_jump", "stuck")
 
 
-@dataclass(frozen=True)
-class TicketEpisode:
-    """One stick-jump episode of a ticket's evidence (:data:`EPISODE_KEYS`, UNIX s and %
-    of span)."""
+class TicketEpisode(BaseModel):
+    """One stick-jump episode of a ticket's evidence (:data:`EPISODE_KEYS`).  The ticket
+    routes answer with it: a field's docstring is its OpenAPI description."""
+
+    model_config = ConfigDict(frozen=True, use_attribute_docstrings=True)
 
     start: float
+    """The valve holds from here, UNIX s."""
     jump: float
+    """It slips, UNIX s."""
     end: float
+    """PV has settled, UNIX s."""
     op_travel: float
+    """OP travel during the hold, % of span."""
     pv_jump: float
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TicketEpisode:
-        return cls(*(float(d[key]) for key in EPISODE_KEYS))
+    """PV jump at the slip, % of span."""
 
 
-@dataclass(frozen=True)
-class TicketEvidence:
-    """A ticket's stored evidence (:func:`_checked_evidence`), as the ticket rule and its
-    long text read it; keys stored before they existed read as their defaults."""
+class TicketEvidence(BaseModel):
+    """A ticket's stored evidence (:func:`_checked_evidence`): the analysis that opened or
+    last confirmed the ticket, and the valve's size, as the ticket rule, its long text and
+    the ticket routes read it (fields in the stored order; a field's docstring is its
+    OpenAPI description).  Keys stored before they existed read as their defaults; keys
+    of other versions are kept."""
 
-    run_id: int
-    window_start: float
-    window_end: float
-    confidence: float
-    S: float | None = None
-    J: float | None = None
-    fs: float | None = None
-    fd: float | None = None
-    period_s: float | None = None
-    amplitude_op: float | None = None
-    amplitude_pv: float | None = None
-    pattern: str | None = None
-    op_travel: float | None = None
-    episode_stick_band: float | None = None
-    episode_S: float | None = None
-    size_check: str | None = None
-    episodes: tuple[TicketEpisode, ...] = ()
-    episodes_found: int = 0
-    S_interval: tuple[float, float] | None = None
-    J_interval: tuple[float, float] | None = None
-    size_windows: int | None = None
+    model_config = ConfigDict(frozen=True, use_attribute_docstrings=True, extra="allow")
+
     loop_id: str = ""
     valve_asset: str = ""
+    run_id: int
+    """The analysis run (``GET /api/v1/runs/{id}``)."""
+    window_start: float
+    """Its window, UNIX s."""
+    window_end: float
+    confidence: float
+    """Of the stiction verdict, 0..1."""
+    S: float | None = None
+    """Stiction, % of valve span: the valve's size combined over ``size_windows``
+    windows."""
+    J: float | None = None
+    """Slip jump, % of valve span."""
+    period_s: float | None = None
+    """Oscillation period, s (null: no sustained cycle)."""
+    amplitude_op: float | None = None
+    """Oscillation amplitude (half peak-to-peak) of OP, % of span."""
+    amplitude_pv: float | None = None
+    """The same of PV."""
+    pattern: str | None = None
+    """How the sticky valve shows: ``limit_cycle``, ``irregular_cycle``, ``stick_jump`` or
+    ``stuck`` (:data:`analytics.diagnosis.PATTERNS`)."""
+    op_travel: float | None = None
+    """OP travel over the window, % of span."""
+    episode_stick_band: float | None = None
+    """The stick band read off the episodes, % of span."""
+    episode_S: float | None = None
+    """S from OP's travel between its turns and the slips
+    (:mod:`analytics.stiction.episode_size`)."""
+    size_check: str | None = None
+    """Whether ``episode_S`` agrees with the window's Hammerstein S."""
+    episodes: tuple[TicketEpisode, ...] = ()
+    """The latest stick-jump episodes (at most :data:`MAX_TICKET_EPISODES`)."""
+    S_interval: tuple[float, float] | None = None
+    """``[low, high]``, the 95 % interval of S."""
+    J_interval: tuple[float, float] | None = None
+    """``[low, high]``, the 95 % interval of J."""
+    size_windows: int | None = None
+    """Windows that do not overlap combined into S and J."""
+    episodes_found: int = 0
+    """Episodes the analysis found (``episodes`` keeps the latest)."""
+    fs: float | None = None
+    """He's static friction, % of span."""
+    fd: float | None = None
+    """He's dynamic friction, % of span."""
     confirmations: int = 0
-    plots: tuple[tuple[str, str], ...] = ()
+    """Analysis runs on windows that do not overlap that found stiction when the evidence
+    was stored: the plant's ``confirmations_needed`` at the time."""
+    plots: dict[str, str] = Field(default_factory=dict)
+    """The loop's plots by kind (trend, signature, spectrum): API paths."""
 
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TicketEvidence:
-        def interval(value: Any) -> tuple[float, float] | None:
-            return None if value is None else (float(value[0]), float(value[1]))
 
-        return cls(
-            run_id=d["run_id"], window_start=d["window_start"], window_end=d["window_end"],
-            confidence=d["confidence"], S=d.get("S"), J=d.get("J"), fs=d.get("fs"),
-            fd=d.get("fd"), period_s=d.get("period_s"), amplitude_op=d.get("amplitude_op"),
-            amplitude_pv=d.get("amplitude_pv"), pattern=d.get("pattern"),
-            op_travel=d.get("op_travel"), episode_stick_band=d.get("episode_stick_band"),
-            episode_S=d.get("episode_S"), size_check=d.get("size_check"),
-            episodes=tuple(TicketEpisode.from_dict(e) for e in d.get("episodes") or ()),
-            episodes_found=int(d.get("episodes_found") or 0),
-            S_interval=interval(d.get("S_interval")), J_interval=interval(d.get("J_interval")),
-            size_windows=d.get("size_windows"), loop_id=str(d.get("loop_id", "")),
-            valve_asset=str(d.get("valve_asset", "")),
-            confirmations=int(d.get("confirmations") or 0),
-            plots=tuple((d.get("plots") or {}).items()),
-        )
 _DEFAULTS_OF_LATER_KEYS: dict[str, Any] = {
     "pattern": None, "op_travel": None, "episode_stick_band": None, "episode_S": None,
     "size_check": None, "episodes": [],
@@ -593,7 +606,7 @@ def _describe(e: TicketEvidence) -> str:
         oscillation,
         *_describe_episodes(e),
         f"Confidence {e.confidence:.2f}; analysis run {e.run_id}, window {window}.",
-        "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e.plots),
+        "Plots: " + ", ".join(f"{kind} {url}" for kind, url in e.plots.items()),
     ])
 
 
@@ -634,7 +647,7 @@ def update_ticket_from_analysis(
     stored = _checked_evidence(loop_id, asset, evidence, len(streak))
     if len(streak) < confirmations_needed:
         return None
-    checked = TicketEvidence.from_dict(stored)
+    checked = TicketEvidence.model_validate(stored)
     size = next((s for s in (checked.S, checked.episode_S, checked.episode_stick_band)
                  if s is not None), None)
     priority = ticket_priority(S=size, amplitude_pv=checked.amplitude_pv,

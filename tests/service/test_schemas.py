@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from fastapi.encoders import jsonable_encoder
 from fastapi.testclient import TestClient
+from pydantic import BaseModel
 from sqlalchemy import select
 
 from analytics.diagnosis import diagnose_loop
@@ -42,7 +43,6 @@ from service.api.schemas.diagnosis import (
     SizeWindowPublic,
 )
 from service.api.schemas.model_check import LoopModelPublic
-from service.api.schemas.tickets import TicketEpisodePublic, TicketEvidencePublic
 from service.api.schemas.units import (
     GroupMemberPublic,
     LoopEvidencePublic,
@@ -53,6 +53,7 @@ from service.config import PlantConfig, Settings
 from service.server import build_service
 from service.store.models import AnalysisRun, Ticket
 from service.stored import ManualStretch
+from service.tickets import TicketEpisode, TicketEvidence
 from tests.service.api.stored import store_run
 from tests.service.api.test_advice import HEADERS, demo
 from tests.service.api.test_unit_prediction import plant_data
@@ -126,7 +127,7 @@ def test_the_loop_diagnosis_of_health_is_the_stored_one(demo) -> None:
 
 
 
-def _documented(model: type[Schema], part: dict[str, Any]) -> None:
+def _documented(model: type[BaseModel], part: dict[str, Any]) -> None:
     """Every key of ``part`` is a field of ``model``, in the model's order (the answer's
     key order is the model's: a field declared out of order reorders the JSON)."""
     fields = list(model.model_fields)
@@ -216,9 +217,9 @@ def test_a_tickets_evidence_is_documented_field_by_field(demo) -> None:
         stored = {t.id: t.evidence for t in session.scalars(select(Ticket))}
     assert stored
     for ticket_id, evidence in stored.items():
-        _documented(TicketEvidencePublic, evidence)
+        _documented(TicketEvidence, evidence)
         for episode in evidence["episodes"]:
-            _documented(TicketEpisodePublic, episode)
+            _documented(TicketEpisode, episode)
         answer = client.get(f"/api/v1/tickets/{ticket_id}", headers=HEADERS).json()
         assert json.dumps(answer["evidence"]) == json.dumps(jsonable_encoder(evidence))
 

@@ -17,12 +17,13 @@ from service.api.deps import (
     error_responses,
     row_id,
 )
-from service.api.schemas.tickets import CmmsExport, TicketEvidencePublic
+from service.api.schemas.tickets import CmmsExport
 from service.cmms import to_cmms_notification
 from service.logs import audit
 from service.store.models import Ticket
 from service.tickets import (
     TICKET_STATES,
+    TicketEvidence,
     TicketNotFoundError,
     TicketState,
     change_ticket_state,
@@ -59,7 +60,7 @@ class TicketPublic(BaseModel):
     description: str
     location: str | None
     malfunction_start: float
-    evidence: TicketEvidencePublic
+    evidence: TicketEvidence
     created_at: float
     updated_at: float
 

@@ -143,16 +143,16 @@ class FrictionPublic(Schema):
     J: float | None = None
 
 
-class StictionZonePublic(Schema):
-    """Friction inside the band of travel ``low <= MV <= high``, in both directions (the
-    friction parameters of :class:`FrictionPublic` after the band)."""
-
+class _Band(Schema):
     low: float
     high: float
-    fs: float | None = None
-    fd: float | None = None
-    S: float | None = None
-    J: float | None = None
+
+
+class StictionZonePublic(FrictionPublic, _Band):
+    """Friction inside the band of travel ``low <= MV <= high``, in both directions.
+
+    (Fields come base by base from the last base: the band, then the friction, as
+    :meth:`analytics.model_check.model.Valve.to_dict` writes them.)"""
 
 
 class CharacteristicPublic(Schema):
@@ -164,18 +164,18 @@ class CharacteristicPublic(Schema):
     """``c`` (0: linear)."""
 
 
-class ModelValvePublic(Schema):
-    """The valve (:meth:`analytics.model_check.model.Valve.to_dict`): the base friction
-    model and its parameters (as :class:`FrictionPublic`), with direction- or
-    position-dependent friction and a characteristic when the check found them."""
-
+class _FrictionModel(Schema):
     model: str
     """The base friction model: ``he``, ``choudhury`` or ``kano`` (a healthy valve is
     ``he`` with ``fs = fd = 0``)."""
-    fs: float | None = None
-    fd: float | None = None
-    S: float | None = None
-    J: float | None = None
+
+
+class ModelValvePublic(FrictionPublic, _FrictionModel):
+    """The valve (:meth:`analytics.model_check.model.Valve.to_dict`): the base friction
+    model and its parameters, with direction- or position-dependent friction and a
+    characteristic when the check found them (fields in that order, as for
+    :class:`StictionZonePublic`)."""
+
     opening: FrictionPublic | None = None
     """Friction while the valve opens, when it differs from closing."""
     closing: FrictionPublic | None = None

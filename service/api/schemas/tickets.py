@@ -1,88 +1,10 @@
-"""A ticket's evidence (:data:`service.tickets.EVIDENCE_KEYS`) and its CMMS export
-(``GET /api/v1/tickets/{id}/cmms``, :func:`service.cmms.to_cmms_notification`): a SAP
-PM M2 notification and a Maximo work order.  Fields the plant file's CMMS settings do
-not set are absent."""
+"""A ticket's CMMS export (``GET /api/v1/tickets/{id}/cmms``,
+:func:`service.cmms.to_cmms_notification`): a SAP PM M2 notification and a Maximo
+work order.  Fields the plant file's CMMS settings do not set are absent."""
 
 from __future__ import annotations
 
-from pydantic import Field
-
-from service.api.schemas.base import OpenSchema, Schema
-
-
-class TicketEpisodePublic(Schema):
-    """A stick-jump episode of the evidence (:data:`service.tickets.EPISODE_KEYS`)."""
-
-    start: float
-    """The valve holds from here, UNIX s."""
-    jump: float
-    """It slips, UNIX s."""
-    end: float
-    """PV has settled, UNIX s."""
-    op_travel: float
-    """OP travel during the hold, % of span."""
-    pv_jump: float
-    """PV jump at the slip, % of span."""
-
-
-class TicketEvidencePublic(OpenSchema):
-    """The analysis that opened or last confirmed the ticket, and the valve's size.
-
-    Evidence stored before a field existed reads as null for it (``[]`` for
-    ``episodes``, 0 for ``episodes_found``)."""
-
-    loop_id: str | None = None
-    valve_asset: str | None = None
-    run_id: int | None = None
-    """The analysis run (``GET /api/v1/runs/{id}``)."""
-    window_start: float | None = None
-    """Its window, UNIX s."""
-    window_end: float | None = None
-    confidence: float | None = None
-    """Of the stiction verdict, 0..1."""
-    S: float | None = None
-    """Stiction, % of valve span: the valve's size combined over ``size_windows``
-    windows."""
-    J: float | None = None
-    """Slip jump, % of valve span."""
-    period_s: float | None = None
-    """Oscillation period, s (null: no sustained cycle)."""
-    amplitude_op: float | None = None
-    """Oscillation amplitude (half peak-to-peak) of OP, % of span."""
-    amplitude_pv: float | None = None
-    """The same of PV."""
-    pattern: str | None = None
-    """How the sticky valve shows: ``limit_cycle``, ``irregular_cycle``, ``stick_jump`` or
-    ``stuck`` (:data:`analytics.diagnosis.PATTERNS`)."""
-    op_travel: float | None = None
-    """OP travel over the window, % of span."""
-    episode_stick_band: float | None = None
-    """The stick band read off the episodes, % of span."""
-    episode_S: float | None = None
-    """S from OP's travel between its turns and the slips
-    (:mod:`analytics.stiction.episode_size`)."""
-    size_check: str | None = None
-    """Whether ``episode_S`` agrees with the window's Hammerstein S."""
-    episodes: list[TicketEpisodePublic] = Field(default_factory=list)
-    """The latest stick-jump episodes (at most
-    :data:`service.tickets.MAX_TICKET_EPISODES`)."""
-    S_interval: list[float] | None = None
-    """``[low, high]``, the 95 % interval of S."""
-    J_interval: list[float] | None = None
-    """``[low, high]``, the 95 % interval of J."""
-    size_windows: int | None = None
-    """Windows that do not overlap combined into S and J."""
-    episodes_found: int = 0
-    """Episodes the analysis found (``episodes`` keeps the latest)."""
-    fs: float | None = None
-    """He's static friction, % of span."""
-    fd: float | None = None
-    """He's dynamic friction, % of span."""
-    confirmations: int | None = None
-    """Analysis runs on windows that do not overlap that found stiction when the evidence
-    was stored: the plant's ``confirmations_needed`` at the time."""
-    plots: dict[str, str] | None = None
-    """The loop's plots by kind (trend, signature, spectrum): API paths."""
+from service.api.schemas.base import Schema
 
 
 class SapPmItem(Schema):
